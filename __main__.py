@@ -1,0 +1,3 @@
+from scancell.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,96 @@
+"""The ``scancell`` command line. Each subcommand imports its machinery only when run."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+
+Command = Callable[[argparse.Namespace], int]
+_COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], str]] = {}
+
+
+def subcommand(name: str, help_: str, target: str):
+    """Register a subcommand; ``target`` is ``module:function`` taking the parsed args."""
+
+    def deco(add_args: Callable[[argparse.ArgumentParser], None]):
+        _COMMANDS[name] = (help_, add_args, target)
+        return add_args
+
+    return deco
+
+
+def _bus_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--cell", default=None, help="cell name (default: $SCANCELL_CELL or 'sim')")
+    p.add_argument("--connect", default=None,
+                   help="zenoh endpoint(s) of the daemon, comma-separated "
+                        "(default: $SCANCELL_CONNECT or tcp/127.0.0.1:7447)")
+
+
+@subcommand("daemon", "run the cell daemon (devices, commands, measurements)",
+            "scancell.daemon.cli:main")
+def _daemon_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None,
+                   help="cell config TOML (default: the packaged deploy/cells/sim.toml)")
+    p.add_argument("--listen", default=None,
+                   help="override [bus] listen endpoints, comma-separated")
+    p.add_argument("--cell", default=None, help="override [cell] name")
+
+
+@subcommand("ctl", "talk to a running daemon: status, devices, call", "scancell.ctl:main")
+def _ctl_args(p: argparse.ArgumentParser) -> None:
+    _bus_args(p)
+    p.add_argument("--timeout", type=float, default=130.0, help="seconds to wait for a reply")
+    p.add_argument("--json-out", action="store_true", help="print raw JSON instead of tables")
+    sub = p.add_subparsers(dest="action", required=True)
+    sub.add_parser("status", help="every device and its state")
+    sub.add_parser("devices", help="devices, drivers and their operations")
+    call = sub.add_parser("call", help="call any command, e.g. device/robot/joints")
+    call.add_argument("verb")
+    call.add_argument("--json", default="{}", help="request as a JSON object")
+
+
+@subcommand("drivers", "list the device drivers scancell knows", "scancell.ctl:drivers")
+def _drivers_args(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+@subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
+def _demo_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")
+    p.add_argument("--quick", action="store_true", help="reduced size, for tests")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    import scancell
+
+    parser = argparse.ArgumentParser(
+        prog="scancell",
+        description="Robot-integrated fringe-projection 3D scanning cell.",
+    )
+    parser.add_argument("--version", action="version", version=f"scancell {scancell.__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (help_, add_args, target) in _COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        add_args(p)
+        p.set_defaults(_target=target)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose or
+        args.command == "daemon" else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    import importlib
+
+    module, _, func = args._target.partition(":")
+    try:
+        return int(getattr(importlib.import_module(module), func)(args) or 0)
+    except KeyboardInterrupt:
+        return 130

@@ -1,0 +1,55 @@
+"""The cell controller's side: call daemon commands over zenoh.
+
+    from scancell.client import CellClient
+    with CellClient("sim") as cell:
+        print(cell.status())
+        cell.call("device/robot/move_joints", {"joints_deg": [0, 0, 0, 0, -90, 0]})
+
+``await cell.acall(...)`` does the same from asyncio code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from scancell.bus import Bus, BusConfig, NoDaemon
+from scancell.protocols.commands import CommandError
+
+__all__ = ["CellClient", "CommandError", "NoDaemon"]
+
+
+class CellClient:
+    """A zenoh session bound to one cell's command keys."""
+
+    def __init__(self, cell: str = "sim", connect: str | list[str] | None = None,
+                 bus_config: BusConfig | None = None, timeout_s: float = 130.0) -> None:
+        self.bus = Bus.open(bus_config or BusConfig.client_default(connect), cell)
+        self.timeout_s = timeout_s
+
+    def call(self, verb: str, request: dict[str, Any] | None = None,
+             timeout_s: float | None = None) -> Any:
+        """Return the command's result; raise CommandError (error reply) or NoDaemon."""
+        return self.bus.call(verb, request, timeout_s or self.timeout_s)
+
+    async def acall(self, verb: str, request: dict[str, Any] | None = None,
+                    timeout_s: float | None = None) -> Any:
+        return await asyncio.to_thread(self.call, verb, request, timeout_s)
+
+    def status(self) -> dict[str, Any]:
+        return self.call("status")
+
+    def devices(self) -> list[dict[str, Any]]:
+        return self.call("devices")["devices"]
+
+    def alive(self) -> list[str]:
+        return self.bus.alive()
+
+    def close(self) -> None:
+        self.bus.close()
+
+    def __enter__(self) -> CellClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

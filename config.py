@@ -1,0 +1,145 @@
+"""Cell configuration: one TOML file per cell, validated at load.
+
+Every error names the file, the key and the problem, e.g.
+``deploy/cells/sim.toml: [devices.robot] driver: unknown driver 'fanuc2'; known: ...``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+
+from scancell.bus import BusConfig
+from scancell.protocols.keys import check_name
+
+
+class ConfigError(ValueError):
+    """A cell config is missing, unreadable or invalid."""
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    name: str
+    driver: str
+    options: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    status_period_s: float = 1.0
+    reconnect_initial_s: float = 0.5
+    reconnect_max_s: float = 10.0
+    connect_timeout_s: float = 10.0
+    shutdown_timeout_s: float = 3.0
+    #: Per-operation timeout overrides, ``"<kind>.<op>" -> seconds``.
+    timeouts: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    path: Path | None
+    cell: str
+    description: str
+    bus: BusConfig
+    daemon: DaemonConfig
+    devices: dict[str, DeviceConfig]
+    raw: dict[str, Any]
+
+
+_TOP_KEYS = {"cell", "bus", "daemon", "devices"}
+
+
+def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:
+    """Read and validate a cell config. ``overrides`` are merged over the file's tables."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read cell config: {exc.strerror or exc}") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    for table, values in (overrides or {}).items():
+        raw.setdefault(table, {}).update(values)
+    return parse_cell_config(raw, str(p), p)
+
+
+def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
+                      path: Path | None = None) -> CellConfig:
+    def err(key: str, problem: str) -> ConfigError:
+        return ConfigError(f"{where}: {key}: {problem}")
+
+    unknown = set(raw) - _TOP_KEYS
+    if unknown:
+        raise err(sorted(unknown)[0], f"unknown table; expected one of {sorted(_TOP_KEYS)}")
+
+    cell_t = _table(raw, "cell", err)
+    name = cell_t.get("name")
+    try:
+        check_name("cell", name)
+    except ValueError as exc:
+        raise err("[cell] name", str(exc)) from None
+
+    try:
+        bus = BusConfig.from_mapping(_table(raw, "bus", err))
+    except (ValueError, TypeError) as exc:
+        raise err("[bus]", str(exc)) from None
+
+    d = _table(raw, "daemon", err)
+    known_d = set(DaemonConfig.__dataclass_fields__)
+    for key, value in d.items():
+        if key not in known_d:
+            raise err(f"[daemon] {key}", f"unknown key; expected one of {sorted(known_d)}")
+        if key == "timeouts":
+            if not isinstance(value, dict) or not all(
+                isinstance(v, int | float) and v > 0 for v in value.values()
+            ):
+                raise err("[daemon] timeouts", "must map '<kind>.<op>' to positive seconds")
+        elif not isinstance(value, int | float) or value <= 0:
+            raise err(f"[daemon] {key}", f"must be a positive number of seconds, got {value!r}")
+    daemon = DaemonConfig(**d)
+
+    devs = _table(raw, "devices", err)
+    devices: dict[str, DeviceConfig] = {}
+    for dev_name, table in devs.items():
+        key = f"[devices.{dev_name}]"
+        try:
+            check_name("device", dev_name)
+        except ValueError as exc:
+            raise err(key, str(exc)) from None
+        if not isinstance(table, dict):
+            raise err(key, "must be a table")
+        driver = table.get("driver")
+        if not isinstance(driver, str):
+            raise err(f"{key} driver", "missing: name a driver (see `scancell drivers`)")
+        options = {k: v for k, v in table.items() if k != "driver"}
+        _check_driver(driver, options, key, err)
+        devices[dev_name] = DeviceConfig(dev_name, driver, options)
+    return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw)
+
+
+def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:
+    value = raw.get(name, {})
+    if not isinstance(value, dict):
+        raise err(f"[{name}]", "must be a table")
+    return value
+
+
+def _check_driver(driver: str, options: dict[str, Any], key: str, err) -> None:
+    from scancell.devices.registry import UnknownDriver, load_driver
+
+    try:
+        cls = load_driver(driver)
+    except UnknownDriver as exc:
+        raise err(f"{key} driver", str(exc)) from None
+    validator = jsonschema.Draft202012Validator(cls.OPTIONS_SCHEMA)
+    errors = sorted(validator.iter_errors(options), key=lambda e: list(e.path))
+    if errors:
+        e = errors[0]
+        sub = ".".join(str(p) for p in e.path) or "(table)"
+        raise err(f"{key} {sub}", f"{e.message} (driver {driver})")

@@ -1,0 +1,1 @@
+"""The long-running cell service: owns device links, serves commands, publishes measurements."""

@@ -1,0 +1,206 @@
+"""The daemon: loads a cell config, supervises its devices and serves commands on zenoh.
+
+Run it with ``scancell daemon --config deploy/cells/<cell>.toml``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import time
+from typing import Any
+
+import zenoh
+
+import scancell
+from scancell.bus import Bus, BusConfig
+from scancell.config import CellConfig
+from scancell.daemon.buslog import BusLogHandler
+from scancell.daemon.router import CellVerb, CommandRouter
+from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.devices.base import Device
+from scancell.devices.registry import load_driver
+from scancell.protocols import messages
+from scancell.protocols.commands import REPLY_SCHEMA, error_reply
+from scancell.protocols.encoding import Attachment
+
+log = logging.getLogger(__name__)
+
+
+class Daemon:
+    def __init__(self, cfg: CellConfig, bus_config: BusConfig | None = None) -> None:
+        self.cfg = cfg
+        self.bus_config = bus_config or cfg.bus
+        self.bus: Bus | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.devices: dict[str, Device] = {}
+        self.supervisors: dict[str, DeviceSupervisor] = {}
+        self.router: CommandRouter | None = None
+        self._tokens: dict[str, Any] = {}
+        self._stop: asyncio.Event | None = None
+        self._started = time.monotonic()
+        self.ready = False
+
+    # ---------------------------------------------------------------- lifecycle
+    def request_stop(self) -> None:
+        """Thread-safe: ask the daemon to shut down."""
+        if self.loop is not None and self._stop is not None:
+            self.loop.call_soon_threadsafe(self._stop.set)
+
+    async def run(self, install_signal_handlers: bool = True) -> int:
+        self.loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        if install_signal_handlers:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                self.loop.add_signal_handler(sig, self._stop.set)
+        self.bus = Bus.open(self.bus_config, self.cfg.cell)
+        handler = BusLogHandler(self.bus)
+        logging.getLogger("scancell").addHandler(handler)
+        try:
+            return await self._serve()
+        finally:
+            logging.getLogger("scancell").removeHandler(handler)
+            self.bus.close()
+
+    async def _serve(self) -> int:
+        assert self.bus is not None and self._stop is not None
+        for name, dc in self.cfg.devices.items():
+            dev = load_driver(dc.driver)(name, dc.options)
+            dev.set_emitter(self._emitter(name))
+            self.devices[name] = dev
+            self.supervisors[name] = DeviceSupervisor(
+                dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
+        self.router = CommandRouter(
+            self.supervisors,
+            {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices)},
+            self.cfg.daemon.timeouts,
+        )
+        tasks = [asyncio.create_task(s.run(), name=f"supervise-{n}")
+                 for n, s in self.supervisors.items()]
+        queryable = self.bus.session.declare_queryable(self.bus.keys.cmd("**"), self._on_query)
+        log.info("daemon for cell %r serving %d devices on %s (pid %d)", self.cfg.cell,
+                 len(self.devices), list(self.bus_config.listen) or list(self.bus_config.connect),
+                 os.getpid())
+        self.ready = True
+        await self._stop.wait()
+
+        log.info("daemon shutting down")
+        t_end = time.monotonic() + self.cfg.daemon.shutdown_timeout_s
+        queryable.undeclare()
+        self.router.abort_all()
+        for s in self.supervisors.values():
+            s.stop()
+        await self._stop_motion()
+        remaining = max(0.1, t_end - time.monotonic())
+        done, pending = await asyncio.wait(tasks, timeout=remaining)
+        for t in pending:
+            t.cancel()
+            log.warning("%s did not stop in time", t.get_name())
+        for token in self._tokens.values():
+            with contextlib.suppress(Exception):
+                token.undeclare()
+        self._tokens.clear()
+        return 0
+
+    async def _stop_motion(self) -> None:
+        movers = [d for d in self.devices.values() if d.kind in ("robot", "axis")]
+        for dev in movers:
+            if self.supervisors[dev.name].serving:
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(dev.stop(), 1.0)
+
+    # ---------------------------------------------------------------- bus plumbing
+    def _emitter(self, name: str):
+        def emit(stream: str, encoded, attachment: Attachment) -> None:
+            assert self.bus is not None
+            self.bus.publish(self.bus.keys.dev(name, stream), encoded, attachment)
+        return emit
+
+    def _status_publisher(self, name: str):
+        def publish(status: dict[str, Any]) -> None:
+            assert self.bus is not None
+            self.bus.publish_json(self.bus.keys.status(name), status, "scancell.DeviceStatus")
+        return publish
+
+    def _set_alive(self, name: str, alive: bool) -> None:
+        assert self.bus is not None
+        if alive and name not in self._tokens:
+            self._tokens[name] = self.bus.liveliness_token(self.bus.keys.alive(name))
+        elif not alive and name in self._tokens:
+            with contextlib.suppress(Exception):
+                self._tokens.pop(name).undeclare()
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Runs on a zenoh thread: hand the query to the event loop, reply when done."""
+        assert self.bus is not None and self.router is not None and self.loop is not None
+        key = str(query.key_expr)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            verb = self.bus.keys.relative(key).removeprefix("cmd/")
+            if "*" in key or "$" in key:
+                raise ValueError("wildcards are not commands")
+        except ValueError as exc:
+            query.reply_err(json.dumps(error_reply("unknown_command", str(exc))).encode())
+            query.drop()
+            return
+        try:
+            fut = asyncio.run_coroutine_threadsafe(self.router.handle(verb, payload), self.loop)
+        except RuntimeError:
+            self._send(query, key, error_reply("aborted", "daemon is shutting down"))
+            return
+        fut.add_done_callback(lambda f: self._send(query, key, self._result(f, verb)))
+
+    @staticmethod
+    def _result(fut, verb: str) -> dict[str, Any]:
+        try:
+            return fut.result()
+        except BaseException as exc:  # cancelled by shutdown or a bug
+            return error_reply("aborted", f"{verb}: {type(exc).__name__}")
+
+    def _send(self, query: zenoh.Query, key: str, body: dict[str, Any]) -> None:
+        try:
+            query.reply(key, json.dumps(body).encode(),
+                        encoding=zenoh.Encoding(f"application/json;{REPLY_SCHEMA}"),
+                        attachment=Attachment(messages.now_ns()).to_bytes())
+        except Exception as exc:
+            log.warning("could not reply to %s: %s", key, exc)
+        finally:
+            query.drop()
+
+    # ---------------------------------------------------------------- cell verbs
+    async def _cmd_status(self, request: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "cell": self.cfg.cell,
+            "description": self.cfg.description,
+            "version": scancell.__version__,
+            "pid": os.getpid(),
+            "uptime_s": round(time.monotonic() - self._started, 3),
+            "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
+        }
+
+    async def _cmd_devices(self, request: dict[str, Any]) -> dict[str, Any]:
+        out = []
+        for name, sup in self.supervisors.items():
+            specs = sup.device.operation_specs()
+            out.append({
+                "name": name,
+                "kind": sup.device.kind,
+                "driver": sup.cfg.driver,
+                "url": sup.cfg.options.get("url"),
+                "state": sup.status.state,
+                "operations": [
+                    {"name": s.name, "schema": f"scancell.cmd.{s.schema}",
+                     "timeout_s": self.cfg.daemon.timeouts.get(s.schema, s.timeout_s)}
+                    for s in specs.values()
+                ],
+            })
+        return {"devices": out}
+
+
+def run_daemon(cfg: CellConfig, bus_config: BusConfig | None = None) -> int:
+    """Blocking entry point for the CLI."""
+    return asyncio.run(Daemon(cfg, bus_config).run())

@@ -1,0 +1,1 @@
+"""Wire formats and codecs. Nothing in this package does I/O."""

@@ -1,0 +1,75 @@
+"""Zenoh key expressions of a cell, all under ``scancell/<cell>/`` (design.md)."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "scancell"
+_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def check_name(kind: str, name: str) -> str:
+    """Return ``name`` if it is a valid single key-expression chunk, else raise ValueError."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"invalid {kind} name {name!r}: use letters, digits, '_' or '-'")
+    return name
+
+
+@dataclass(frozen=True)
+class CellKeys:
+    """Builds the key expressions of one cell."""
+
+    cell: str
+    root: str = ROOT
+
+    def __post_init__(self) -> None:
+        check_name("cell", self.cell)
+
+    @property
+    def prefix(self) -> str:
+        return f"{self.root}/{self.cell}"
+
+    def all(self) -> str:
+        return f"{self.prefix}/**"
+
+    def dev(self, device: str, stream: str) -> str:
+        return f"{self.prefix}/dev/{device}/{stream}"
+
+    def status(self, device: str) -> str:
+        return self.dev(device, "status")
+
+    def alive(self, device: str) -> str:
+        return f"{self.prefix}/alive/{device}"
+
+    def cmd(self, verb: str) -> str:
+        return f"{self.prefix}/cmd/{verb}"
+
+    def job_event(self, job_id: str) -> str:
+        return f"{self.prefix}/job/{job_id}/event"
+
+    def scan_cloud(self, station: str | int) -> str:
+        return f"{self.prefix}/scan/{station}/cloud"
+
+    @property
+    def hand_eye(self) -> str:
+        return f"{self.prefix}/calib/hand_eye"
+
+    @property
+    def fusion_cloud(self) -> str:
+        return f"{self.prefix}/fusion/cloud"
+
+    @property
+    def fusion_report(self) -> str:
+        return f"{self.prefix}/fusion/report"
+
+    @property
+    def daemon_log(self) -> str:
+        return f"{self.prefix}/daemon/log"
+
+    def relative(self, key: str) -> str:
+        """The part of ``key`` after ``scancell/<cell>/``; raises ValueError for a foreign key."""
+        head = self.prefix + "/"
+        if not key.startswith(head):
+            raise ValueError(f"key {key!r} is not under {head!r}")
+        return key[len(head) :]

@@ -1,0 +1,1 @@
+"""MCAP recording, replay and offline reprocessing of cell sessions."""
