@@ -17,9 +17,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
-
 from scancell.protocols import messages
-from scancell.protocols.commands import REPLY_SCHEMA, CommandError, request_schema_name, unwrap_reply
+from scancell.protocols.commands import (
+    REPLY_SCHEMA,
+    CommandError,
+    request_schema_name,
+    unwrap_reply,
+)
 from scancell.protocols.encoding import Attachment, Encoded, EncodingError, split_encoding
 from scancell.protocols.keys import CellKeys
 

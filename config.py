@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
-
 from scancell.bus import BusConfig
 from scancell.protocols.keys import check_name
 

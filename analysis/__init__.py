@@ -1,1 +1,4 @@
-"""Algorithms and bus workers: scanner decoding, calibration, fusion, metrics. Never imports scancell.daemon."""
+"""Algorithms and bus workers: scanner decoding, calibration, fusion, metrics.
+
+Never imports scancell.daemon.
+"""

@@ -14,9 +14,8 @@ import signal
 import time
 from typing import Any
 
-import zenoh
-
 import scancell
+import zenoh
 from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
@@ -48,8 +47,9 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     def request_stop(self) -> None:
         """Thread-safe: ask the daemon to shut down."""
-        if self.loop is not None and self._stop is not None:
-            self.loop.call_soon_threadsafe(self._stop.set)
+        if self.loop is not None and self._stop is not None and not self.loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # the loop closed in between: already stopped
+                self.loop.call_soon_threadsafe(self._stop.set)
 
     async def run(self, install_signal_handlers: bool = True) -> int:
         self.loop = asyncio.get_running_loop()
@@ -96,7 +96,7 @@ class Daemon:
             s.stop()
         await self._stop_motion()
         remaining = max(0.1, t_end - time.monotonic())
-        done, pending = await asyncio.wait(tasks, timeout=remaining)
+        _, pending = await asyncio.wait(tasks, timeout=remaining)
         for t in pending:
             t.cancel()
             log.warning("%s did not stop in time", t.get_name())

@@ -174,7 +174,7 @@ class DeviceSupervisor:
                 self._set(FAULT, "driver_error", f"{type(exc).__name__}: {exc}")
             lost = asyncio.create_task(self._lost.wait())
             stopping = asyncio.create_task(self._stopping.wait())
-            done, pending = await asyncio.wait({lost, stopping}, timeout=period,
+            _, pending = await asyncio.wait({lost, stopping}, timeout=period,
                                                return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
                 t.cancel()

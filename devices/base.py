@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
 from scancell.protocols.encoding import Attachment, Encoded

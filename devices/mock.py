@@ -12,7 +12,6 @@ import time
 from typing import Any
 
 import numpy as np
-
 from scancell.devices.base import (
     OK,
     Axis,

@@ -10,7 +10,6 @@ from functools import cache
 from typing import Any
 
 import jsonschema
-
 from scancell.protocols.messages import json_schema
 
 REPLY_SCHEMA = "scancell.CommandReply"

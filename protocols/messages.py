@@ -27,7 +27,6 @@ from foxglove_schemas_protobuf import (
 from google.protobuf.message import DecodeError, Message
 from google.protobuf.timestamp_pb2 import Timestamp
 from mcap_protobuf.schema import build_file_descriptor_set
-
 from scancell.protocols.encoding import JSON, PROTOBUF, Encoded, EncodingError, split_encoding
 
 PROTO_CLASSES: dict[str, type[Message]] = {

@@ -1,0 +1,126 @@
+"""Shared fixtures. Zenoh peers listen on tcp/127.0.0.1:<free port> with multicast scouting off,
+and every test gets its own cell name, hence its own key prefix ``scancell/<cell>/``."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from scancell.bus import Bus, BusConfig
+from scancell.client import CellClient
+from scancell.config import parse_cell_config
+from scancell.daemon.service import Daemon
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def cell() -> str:
+    return f"t{uuid.uuid4().hex[:12]}"
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def bus_pair(cell: str, endpoint: str) -> Iterator[tuple[Bus, Bus]]:
+    """Two sessions: one listening on ``endpoint``, one connected to it."""
+    a = Bus.open(BusConfig(listen=(endpoint,)), cell)
+    b = Bus.open(BusConfig(connect=(endpoint,)), cell)
+    time.sleep(0.3)
+    try:
+        yield a, b
+    finally:
+        b.close()
+        a.close()
+
+
+MOCK_CELL: dict[str, Any] = {
+    "cell": {"name": "x"},
+    "daemon": {"status_period_s": 0.2, "reconnect_initial_s": 0.1, "reconnect_max_s": 0.4,
+               "shutdown_timeout_s": 2.0},
+    "devices": {
+        "robot": {"driver": "mock_robot", "max_speed_deg_s": 360.0},
+        "tracker": {"driver": "mock_tracker", "point_mm": [1000.0, 0.0, 0.0], "sigma_mm": 0.01},
+        "cam_left": {"driver": "mock_camera"},
+        "projector": {"driver": "mock_projector"},
+        "axis": {"driver": "mock_axis", "limits": [-100.0, 100.0]},
+    },
+}
+
+
+class DaemonThread:
+    """A daemon running in-process on its own event loop thread."""
+
+    def __init__(self, raw: dict[str, Any], cell: str, endpoint: str) -> None:
+        raw = copy.deepcopy(raw)
+        raw["cell"]["name"] = cell
+        raw["bus"] = {"listen": [endpoint]}
+        self.cfg = parse_cell_config(raw)
+        self.daemon = Daemon(self.cfg)
+        self.rc: int | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 10
+        while not self.daemon.ready:
+            if time.monotonic() > deadline or not self.thread.is_alive():
+                raise RuntimeError("daemon did not start")
+            time.sleep(0.02)
+
+    def _run(self) -> None:
+        self.rc = asyncio.run(self.daemon.run(install_signal_handlers=False))
+
+    def stop(self) -> int | None:
+        self.daemon.request_stop()
+        self.thread.join(10)
+        return self.rc
+
+
+@pytest.fixture
+def make_daemon(cell: str, endpoint: str):
+    started: list[DaemonThread] = []
+
+    def start(raw: dict[str, Any] = MOCK_CELL) -> DaemonThread:
+        d = DaemonThread(raw, cell, endpoint)
+        started.append(d)
+        return d
+
+    yield start
+    for d in started:
+        d.stop()
+
+
+@pytest.fixture
+def client(cell: str, endpoint: str) -> Iterator[CellClient]:
+    c = CellClient(cell, endpoint, timeout_s=20.0)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def wait_until(pred, timeout_s: float = 10.0, period_s: float = 0.05, what: str = "condition"):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = pred()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(period_s)

@@ -1,0 +1,72 @@
+"""Cell configs load, and every error names the file, the key and the problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from scancell.config import ConfigError, load_cell_config
+from scancell.deploy import cell_config_path, default_cell_config
+
+
+def test_packaged_configs_load():
+    cfg = load_cell_config(default_cell_config())
+    assert cfg.cell and cfg.devices
+    mock = load_cell_config(cell_config_path("mock"))
+    assert {d.driver for d in mock.devices.values()} >= {"mock_robot", "mock_tracker"}
+    assert mock.bus.listen == ("tcp/127.0.0.1:7447",) and not mock.bus.multicast_scouting
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "cell.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text,expected", [
+    ("[cell\nname='x'", "not valid TOML"),
+    ("[cell]\nname='x'\n[robots]\n", "robots: unknown table"),
+    ("[cell]\nname='a/b'\n", "[cell] name: invalid cell name"),
+    ("[cell]\nname='x'\n[devices.robot]\nurl='x'\n", "[devices.robot] driver: missing"),
+    ("[cell]\nname='x'\n[devices.robot]\ndriver='fanuc9'\n",
+     "[devices.robot] driver: unknown driver 'fanuc9'; known:"),
+    ("[cell]\nname='x'\n[daemon]\nstatus_period_s=-1\n", "[daemon] status_period_s: must be"),
+    ("[cell]\nname='x'\n[daemon]\nfoo=1\n", "[daemon] foo: unknown key"),
+    ("[cell]\nname='x'\n[bus]\nlisten='tcp/1.2.3.4:1'\n", "[bus]: listen must be a list"),
+    ("[cell]\nname='x'\n[bus]\nuser='u'\n", "[bus]: give both user and password"),
+    ("[cell]\nname='x'\n[devices.'a b']\ndriver='mock_robot'\n", "invalid device name"),
+])
+def test_errors_name_file_key_and_problem(tmp_path, text, expected):
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as ei:
+        load_cell_config(path)
+    assert str(path) in str(ei.value)
+    assert expected in str(ei.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read cell config"):
+        load_cell_config(tmp_path / "nope.toml")
+
+
+def test_driver_options_checked_against_driver_schema(tmp_path, monkeypatch):
+    from scancell.devices import mock
+
+    monkeypatch.setattr(mock.MockAxis, "OPTIONS_SCHEMA", {
+        "type": "object", "properties": {"limits": {"type": "array", "items": {"type": "number"}}}})
+    path = _write(tmp_path, "[cell]\nname='x'\n[devices.axis]\ndriver='mock_axis'\nlimits=['a']\n")
+    with pytest.raises(ConfigError, match=r"\[devices.axis\] limits.0: 'a' is not of type"):
+        load_cell_config(path)
+
+
+def test_bus_tls_and_auth_reach_zenoh_config():
+    from scancell.bus import BusConfig
+
+    cfg = BusConfig.from_mapping({"mode": "client", "connect": ["tls/router:7447"],
+                                  "tls": {"root_ca_certificate": "/etc/ca.pem"},
+                                  "user": "ctl", "password": "pw"})
+    z = cfg.to_zenoh()
+    assert '"/etc/ca.pem"' in z.get_json("transport/link/tls/root_ca_certificate")
+    assert '"ctl"' in z.get_json("transport/auth/usrpwd/user")
+    with pytest.raises(ValueError, match="tls: unknown key"):
+        BusConfig.from_mapping({"tls": {"cert": "x"}})

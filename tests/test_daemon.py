@@ -1,0 +1,208 @@
+"""The daemon in-process, driven through a real zenoh client on loopback."""
+
+from __future__ import annotations
+
+import copy
+import threading
+import time
+
+import numpy as np
+import pytest
+from scancell.bus import BusSample
+from scancell.client import CommandError
+from scancell.devices.base import Health, HealthState
+from scancell.devices.errors import ConnectionLost
+from scancell.devices.mock import MockRobot
+
+from .conftest import MOCK_CELL, wait_until
+
+
+def _err(client, verb, request=None, payload=None):
+    with pytest.raises(CommandError) as ei:
+        client.call(verb, request)
+    return ei.value
+
+
+def test_status_and_devices_list_everything(make_daemon, client):
+    make_daemon()
+    wait_until(lambda: all(s["state"] == "connected"
+                           for s in client.status()["devices"].values()), what="all connected")
+    st = client.status()
+    assert set(st["devices"]) == {"robot", "tracker", "cam_left", "projector", "axis"}
+    devs = {d["name"]: d for d in client.devices()}
+    assert devs["robot"]["kind"] == "robot"
+    ops = {o["name"]: o for o in devs["robot"]["operations"]}
+    assert ops["move_joints"]["schema"] == "scancell.cmd.robot.move_joints"
+    assert sorted(client.alive()) == sorted(st["devices"])
+
+
+def test_operations_publish_timestamped_measurements(make_daemon, client):
+    make_daemon()
+    got: list[BusSample] = []
+    lock = threading.Lock()
+
+    def cb(s):
+        with lock:
+            got.append(s)
+
+    sub = client.bus.subscribe(client.bus.keys.dev("*", "*"), cb)
+    time.sleep(0.3)
+    t0 = time.time_ns()
+    m = client.call("device/tracker/measure", {"meta": {"station": 4}})
+    assert np.allclose(m["point_mm"], [1000, 0, 0], atol=0.1)
+    g = client.call("device/cam_left/grab", {"meta": {"pattern": 2}})
+    assert (g["width"], g["height"]) == (64, 48)
+    r = client.call("device/robot/move_joints", {"joints_deg": [5, 0, 0, 0, -90, 0]})
+    assert r["joints_deg"][0] == pytest.approx(5)
+    wait_until(lambda: any(s.key.endswith("/joints") and
+                           s.decode().joints[0].position > 0.08 for s in list(got)),
+               what="joint state after move")
+    sub.undeclare()
+    with lock:
+        by_stream = {}
+        for s in got:
+            by_stream.setdefault(s.key.split("/dev/")[1], []).append(s)
+    point = by_stream["tracker/point"][0]
+    assert point.schema == "scancell.TrackerPoint" and point.attachment.meta == {"station": 4}
+    assert point.attachment.stamp_ns >= t0
+    image = by_stream["cam_left/image"][0]
+    assert image.schema == "foxglove.RawImage" and image.attachment.meta["pattern"] == 2
+    joints = by_stream["robot/joints"]
+    assert joints[0].schema == "foxglove.JointStates"
+    seqs = [s.attachment.seq for s in joints]
+    assert seqs == sorted(seqs)
+    assert by_stream["robot/status"][0].decode()["state"] == "connected"
+
+
+def test_bad_requests_get_clear_errors_and_daemon_keeps_serving(make_daemon, client):
+    make_daemon()
+    wait_until(lambda: client.status()["devices"]["robot"]["state"] == "connected")
+    bus = client.bus
+    key = bus.keys.cmd("device/robot/move_joints")
+    # malformed payloads straight on the wire
+    for payload, code in ((b"{nope", "bad_request"), (b"[1]", "bad_request"),
+                          (b'{"joints_deg": "x"}', "invalid")):
+        reply = None
+        for r in bus.session.get(key, payload=payload, timeout=5):
+            reply = r.ok.payload.to_bytes()
+        assert reply is not None and f'"code": "{code}"' in reply.decode()
+    cases = [
+        ("nope", None, "unknown_command"),
+        ("device/ghost/joints", None, "unknown_device"),
+        ("device/robot/fly", None, "unknown_command"),
+        ("device/robot/move_joints", {"joints_deg": [0, 0, 0]}, "invalid"),
+        ("device/robot/move_joints", {"joints_deg": [0, 0, 0, 0, 200, 0]}, "out_of_range"),
+        ("device/robot/move_joints", {"joints_deg": [0] * 6, "speed": 0}, "invalid"),
+        ("device/axis/move_to", {"position": 1e6}, "out_of_range"),
+        ("device/projector/show", {"index": 99}, "out_of_range"),
+        ("device/tracker/measure", {"unexpected": 1}, "invalid"),
+    ]
+    for verb, req, code in cases:
+        e = _err(client, verb, req)
+        assert e.code == code, (verb, e)
+        assert e.message
+    # JSON allows NaN: it must be refused, not sent to a robot
+    reply = None
+    for r in bus.session.get(key, payload=b'{"joints_deg": [NaN, 0, 0, 0, 0, 0]}', timeout=5):
+        reply = r.ok.payload.to_bytes().decode()
+    assert '"out_of_range"' in reply and "finite" in reply
+    e = _err(client, "device/robot/move_joints", {"joints_deg": [0, 0, 0, 0, 200, 0]})
+    assert "J5 = 200.000 deg is outside [-125.0, 125.0] deg" in e.message
+    assert client.call("device/robot/joints")["joints_deg"][4] == pytest.approx(-90)
+    assert client.status()["devices"]["robot"]["state"] == "connected"
+
+
+def test_timeout_answers_and_stops_the_motion(make_daemon, client):
+    raw = copy.deepcopy(MOCK_CELL)
+    raw["devices"]["robot"]["max_speed_deg_s"] = 10.0
+    raw["daemon"]["timeouts"] = {"robot.move_joints": 0.5}
+    make_daemon(raw)
+    wait_until(lambda: client.status()["devices"]["robot"]["state"] == "connected")
+    t0 = time.monotonic()
+    e = _err(client, "device/robot/move_joints", {"joints_deg": [90, 0, 0, 0, -90, 0]})
+    assert e.code == "timeout" and time.monotonic() - t0 < 3
+    q1 = client.call("device/robot/joints")["joints_deg"][0]
+    time.sleep(0.3)
+    q2 = client.call("device/robot/joints")["joints_deg"][0]
+    assert 0 < q1 < 90 and q1 == pytest.approx(q2), "robot kept moving after the timeout"
+
+
+def test_cut_link_reconnects_with_backoff_while_others_serve(make_daemon, client):
+    make_daemon()
+    wait_until(lambda: client.status()["devices"]["tracker"]["state"] == "connected")
+    client.call("device/tracker/cut_link", {"duration_s": 1.5})
+    st = wait_until(lambda: (s := client.status()["devices"]["tracker"])["state"] == "reconnecting"
+                    and s, what="tracker reconnecting")
+    assert st["reason"] == "connection_lost"
+    e = _err(client, "device/tracker/measure")
+    assert e.code in ("device_unavailable", "connection_lost")
+    assert "tracker" not in client.alive()
+    assert client.call("device/robot/joints")  # other devices keep serving
+    wait_until(lambda: client.status()["devices"]["tracker"]["state"] == "connected",
+               timeout_s=10, what="tracker back")
+    assert "tracker" in client.alive()
+    assert client.call("device/tracker/measure")["point_mm"]
+
+
+class FlakyRobot(MockRobot):
+    """A driver whose connect has a bug twice, then works; its health raises a fault once."""
+
+    attempts = 0
+
+    async def connect(self) -> None:
+        FlakyRobot.attempts += 1
+        if FlakyRobot.attempts <= 2:
+            raise RuntimeError("driver bug")
+        await super().connect()
+
+    async def health(self) -> Health:
+        await super().health()
+        return Health(HealthState.DEGRADED, "overheat", "J3 motor warm")
+
+
+class DropsDuringMove(MockRobot):
+    async def _move_joints(self, q_rad, speed):
+        raise ConnectionLost("socket closed by peer")
+
+
+def test_driver_bugs_and_drops_never_take_the_daemon_down(make_daemon, client, monkeypatch):
+    from scancell.devices import registry
+
+    monkeypatch.setitem(registry.BUILTIN_DRIVERS, "flaky_robot", f"{__name__}:FlakyRobot")
+    monkeypatch.setitem(registry.BUILTIN_DRIVERS, "drops_robot", f"{__name__}:DropsDuringMove")
+    FlakyRobot.attempts = 0
+    raw = copy.deepcopy(MOCK_CELL)
+    raw["devices"]["robot"] = {"driver": "flaky_robot"}
+    raw["devices"]["robot2"] = {"driver": "drops_robot"}
+    make_daemon(raw)
+    st = wait_until(lambda: (s := client.status()["devices"]["robot"])["state"] == "degraded"
+                    and s, what="flaky robot up")
+    assert st["reason"] == "overheat" and FlakyRobot.attempts == 3
+    wait_until(lambda: client.status()["devices"]["robot2"]["state"] == "connected")
+    e = _err(client, "device/robot2/move_joints", {"joints_deg": [1, 0, 0, 0, -90, 0]})
+    assert e.code == "connection_lost" and "socket closed by peer" in e.message
+    wait_until(lambda: client.status()["devices"]["robot2"]["state"] == "connected",
+               what="robot2 reconnected")
+
+
+def test_shutdown_aborts_running_command(make_daemon, client):
+    raw = copy.deepcopy(MOCK_CELL)
+    raw["devices"]["robot"]["max_speed_deg_s"] = 5.0
+    d = make_daemon(raw)
+    wait_until(lambda: client.status()["devices"]["robot"]["state"] == "connected")
+    result: dict = {}
+
+    def move():
+        try:
+            client.call("device/robot/move_joints", {"joints_deg": [90, 0, 0, 0, -90, 0]})
+        except CommandError as exc:
+            result["code"] = exc.code
+
+    t = threading.Thread(target=move)
+    t.start()
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    assert d.stop() == 0
+    assert time.monotonic() - t0 < 5
+    t.join(5)
+    assert result.get("code") == "aborted"

@@ -1,0 +1,189 @@
+"""Pure codecs: key expressions, encodings, attachments, Foxglove builders, command envelope."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from google.protobuf.descriptor_pb2 import FileDescriptorSet
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scancell.protocols import messages
+from scancell.protocols.commands import (
+    CommandError,
+    error_reply,
+    ok_reply,
+    parse_request,
+    request_schema_name,
+    unwrap_reply,
+    validate,
+)
+from scancell.protocols.encoding import Attachment, EncodingError, split_encoding
+from scancell.protocols.keys import CellKeys
+
+
+def test_keys_follow_design():
+    k = CellKeys("sim")
+    assert k.dev("cam_left", "image") == "scancell/sim/dev/cam_left/image"
+    assert k.status("tracker") == "scancell/sim/dev/tracker/status"
+    assert k.alive("robot") == "scancell/sim/alive/robot"
+    assert k.cmd("job/abort") == "scancell/sim/cmd/job/abort"
+    assert k.job_event("42") == "scancell/sim/job/42/event"
+    assert k.scan_cloud(3) == "scancell/sim/scan/3/cloud"
+    assert k.hand_eye == "scancell/sim/calib/hand_eye"
+    assert (k.fusion_cloud, k.fusion_report) == ("scancell/sim/fusion/cloud",
+                                                 "scancell/sim/fusion/report")
+    assert k.relative("scancell/sim/cmd/status") == "cmd/status"
+    with pytest.raises(ValueError):
+        k.relative("scancell/other/cmd/status")
+    for bad in ("a/b", "*", "", "x y"):
+        with pytest.raises(ValueError):
+            CellKeys(bad)
+
+
+def test_attachment_round_trip_and_errors():
+    a = Attachment(123, 4, 99, {"station": 3, "pattern": 8})
+    assert Attachment.from_bytes(a.to_bytes()) == a
+    for bad in (None, b"", b"nope", b"[]", b'{"seq":1}', b'{"stamp_ns":"1"}',
+                b'{"stamp_ns":1,"meta":3}'):
+        with pytest.raises(EncodingError):
+            Attachment.from_bytes(bad)
+
+
+def test_split_encoding():
+    assert split_encoding("application/json;scancell.X") == ("application/json", "scancell.X")
+    for bad in ("application/json", "text/plain;x", "zenoh/bytes", ""):
+        with pytest.raises(EncodingError):
+            split_encoding(bad)
+
+
+@pytest.mark.parametrize("dtype,shape", [(np.uint8, (5, 7)), (np.uint16, (4, 3)),
+                                         (np.uint8, (2, 3, 3))])
+def test_raw_image_round_trip(dtype, shape):
+    img = np.arange(np.prod(shape)).reshape(shape).astype(dtype)
+    enc = messages.encode_proto(messages.raw_image(img, 5, "cam_left"))
+    assert enc.encoding == "application/protobuf;foxglove.RawImage"
+    back = messages.decode(enc.payload, enc.encoding)
+    assert back.frame_id == "cam_left" and back.timestamp.ToNanoseconds() == 5
+    np.testing.assert_array_equal(messages.image_array(back), img)
+
+
+def test_point_cloud_round_trip_with_fields():
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(100, 3)) * 500
+    q = rng.random(100)
+    enc = messages.encode_proto(messages.point_cloud(pts, 7, "mcs", {"quality": q}))
+    back = messages.decode(enc.payload, enc.encoding)
+    np.testing.assert_allclose(messages.cloud_points(back), pts, rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(messages.cloud_fields(back)["quality"], q, rtol=1e-6)
+    with pytest.raises(EncodingError):
+        messages.point_cloud(pts, 7, "mcs", {"quality": q[:5]})
+
+
+def test_frame_transform_round_trip():
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    T[:3, 3] = [100.0, -2.5, 3000.0]
+    msg = messages.frame_transform(T, 1, "world", "ecs_1")
+    back = messages.decode(msg.SerializeToString(), "application/protobuf;foxglove.FrameTransform")
+    assert (back.parent_frame_id, back.child_frame_id) == ("world", "ecs_1")
+    np.testing.assert_allclose(messages.transform_matrix(back), T, atol=1e-9)
+
+
+def test_joint_states_and_log():
+    js = messages.joint_states(["J1", "J2"], np.array([0.1, -0.2]), 3)
+    back = messages.decode(js.SerializeToString(), "application/protobuf;foxglove.JointStates")
+    assert [j.position for j in back.joints] == pytest.approx([0.1, -0.2])
+    lg = messages.log_message("WARNING", "hello", "scancell", 9)
+    assert messages.decode(lg.SerializeToString(), "application/protobuf;foxglove.Log").level == 3
+
+
+def test_json_round_trip_and_unknown_schema():
+    enc = messages.encode_json({"a": 1}, "scancell.DeviceStatus")
+    assert messages.decode(enc.payload, enc.encoding) == {"a": 1}
+    with pytest.raises(EncodingError):
+        messages.decode(b"{not json", enc.encoding)
+    with pytest.raises(EncodingError):
+        messages.decode(b"", "application/protobuf;foxglove.Nope")
+    with pytest.raises(EncodingError):
+        messages.decode(b"\xff\xff\xff", "application/protobuf;foxglove.RawImage")
+
+
+def test_schema_data_is_self_describing():
+    fds = FileDescriptorSet.FromString(
+        messages.schema_data("application/protobuf", "foxglove.PointCloud"))
+    names = {f.name for f in fds.file}
+    assert "foxglove/PointCloud.proto" in names and "foxglove/Pose.proto" in names
+    js = json.loads(messages.schema_data("application/json", "scancell.TrackerPoint"))
+    assert js["title"] == "scancell.TrackerPoint"
+
+
+def test_every_json_schema_is_valid_and_commands_have_one():
+    import jsonschema
+    from scancell.devices.base import KINDS
+    from scancell.devices.mock import MockLink
+
+    for name in messages.json_schema_names():
+        schema = messages.json_schema(name)
+        jsonschema.validators.validator_for(schema).check_schema(schema)
+    for cls in [*KINDS.values(), MockLink]:
+        for spec in cls.operation_specs().values():
+            messages.json_schema(request_schema_name(spec.schema))  # raises if missing
+    for verb in ("status", "devices"):
+        messages.json_schema(request_schema_name(verb))
+
+
+def test_parse_request_errors_name_the_field():
+    schema = "scancell.cmd.robot.move_joints"
+    assert parse_request(b'{"joints_deg":[0,0,0,0,0,0]}', schema)["joints_deg"] == [0] * 6
+    cases = {
+        b"{nope": "bad_request",
+        b"[1,2]": "bad_request",
+        b'"x"': "bad_request",
+        b'{"joints_deg":"x"}': "invalid",
+        b'{"joints_deg":[0],"speed":2}': "invalid",
+        b'{"joints_deg":[0],"extra":1}': "invalid",
+        b"{}": "invalid",
+    }
+    for payload, code in cases.items():
+        with pytest.raises(CommandError) as ei:
+            parse_request(payload, schema)
+        assert ei.value.code == code, payload
+    with pytest.raises(CommandError, match="/speed"):
+        validate({"joints_deg": [0], "speed": 5}, schema)
+
+
+def test_reply_envelope():
+    assert unwrap_reply(ok_reply({"x": 1})) == {"x": 1}
+    with pytest.raises(CommandError) as ei:
+        unwrap_reply(error_reply("timeout", "slow"))
+    assert (ei.value.code, ei.value.message) == ("timeout", "slow")
+    for bad in (None, [], {}, {"result": 1, "error": 2}):
+        with pytest.raises(CommandError):
+            unwrap_reply(bad)
+    with pytest.raises(ValueError):
+        CommandError("no_such_code", "x")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200))
+def test_fuzz_request_parser_raises_only_command_errors(data):
+    try:
+        parse_request(data, "scancell.cmd.robot.move_joints")
+    except CommandError:
+        pass
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200))
+def test_fuzz_attachment_and_decoders_raise_only_encoding_errors(data):
+    for fn in (lambda: Attachment.from_bytes(data),
+               lambda: messages.decode(data, "application/json;scancell.X"),
+               lambda: messages.decode(data, "application/protobuf;foxglove.RawImage")):
+        try:
+            fn()
+        except EncodingError:
+            pass
