@@ -56,6 +56,14 @@ def _drivers_args(p: argparse.ArgumentParser) -> None:
     pass
 
 
+@subcommand("sim", "the simulated cell: render a station's images and ground truth",
+            "scancell.devices.sim.cli:main")
+def _sim_args(p: argparse.ArgumentParser) -> None:
+    from scancell.devices.sim.cli import add_arguments
+
+    add_arguments(p)
+
+
 @subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")

@@ -1,0 +1,378 @@
+"""The simulated cell: world model, sensors and ground truth.
+
+World = the laser tracker's frame (tracker at the origin, z up), mm. The robot base stands at
+``T_world_from_rail0`` moved by the linear rail (external axis, along world y); the part is in
+front of the robot (+x), facing it. The scanner is rigidly mounted on the flange at the true
+hand-eye ``T_flange_from_mcs``; the SMR sits on the scanner base, its opening facing backwards
+(towards the tracker), off the J6 axis so that J6 rotations move it on a circle.
+
+Everything random comes from generators seeded by ``seed``: the same seed and the same sequence
+of calls give identical images and measurements.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from scancell.analysis.ecs import ecs_from_points
+from scancell.analysis.patterns import FringeSequence
+from scancell.devices.sim import parts
+from scancell.devices.sim.optics import PinholeModel, StereoRig, apply_T, default_rig, make_T, rot_x, rot_y
+from scancell.devices.sim.robot_model import RobotModel
+from scancell.devices.sim.scene import Scene, SceneObject
+from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+def default_mount(rig: StereoRig) -> np.ndarray:
+    """True hand-eye ``T_flange_from_mcs``: the rig's bisector along the flange z axis, 180 mm in
+    front of the flange, with a few tenths of a degree of mounting error on purpose."""
+    # rig frame seen from MCS: midway between the cameras, z along the bisector
+    right_origin = rig.T_mcs_from_right[:3, 3]
+    z_left = np.array([0.0, 0.0, 1.0])
+    z_right = rig.T_mcs_from_right[:3, 2]
+    bis = (z_left + z_right) / np.linalg.norm(z_left + z_right)
+    x = right_origin / np.linalg.norm(right_origin)
+    x = x - bis * np.dot(x, bis)
+    x /= np.linalg.norm(x)
+    y = np.cross(bis, x)
+    T_mcs_from_rig = make_T(np.stack([x, y, bis], axis=1), right_origin / 2)
+    T_flange_from_rig = make_T(_rot_z(0.4) @ rot_y(-0.7) @ rot_x(1.3), [1.2, -0.8, 180.0])
+    return T_flange_from_rig @ np.linalg.inv(T_mcs_from_rig)
+
+
+@dataclass
+class SimCellConfig:
+    seed: int = 0
+    camera_scale: float = 1.0  # 1 = 2448 x 2048; tests use 8 (306 x 256)
+    part: str | None = "car_rear"
+    T_world_from_part: np.ndarray = field(default_factory=lambda: make_T(t=[3300.0, 0.0, 1100.0]))
+    T_world_from_rail0: np.ndarray = field(default_factory=lambda: make_T(t=[1800.0, 0.0, 0.0]))
+    rail_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    rail_limits_mm: tuple[float, float] = (-1500.0, 1500.0)
+    joint_repeatability_deg: float = 0.002  # 1 sigma per joint (~±0.07 mm at the flange)
+    j6_repeatability_deg: float = 0.003  # extra 1 sigma on J6 (the ECS rotations)
+    j6_angles_deg: tuple[float, float] = (30.0, 60.0)  # J6 turns for P2 and P3
+    smr_in_mcs_mm: np.ndarray = field(default_factory=lambda: np.array([276.0, 95.0, -140.0]))
+    smr_opening_in_mcs: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    albedo: float = 0.6
+    ambient: float = 0.08  # ambient irradiance relative to the projector's full white
+    exposure: float = 1.3  # DN = 255 * exposure * radiance
+    noise_dn: float = 1.0  # camera read noise, 1 sigma
+    psf_sigma_px: float = 0.6  # lens blur of the cameras
+    tracker: TrackerSpec = field(default_factory=TrackerSpec)
+    home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
+
+
+@dataclass
+class CameraGeometry:
+    """Per-pixel result of one ray cast from one camera at one pose; shared by all patterns."""
+
+    hit: np.ndarray  # (H, W) bool
+    points_cam: np.ndarray  # (H, W, 3) hit points in the camera frame, NaN where no hit
+    proj_x: np.ndarray  # (H, W) projector column, NaN where not lit
+    base_dn: np.ndarray  # (H, W) DN from ambient light
+    fringe_dn: np.ndarray  # (H, W) DN per unit projector intensity (0 where shadowed)
+
+
+class SimCell:
+    def __init__(self, cfg: SimCellConfig | None = None, rig: StereoRig | None = None) -> None:
+        self.cfg = cfg or SimCellConfig()
+        full_rig = rig or default_rig()
+        self.rig = full_rig if self.cfg.camera_scale == 1 else full_rig.scaled(self.cfg.camera_scale)
+        self.robot = RobotModel()
+        self.T_flange_from_mcs = default_mount(full_rig)
+        self._rng = np.random.default_rng([self.cfg.seed, 1])
+        self.tracker = TrackerModel(self.cfg.tracker, np.random.default_rng([self.cfg.seed, 2]))
+        self._frame = 0
+        self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
+        self.q = self.q_commanded.copy()
+        self.rail_mm = 0.0
+        self.sequence = FringeSequence()
+        self.pattern = -1  # -1: projector dark
+        self.scene = Scene()
+        if self.cfg.part:
+            self.scene.add(SceneObject(self.cfg.part, parts.PARTS[self.cfg.part](),
+                                       self.cfg.T_world_from_part, self.cfg.albedo))
+        self._body = self.scene.add(SceneObject("scanner_body", parts.scanner_body(), np.eye(4),
+                                                visible_to_cameras=False))
+        self._rays: dict[str, np.ndarray] = {}
+        self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
+        self._scene_version = 0
+        self.timings: dict[str, float] = {}
+        self._update_body()
+
+    # ------------------------------------------------------------------ poses (ground truth)
+    @property
+    def T_world_from_base(self) -> np.ndarray:
+        T = self.cfg.T_world_from_rail0.copy()
+        T[:3, 3] += self.cfg.rail_axis * self.rail_mm
+        return T
+
+    def T_world_from_flange(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_base @ self.robot.fk(self.q if q_rad is None else q_rad)
+
+    def T_world_from_mcs(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_flange(q_rad) @ self.T_flange_from_mcs
+
+    def T_world_from_camera(self, camera: str, q_rad: np.ndarray | None = None) -> np.ndarray:
+        T = self.T_world_from_mcs(q_rad)
+        if camera == "left":
+            return T
+        if camera == "right":
+            return T @ self.rig.T_mcs_from_right
+        if camera == "projector":
+            return T @ self.rig.T_mcs_from_projector
+        raise KeyError(f"no camera {camera!r}: use 'left', 'right' or 'projector'")
+
+    def smr_center_world(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return apply_T(self.T_world_from_mcs(q_rad), self.cfg.smr_in_mcs_mm[None])[0]
+
+    def smr_opening_world(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_mcs(q_rad)[:3, :3] @ self.cfg.smr_opening_in_mcs
+
+    def mcs_pose_looking_at(self, target_world: np.ndarray, standoff_mm: float = 650.0,
+                            view_dir: np.ndarray | None = None) -> np.ndarray:
+        """``T_world_from_mcs`` that puts the rig's crossing point on ``target_world``, looking
+        along ``view_dir`` (default +x), baseline horizontal."""
+        v = np.array([1.0, 0, 0]) if view_dir is None else np.asarray(view_dir, float)
+        v = v / np.linalg.norm(v)
+        T_flange_from_mcs = self.T_flange_from_mcs
+        # the rig bisector is the flange z axis by construction of the mount
+        x = np.cross([0.0, 0.0, -1.0], v)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([0.0, 1.0, 0.0])
+        y = np.cross(v, x)
+        crossing_in_flange = T_flange_from_mcs[:3, 3] + T_flange_from_mcs[:3, :3] @ np.array(
+            [self.rig.T_mcs_from_right[0, 3] / 2, 0.0, 0.0])
+        R = np.stack([x, y, v], axis=1)
+        T_world_from_flange = make_T(R, np.asarray(target_world, float) - v * standoff_mm
+                                     - R @ np.array([crossing_in_flange[0], crossing_in_flange[1],
+                                                     0.0]))
+        T_world_from_flange[:3, 3] -= R @ np.array([0.0, 0.0, crossing_in_flange[2]])
+        return T_world_from_flange @ T_flange_from_mcs
+
+    def ik_for_mcs(self, T_world_from_mcs: np.ndarray, seed_rad: np.ndarray | None = None
+                   ) -> np.ndarray:
+        """Joints (rad) that put MCS at ``T_world_from_mcs`` (raises IKError)."""
+        T_base_from_flange = (np.linalg.inv(self.T_world_from_base) @ T_world_from_mcs
+                              @ np.linalg.inv(self.T_flange_from_mcs))
+        return self.robot.ik(T_base_from_flange, self.q if seed_rad is None else seed_rad)
+
+    def j6_turned(self, q_rad: np.ndarray, turn_deg: float) -> np.ndarray:
+        q = np.array(q_rad, float)
+        q[5] += np.radians(turn_deg)
+        return q
+
+    def true_T_world_from_ecs(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        """ECS at a station, from noise-free SMR centres at J6 = q6, q6 + a1, q6 + a2."""
+        q = self.q_commanded if q_rad is None else np.asarray(q_rad, float)
+        a1, a2 = self.cfg.j6_angles_deg
+        p = [self.smr_center_world(self.j6_turned(q, a)) for a in (0.0, a1, a2)]
+        return ecs_from_points(*p)
+
+    def true_T_ecs_from_mcs(self) -> np.ndarray:
+        """The true hand-eye in the paper's sense (constant for given J6 turn angles)."""
+        q = np.radians(np.asarray(self.cfg.home_deg, float))
+        return np.linalg.inv(self.true_T_world_from_ecs(q)) @ self.T_world_from_mcs(q)
+
+    def surface_distance(self, points_world: np.ndarray) -> np.ndarray:
+        """Unsigned distance (mm) of world points to the true surface of the part."""
+        if not self.cfg.part:
+            raise ValueError("this cell has no part")
+        return self.scene.distance(points_world, [self.cfg.part])
+
+    # ------------------------------------------------------------------ actuators
+    def move_joints(self, q_rad: np.ndarray) -> None:
+        """Arrive at ``q_rad`` with the configured repeatability."""
+        q = np.asarray(q_rad, float).copy()
+        if not self.robot.within_limits(q):
+            raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
+        noise = self._rng.normal(0, np.radians(self.cfg.joint_repeatability_deg), 6)
+        noise[5] += self._rng.normal(0, np.radians(self.cfg.j6_repeatability_deg))
+        self.q_commanded = q
+        self.q = q + noise
+        self._update_body()
+
+    def move_rail(self, position_mm: float) -> None:
+        lo, hi = self.cfg.rail_limits_mm
+        if not lo <= position_mm <= hi:
+            raise ValueError(f"rail position {position_mm} mm outside [{lo}, {hi}]")
+        self.rail_mm = float(position_mm)
+        self._update_body()
+
+    def _update_body(self) -> None:
+        self._body.T_world_from_object = self.T_world_from_mcs()
+
+    # ------------------------------------------------------------------ objects
+    def place_ball(self, center_world: np.ndarray, with_stand: bool = True) -> None:
+        """Put the calibration SMR on a stand at ``center_world``, opening towards the tracker."""
+        self.remove_ball()
+        c = np.asarray(center_world, float)
+        z = (self.tracker.position - c) / np.linalg.norm(self.tracker.position - c)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0, 0])
+        T_ball = make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
+        self.scene.add(SceneObject("ball", parts.smr(), T_ball, 0.75))
+        if with_stand:
+            self.scene.add(SceneObject("ball_stand", parts.ball_stand(), make_T(t=c), 0.3))
+        self._scene_version += 1
+
+    def remove_ball(self) -> None:
+        before = len(self.scene.objects)
+        self.scene.remove("ball")
+        self.scene.remove("ball_stand")
+        if len(self.scene.objects) != before:
+            self._scene_version += 1
+
+    def add_object(self, obj: SceneObject) -> None:
+        self.scene.add(obj)
+        self._scene_version += 1
+
+    def ball_center_world(self) -> np.ndarray:
+        return self.scene.get("ball").T_world_from_object[:3, 3].copy()
+
+    # ------------------------------------------------------------------ tracker
+    def measure_smr(self, target: str = "scanner") -> TrackerReading:
+        """Tracker measurement of the scanner's SMR or of the calibration ball; BeamBreak if the
+        beam cannot reach it."""
+        if target == "scanner":
+            c, o = self.smr_center_world(), self.smr_opening_world()
+            return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene)
+        if target == "ball":
+            try:
+                ball = self.scene.get("ball")
+            except KeyError:
+                raise BeamBreak("no calibration ball in the cell") from None
+            c = ball.T_world_from_object[:3, 3]
+            o = ball.T_world_from_object[:3, 2]
+            saved = ball.T_world_from_object
+            # the ball does not occlude its own beam
+            self.scene.remove("ball")
+            try:
+                return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene)
+            finally:
+                self.scene.objects.insert(0, SceneObject("ball", ball.mesh, saved, ball.albedo,
+                                                         _scene=ball._scene))
+        raise KeyError(f"unknown tracker target {target!r}: use 'scanner' or 'ball'")
+
+    # ------------------------------------------------------------------ rendering
+    def camera_model(self, camera: str) -> PinholeModel:
+        return {"left": self.rig.left, "right": self.rig.right}[camera]
+
+    def _pixel_rays(self, camera: str) -> np.ndarray:
+        if camera not in self._rays:
+            self._rays[camera] = self.camera_model(camera).pixel_rays()
+        return self._rays[camera]
+
+    def geometry(self, camera: str) -> CameraGeometry:
+        """Ray cast, projector mapping, shadowing and shading of one camera at the current pose
+        (cached: the patterns of one pose reuse it)."""
+        T_wc = self.T_world_from_camera(camera)
+        key = T_wc.round(9).tobytes()
+        cached = self._geom_cache.get(camera)
+        if cached and cached[0] == key and cached[1] == self._scene_version:
+            return cached[2]
+        geom = self._compute_geometry(camera, T_wc)
+        self._geom_cache[camera] = (key, self._scene_version, geom)
+        return geom
+
+    def _compute_geometry(self, camera: str, T_wc: np.ndarray) -> CameraGeometry:
+        cfg = self.cfg
+        clock = time.perf_counter
+        t0 = clock()
+        rays = self._pixel_rays(camera)
+        t1 = clock()
+        h, w, _ = rays.shape
+        d_world = rays.reshape(-1, 3) @ T_wc[:3, :3].T
+        hits = self.scene.cast(T_wc[:3, 3], d_world)
+        t2 = clock()
+        hit = np.isfinite(hits.t)
+        idx = np.flatnonzero(hit)
+        X = T_wc[:3, 3] + d_world[idx] * hits.t[idx, None]
+        n = hits.normal[idx]
+        albedo = np.array([o.albedo for o in self.scene.objects])[hits.object_index[idx]]
+
+        T_wp = self.T_world_from_camera("projector")
+        to_p = T_wp[:3, 3] - X
+        dist = np.linalg.norm(to_p, axis=1)
+        l = to_p / dist[:, None]
+        cos_p = np.einsum("ij,ij->i", n, l)
+        Xp = apply_T(np.linalg.inv(T_wp), X)
+        in_front = Xp[:, 2] > 1.0
+        uv = np.full((len(X), 2), np.nan)
+        if in_front.any():
+            uv[in_front] = self.rig.projector.project(Xp[in_front])
+        pw, ph = self.rig.projector.width, self.rig.projector.height
+        inside = in_front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & \
+            (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
+        lit = inside & (cos_p > 0)
+        t3 = clock()
+        cand = np.flatnonzero(lit)
+        if cand.size:
+            eps = 0.05
+            shadow = self.scene.occluded(X[cand] + l[cand] * eps, l[cand], dist[cand] - 2 * eps)
+            lit[cand[shadow]] = False
+        t4 = clock()
+        d0 = np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0])
+        gain = 255.0 * cfg.exposure
+        fringe = np.where(lit, gain * albedo * np.clip(cos_p, 0, 1) * (d0 / dist) ** 2, 0.0)
+        base = gain * albedo * cfg.ambient
+
+        def full(values: np.ndarray, fill: float) -> np.ndarray:
+            out = np.full(h * w, fill)
+            out[idx] = values
+            return out.reshape(h, w)
+
+        pts_cam = np.full((h * w, 3), np.nan)
+        pts_cam[idx] = rays.reshape(-1, 3)[idx] * hits.t[idx, None]
+        self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
+                        "shadow": t4 - t3, "shading": clock() - t4}
+        return CameraGeometry(
+            hit.reshape(h, w), pts_cam.reshape(h, w, 3),
+            full(np.where(lit, uv[:, 0], np.nan), np.nan), full(base, 0.0), full(fringe, 0.0))
+
+    def load_sequence(self, sequence: FringeSequence) -> int:
+        self.sequence = sequence
+        return len(sequence)
+
+    def show(self, k: int) -> None:
+        if not -1 <= k < len(self.sequence):
+            raise IndexError(f"pattern {k} outside the loaded sequence of {len(self.sequence)}")
+        self.pattern = k
+
+    def render(self, camera: str, pattern: int | None = None) -> np.ndarray:
+        """8-bit image of ``camera`` under projector pattern ``pattern`` (default: the one shown;
+        -1 dark, -2 full white)."""
+        g = self.geometry(camera)
+        k = self.pattern if pattern is None else pattern
+        pw = self.rig.projector.width
+        if k == -1:
+            light = 0.0
+        elif k == -2:
+            light = np.where(np.isfinite(g.proj_x), 1.0, 0.0)
+        else:
+            light = np.nan_to_num(self.sequence.intensity(k, g.proj_x, pw), nan=0.0)
+        dn = g.base_dn + g.fringe_dn * light
+        if self.cfg.psf_sigma_px > 0:
+            dn = cv2.GaussianBlur(dn, (0, 0), self.cfg.psf_sigma_px)
+        rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
+        self._frame += 1
+        dn = dn + rng.standard_normal(dn.shape) * self.cfg.noise_dn
+        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+
+    def render_sequence(self, camera: str) -> list[np.ndarray]:
+        """All patterns of the loaded sequence for one camera (one ray cast)."""
+        return [self.render(camera, k) for k in range(len(self.sequence))]
+
+    def true_points(self, camera: str = "left") -> np.ndarray:
+        """True surface points (N, 3) seen by ``camera``, in that camera's frame (mm)."""
+        g = self.geometry(camera)
+        return g.points_cam[g.hit]
