@@ -57,6 +57,8 @@ def test_operations_publish_timestamped_measurements(make_daemon, client):
     wait_until(lambda: any(s.key.endswith("/joints") and
                            s.decode().joints[0].position > 0.08 for s in list(got)),
                what="joint state after move")
+    wait_until(lambda: any(s.key.endswith("/robot/status") for s in list(got)),
+               what="robot status")
     sub.undeclare()
     with lock:
         by_stream = {}

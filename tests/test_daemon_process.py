@@ -72,15 +72,16 @@ def test_ctl_status_reconnect_and_sigterm(daemon_proc, cell, endpoint):
         assert name in table.stdout
     assert "connected" in table.stdout
 
-    cut = _scancell("ctl", "call", "device/tracker/cut_link", "--json", '{"duration_s": 2}',
+    cut = _scancell("ctl", "call", "device/tracker/cut_link", "--json", '{"duration_s": 8}',
                     endpoint=endpoint, cell=cell)
     assert cut.returncode == 0, cut.stderr
-    wait_until(lambda: (s := status()) and s["devices"]["tracker"]["state"] == "reconnecting",
-               what="tracker shown as reconnecting")
-    shown = _scancell("ctl", "status", endpoint=endpoint, cell=cell).stdout
-    assert "reconnecting" in shown
+    shown = wait_until(
+        lambda: (out := _scancell("ctl", "status", endpoint=endpoint, cell=cell).stdout)
+        and "reconnecting" in out and out, what="tracker shown as reconnecting")
+    tracker_line = next(line for line in shown.splitlines() if line.startswith("tracker"))
+    assert "reconnecting" in tracker_line and "connection_lost" in tracker_line
     wait_until(lambda: (s := status()) and s["devices"]["tracker"]["state"] == "connected",
-               timeout_s=15, what="tracker back on its own")
+               timeout_s=25, what="tracker back on its own")
 
     err = _scancell("ctl", "call", "device/robot/move_joints", "--json",
                     '{"joints_deg": [0, 0, 0, 0, 500, 0]}', endpoint=endpoint, cell=cell)

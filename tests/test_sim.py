@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 import pytest
-
 from scancell.analysis.ecs import ecs_from_points
 from scancell.analysis.patterns import FringeSequence
 from scancell.devices.sim import parts
@@ -108,10 +107,10 @@ def test_occluded_or_turned_away_smr_gives_beam_break(cell):
 
 def _wrapped_phase(images: list[np.ndarray]) -> np.ndarray:
     n = len(images)
-    I = np.stack([im.astype(float) for im in images])
+    stack = np.stack([im.astype(float) for im in images])
     d = 2 * np.pi * np.arange(n) / n
-    s = np.tensordot(np.sin(d), I, 1)
-    c = np.tensordot(np.cos(d), I, 1)
+    s = np.tensordot(np.sin(d), stack, 1)
+    c = np.tensordot(np.cos(d), stack, 1)
     return np.arctan2(s, c)
 
 

@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-
 from scancell.analysis.ecs import ecs_from_points
 from scancell.analysis.patterns import FringeSequence
 from scancell.devices.sim import parts
@@ -303,8 +302,8 @@ class SimCell:
         T_wp = self.T_world_from_camera("projector")
         to_p = T_wp[:3, 3] - X
         dist = np.linalg.norm(to_p, axis=1)
-        l = to_p / dist[:, None]
-        cos_p = np.einsum("ij,ij->i", n, l)
+        to_p_unit = to_p / dist[:, None]
+        cos_p = np.einsum("ij,ij->i", n, to_p_unit)
         Xp = apply_T(np.linalg.inv(T_wp), X)
         in_front = Xp[:, 2] > 1.0
         uv = np.full((len(X), 2), np.nan)
@@ -318,7 +317,8 @@ class SimCell:
         cand = np.flatnonzero(lit)
         if cand.size:
             eps = 0.05
-            shadow = self.scene.occluded(X[cand] + l[cand] * eps, l[cand], dist[cand] - 2 * eps)
+            shadow = self.scene.occluded(X[cand] + to_p_unit[cand] * eps, to_p_unit[cand],
+                                         dist[cand] - 2 * eps)
             lit[cand[shadow]] = False
         t4 = clock()
         d0 = np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0])

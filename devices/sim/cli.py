@@ -11,7 +11,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import open3d as o3d
-
 from scancell.analysis.patterns import FringeSequence
 from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.devices.sim.parts import PARTS

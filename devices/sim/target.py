@@ -10,9 +10,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from scancell.devices.sim.optics import PinholeModel, StereoRig, make_T
+from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
