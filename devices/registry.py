@@ -19,6 +19,7 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "mock_camera": "scancell.devices.mock:MockCamera",
     "mock_projector": "scancell.devices.mock:MockProjector",
     "mock_axis": "scancell.devices.mock:MockAxis",
+    "simple_message_robot": "scancell.devices.simple_message_robot:SimpleMessageRobot",
 }
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from scancell.protocols import simple_message as sm
 
 # REP (ros-industrial/rep, "Message Structures of the Simple Message Protocol"), Appendix A,

@@ -1,0 +1,235 @@
+"""Robot driver speaking ROS-Industrial simple_message, as FANUC's KAREL server expects it.
+
+- Motion link (``motion_url``, default ``socket://<host>:11000``): trajectory points are
+  streamed as JOINT_TRAJ_PT service requests, one in flight (the next is sent only after the
+  reply); sequence 0 starts a trajectory; STOP_TRAJECTORY (-4) stops. No PING is sent (the KAREL
+  server does not serve it).
+- State link (``state_url``, default ``socket://<host>:11002``): JOINT_POSITION and STATUS
+  topics (~30 Hz) read by a background thread; STATUS maps to health.
+
+Byte streams open through ``serial.serial_for_url``, so ``socket://`` and serial ports use the
+same code. A frame that breaks the protocol means the stream is out of sync: the link is dropped
+(ConnectionLost) and the daemon reconnects.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import serial
+from scancell.devices.base import Health, HealthState, Robot, RobotStatus
+from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
+from scancell.protocols import simple_message as sm
+
+
+@dataclass
+class _State:
+    joints: np.ndarray | None = None
+    status: sm.Status | None = None
+    stamp: float = 0.0  # monotonic time of the last JOINT_POSITION
+    error: str | None = None  # why the state link died
+
+
+class SimpleMessageRobot(Robot):
+    OPTIONS_SCHEMA = {
+        "type": "object",
+        "properties": {
+            "host": {"type": "string"},
+            "motion_port": {"type": "integer", "minimum": 1, "maximum": 65535},
+            "state_port": {"type": "integer", "minimum": 1, "maximum": 65535},
+            "motion_url": {"type": "string"},
+            "state_url": {"type": "string"},
+            "byte_order": {"enum": ["big", "little"]},
+            "reply_timeout_s": {"type": "number", "exclusiveMinimum": 0},
+            "state_timeout_s": {"type": "number", "exclusiveMinimum": 0},
+            "position_tolerance_rad": {"type": "number", "exclusiveMinimum": 0},
+            "joint_limits_deg": {"type": "array", "items": {"type": "array"}},
+        },
+        "additionalProperties": False,
+    }
+
+    def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
+        super().__init__(name, options)
+        o = self.options
+        host = o.get("host", "127.0.0.1")
+        self.motion_url = o.get("motion_url", f"socket://{host}:{o.get('motion_port', 11000)}")
+        self.state_url = o.get("state_url", f"socket://{host}:{o.get('state_port', 11002)}")
+        self.byteorder = o.get("byte_order", "big")
+        self.reply_timeout = float(o.get("reply_timeout_s", 2.0))
+        self.state_timeout = float(o.get("state_timeout_s", 1.0))
+        self.tolerance = float(o.get("position_tolerance_rad", 2e-4))
+        self._motion: serial.SerialBase | None = None
+        self._state_port: serial.SerialBase | None = None
+        self._state = _State()
+        self._state_lock = threading.Lock()
+        self._reader: threading.Thread | None = None
+        self._closing = threading.Event()
+        self._motion_lock = asyncio.Lock()
+        self._motion_decoder = sm.FrameDecoder(self.byteorder)
+        self._stop_requested = False
+
+    # ------------------------------------------------------------ links
+    def _open(self, url: str) -> serial.SerialBase:
+        try:
+            return serial.serial_for_url(url, timeout=0.05, do_not_open=False)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise ConnectionLost(f"{self.name}: cannot open {url}: {exc}") from None
+
+    async def connect(self) -> None:
+        await self.close()
+        self._closing.clear()
+        self._motion_lock = asyncio.Lock()
+        self._state = _State()
+        self._motion_decoder = sm.FrameDecoder(self.byteorder)
+        self._motion = await asyncio.to_thread(self._open, self.motion_url)
+        self._state_port = await asyncio.to_thread(self._open, self.state_url)
+        self._reader = threading.Thread(target=self._read_state, name=f"{self.name}-state",
+                                        daemon=True)
+        self._reader.start()
+        deadline = time.monotonic() + max(self.state_timeout, 1.0)
+        while self._state.joints is None:
+            if self._state.error:
+                raise ConnectionLost(f"{self.name}: state link: {self._state.error}")
+            if time.monotonic() > deadline:
+                raise Timeout(f"{self.name}: no joint state on {self.state_url} within "
+                              f"{max(self.state_timeout, 1.0)} s")
+            await asyncio.sleep(0.01)
+
+    async def close(self) -> None:
+        self._closing.set()
+        for port in (self._motion, self._state_port):
+            if port is not None:
+                with contextlib.suppress(Exception):
+                    port.close()
+        if self._reader is not None:
+            await asyncio.to_thread(self._reader.join, 1.0)
+        self._motion = self._state_port = self._reader = None
+
+    def _read_state(self) -> None:
+        dec = sm.FrameDecoder(self.byteorder)
+        port = self._state_port
+        try:
+            while not self._closing.is_set() and port is not None:
+                data = port.read(4096)
+                if not data:
+                    continue
+                for header, body in dec.feed(data):
+                    with self._state_lock:
+                        if isinstance(body, sm.JointPosition):
+                            self._state.joints = np.asarray(body.joints[: len(self.joint_names)])
+                            self._state.stamp = time.monotonic()
+                        elif isinstance(body, sm.Status):
+                            self._state.status = body
+        except sm.ProtocolError as exc:
+            self._state.error = f"bad frame on the state link: {exc}"
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            if not self._closing.is_set():
+                self._state.error = f"state link lost: {exc}"
+
+    def _check_state(self) -> _State:
+        with self._state_lock:
+            st = _State(self._state.joints, self._state.status, self._state.stamp,
+                        self._state.error)
+        if st.error:
+            raise (BadReply if "bad frame" in st.error else ConnectionLost)(
+                f"{self.name}: {st.error}")
+        if self._state_port is None:
+            raise ConnectionLost(f"{self.name}: not connected")
+        if st.joints is None or time.monotonic() - st.stamp > self.state_timeout:
+            raise Timeout(f"{self.name}: joint state older than {self.state_timeout} s")
+        return st
+
+    # ------------------------------------------------------------ motion requests
+    def _exchange(self, packet: bytes, msg_type: int) -> sm.Header:
+        port = self._motion
+        if port is None:
+            raise ConnectionLost(f"{self.name}: not connected")
+        try:
+            port.write(packet)
+            deadline = time.monotonic() + self.reply_timeout
+            while time.monotonic() < deadline:
+                for header, _ in self._motion_decoder.feed(port.read(4096)):
+                    if header.comm_type == sm.CommType.SERVICE_REPLY and \
+                            header.msg_type == msg_type:
+                        return header
+        except sm.ProtocolError as exc:
+            raise BadReply(f"{self.name}: bad frame on the motion link: {exc}") from None
+        except (serial.SerialException, OSError) as exc:
+            raise ConnectionLost(f"{self.name}: motion link lost: {exc}") from None
+        raise Timeout(f"{self.name}: no reply on {self.motion_url} within {self.reply_timeout} s")
+
+    async def _send_point(self, seq: int, q: np.ndarray, velocity: float) -> None:
+        body = sm.JointTrajPt(seq, q.tolist(), velocity, 0.0)
+        header = sm.Header(sm.MsgType.JOINT_TRAJ_PT, sm.CommType.SERVICE_REQUEST)
+        packet = sm.encode(header, body, self.byteorder)
+        async with self._motion_lock:
+            reply = await asyncio.to_thread(self._exchange, packet, sm.MsgType.JOINT_TRAJ_PT)
+        if reply.reply_code != sm.ReplyCode.SUCCESS:
+            what = "stop" if seq == sm.SpecialSeq.STOP_TRAJECTORY else f"point {seq}"
+            raise DeviceFault(f"{self.name}: controller refused {what} "
+                              f"(reply_code {reply.reply_code})")
+
+    # ------------------------------------------------------------ Robot API
+    async def joints(self) -> np.ndarray:
+        return self._check_state().joints.copy()
+
+    async def _move_joints(self, q_rad: np.ndarray, speed: float) -> None:
+        st = self._check_state()
+        if st.status is not None and st.status.motion_possible == sm.TriState.OFF:
+            raise DeviceFault(f"{self.name}: motion not possible (error_code "
+                              f"{st.status.error_code})")
+        self._stop_requested = False
+        await self._send_point(0, q_rad, speed)
+        settled_since = None
+        while True:
+            await asyncio.sleep(1 / 60)
+            st = self._check_state()
+            if self._stop_requested:
+                raise DeviceFault(f"{self.name}: motion stopped before reaching the target")
+            if st.status is not None and st.status.in_error == sm.TriState.ON:
+                raise DeviceFault(f"{self.name}: controller error {st.status.error_code} "
+                                  "during motion")
+            close = np.max(np.abs(st.joints - q_rad)) < self.tolerance
+            idle = st.status is None or st.status.in_motion != sm.TriState.ON
+            if close and idle:
+                settled_since = settled_since or time.monotonic()
+                if time.monotonic() - settled_since > 0.05:
+                    return
+            else:
+                settled_since = None
+
+    async def stop(self) -> None:
+        self._stop_requested = True
+        await self._send_point(sm.SpecialSeq.STOP_TRAJECTORY, np.zeros(len(self.joint_names)),
+                               0.0)
+
+    async def status(self) -> RobotStatus:
+        s = self._check_state().status
+        if s is None:
+            return RobotStatus(mode="unknown")
+        on = sm.TriState.ON
+        return RobotStatus(
+            mode={1: "manual", 2: "auto"}.get(s.mode, "unknown"), e_stopped=s.e_stopped == on,
+            drives_powered=s.drives_powered == on, motion_possible=s.motion_possible == on,
+            in_motion=s.in_motion == on, in_error=s.in_error == on, error_code=s.error_code)
+
+    async def health(self) -> Health:
+        st = self._check_state()
+        s = st.status
+        if s is None:
+            return Health(HealthState.DEGRADED, "no_status", "no STATUS message received yet")
+        if s.e_stopped == sm.TriState.ON:
+            return Health(HealthState.FAULT, "e_stop", "emergency stop active")
+        if s.in_error == sm.TriState.ON:
+            return Health(HealthState.FAULT, "robot_fault", f"controller error {s.error_code}")
+        if s.drives_powered == sm.TriState.OFF:
+            return Health(HealthState.DEGRADED, "drives_off", "servo drives not powered")
+        if s.motion_possible == sm.TriState.OFF:
+            return Health(HealthState.DEGRADED, "motion_not_possible", "")
+        return Health(HealthState.OK, "ok", "")

@@ -1,0 +1,190 @@
+"""The simple_message robot driver against the KAREL-style simulator over real TCP sockets."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.devices.sim.robot_server import KarelRobotServer
+from scancell.devices.simple_message_robot import SimpleMessageRobot
+from scancell.protocols.commands import CommandError
+
+HOME = np.radians([0.0, 0.0, 0.0, 0.0, -90.0, 0.0])
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+async def _pair(byteorder: str = "big", **server_kw):
+    cell = SimCell(SimCellConfig(camera_scale=16, seed=1))
+    server = KarelRobotServer(cell, motion_port=0, state_port=0, byteorder=byteorder,
+                              )
+    for k, v in server_kw.items():
+        setattr(server, k, v)
+    await server.start()
+    robot = SimpleMessageRobot("robot", {"motion_port": server.motion_port,
+                                         "state_port": server.state_port,
+                                         "byte_order": byteorder})
+    await robot.connect()
+    return cell, server, robot
+
+
+@pytest.mark.parametrize("byteorder", ["big", "little"])
+def test_move_follows_at_realistic_speed_and_reports_state(byteorder):
+    async def main():
+        cell, server, robot = await _pair(byteorder)
+        try:
+            target = HOME + np.radians([20.0, 5.0, -5.0, 10.0, 15.0, 30.0])
+            t0 = time.monotonic()
+            await robot.move_joints(target, speed=0.5)
+            elapsed = time.monotonic() - t0
+            # J1 20 deg at 0.5 x 175 deg/s takes >= 0.23 s; J6 30 deg at 0.5 x 355 deg/s less
+            assert elapsed > 0.2
+            q = await robot.joints()
+            np.testing.assert_allclose(q, target, atol=3e-4)
+            np.testing.assert_allclose(q, cell.q, atol=1e-6)  # float32 on the wire
+            assert (await robot.status()).in_motion is False
+            n0 = robot._state.stamp
+            updates = 0
+            t_end = time.monotonic() + 0.5
+            while time.monotonic() < t_end:
+                await asyncio.sleep(0.005)
+                if robot._state.stamp != n0:
+                    updates, n0 = updates + 1, robot._state.stamp
+            assert 10 <= updates <= 20  # ~30 Hz
+            assert (await robot.health()).reason == "ok"
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_stop_mid_motion_halts_the_robot():
+    async def main():
+        cell, server, robot = await _pair()
+        try:
+            target = HOME + np.radians([90.0, 0, 0, 0, 0, 0])
+            move = asyncio.create_task(robot.move_joints(target, speed=0.2))
+            await asyncio.sleep(0.3)
+            await robot.stop()
+            with pytest.raises(DeviceFault, match="stopped"):
+                await move
+            q1 = (await robot.joints())[0]
+            await asyncio.sleep(0.3)
+            q2 = (await robot.joints())[0]
+            assert 0 < q1 < np.radians(60) and q1 == pytest.approx(q2, abs=1e-6)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_limits_are_checked_before_any_byte_is_sent():
+    async def main():
+        _, server, robot = await _pair()
+        try:
+            with pytest.raises(CommandError, match="out_of_range|outside"):
+                await robot.move_joints(HOME + np.radians([0, 0, 0, 0, 300, 0]))
+            with pytest.raises(CommandError):
+                await robot.move_joints(HOME, speed=1.5)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_robot_fault_status_maps_to_health_and_refuses_motion():
+    async def main():
+        _, server, robot = await _pair()
+        try:
+            server.set_fault(1234)
+            await asyncio.sleep(0.15)
+            h = await robot.health()
+            assert (h.state, h.reason) == ("fault", "robot_fault") and "1234" in h.message
+            st = await robot.status()
+            assert st.in_error and st.error_code == 1234 and not st.motion_possible
+            with pytest.raises(DeviceFault, match="motion not possible"):
+                await robot.move_joints(HOME + np.radians([5, 0, 0, 0, 0, 0]))
+            server.clear_fault()
+            await asyncio.sleep(0.15)
+            await robot.move_joints(HOME + np.radians([5, 0, 0, 0, 0, 0]), speed=1.0)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_server_killed_mid_command_gives_connection_lost_then_reconnects():
+    async def main():
+        cell, server, robot = await _pair()
+        ports = (server.motion_port, server.state_port)
+        move = asyncio.create_task(robot.move_joints(HOME + np.radians([80, 0, 0, 0, 0, 0]),
+                                                     speed=0.1))
+        await asyncio.sleep(0.3)
+        await server.close()
+        with pytest.raises((ConnectionLost, Timeout)):
+            await move
+        with pytest.raises((ConnectionLost, Timeout)):
+            await robot.connect()
+        server2 = KarelRobotServer(cell, motion_port=ports[0], state_port=ports[1])
+        await server2.start()
+        try:
+            await robot.connect()
+            await robot.move_joints(HOME, speed=1.0)
+        finally:
+            await robot.close()
+            await server2.close()
+
+    run(main())
+
+
+def test_garbage_on_the_state_link_is_a_typed_error_and_reconnect_resyncs():
+    async def main():
+        _, server, robot = await _pair()
+        try:
+            server.garbage_once = True
+            await asyncio.sleep(0.2)
+            with pytest.raises(BadReply, match="bad frame"):
+                await robot.joints()
+            await robot.connect()
+            assert (await robot.joints()).shape == (6,)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_stalled_peer_times_out():
+    async def main():
+        _, server, robot = await _pair(stall_replies=False)
+        try:
+            server.stall_replies = True
+            robot.reply_timeout = 0.3
+            t0 = time.monotonic()
+            with pytest.raises(Timeout, match="no reply"):
+                await robot.move_joints(HOME + np.radians([1, 0, 0, 0, 0, 0]))
+            assert time.monotonic() - t0 < 2
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_nothing_listening_is_connection_lost():
+    async def main():
+        robot = SimpleMessageRobot("robot", {"motion_port": 1, "state_port": 2})
+        with pytest.raises(ConnectionLost, match="cannot open socket://127.0.0.1:1"):
+            await robot.connect()
+
+    run(main())
