@@ -19,7 +19,7 @@ import contextlib
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import serial
@@ -37,7 +37,7 @@ class _State:
 
 
 class SimpleMessageRobot(Robot):
-    OPTIONS_SCHEMA = {
+    OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
         "type": "object",
         "properties": {
             "host": {"type": "string"},
@@ -119,7 +119,7 @@ class SimpleMessageRobot(Robot):
                 data = port.read(4096)
                 if not data:
                     continue
-                for header, body in dec.feed(data):
+                for _, body in dec.feed(data):
                     with self._state_lock:
                         if isinstance(body, sm.JointPosition):
                             self._state.joints = np.asarray(body.joints[: len(self.joint_names)])

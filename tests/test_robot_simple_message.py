@@ -67,7 +67,7 @@ def test_move_follows_at_realistic_speed_and_reports_state(byteorder):
 
 def test_stop_mid_motion_halts_the_robot():
     async def main():
-        cell, server, robot = await _pair()
+        _, server, robot = await _pair()
         try:
             target = HOME + np.radians([90.0, 0, 0, 0, 0, 0])
             move = asyncio.create_task(robot.move_joints(target, speed=0.2))
@@ -90,7 +90,7 @@ def test_limits_are_checked_before_any_byte_is_sent():
     async def main():
         _, server, robot = await _pair()
         try:
-            with pytest.raises(CommandError, match="out_of_range|outside"):
+            with pytest.raises(CommandError, match=r"out_of_range|outside"):
                 await robot.move_joints(HOME + np.radians([0, 0, 0, 0, 300, 0]))
             with pytest.raises(CommandError):
                 await robot.move_joints(HOME, speed=1.5)
@@ -184,7 +184,7 @@ def test_stalled_peer_times_out():
 def test_nothing_listening_is_connection_lost():
     async def main():
         robot = SimpleMessageRobot("robot", {"motion_port": 1, "state_port": 2})
-        with pytest.raises(ConnectionLost, match="cannot open socket://127.0.0.1:1"):
+        with pytest.raises(ConnectionLost, match=r"cannot open socket://127\.0\.0\.1:1"):
             await robot.connect()
 
     run(main())
