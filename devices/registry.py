@@ -20,6 +20,7 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "mock_projector": "scancell.devices.mock:MockProjector",
     "mock_axis": "scancell.devices.mock:MockAxis",
     "simple_message_robot": "scancell.devices.simple_message_robot:SimpleMessageRobot",
+    "line_tracker": "scancell.devices.line_tracker:LineTracker",
 }
 
 

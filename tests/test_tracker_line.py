@@ -1,0 +1,177 @@
+"""Tracker line protocol: codec, fuzzing, and the driver against the simulator (TCP and pty)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from scancell.devices.errors import BeamBroken, ConnectionLost, Timeout
+from scancell.devices.line_tracker import LineTracker
+from scancell.devices.sim import parts
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.devices.sim.optics import make_T
+from scancell.devices.sim.scene import SceneObject
+from scancell.devices.sim.tracker_server import PtyTrackerServer, TcpTrackerServer
+from scancell.protocols import tracker_line as tl
+
+
+def test_codec_round_trips_and_rejects_malformed_lines():
+    assert tl.format_command(7, "FindReflector", (1.5, -2, 3e3)) == \
+        b"00007 FindReflector(1.5, -2, 3000.0)\r\n"
+    assert tl.parse_command("00007 FindReflector(1.5, -2, 3000.0)") == \
+        ("00007", "FindReflector", [1.5, -2, 3000.0])
+    line = tl.format_response("00001", "data", "Hello", ('a "quoted" \\ name', 1, 2.5)).decode()
+    r = tl.parse_response(line)
+    assert (r.kind, r.name, r.args) == ("data", "Hello", ('a "quoted" \\ name', 1, 2.5))
+    err = tl.parse_response(tl.error_response("00002", 1001, "beam").decode())
+    assert (err.error_code, err.error_text) == (1001, "BeamBroken: beam")
+    assert tl.parse_response("E0000 # BeamBroken(\"x\")").kind == "event"
+    for bad in ("1 Measure()", "00001 Measure(", "00001 Measure(1,)", "00001 Meas ure()",
+                "00001 X(abc)", "00001 ! Nope(1)", "00001 ?", 'E0000 BeamBroken("x")',
+                "00001 X(\"unterminated)"):
+        with pytest.raises(tl.LineError):
+            tl.parse_response(bad) if " ! " in bad or "?" in bad or "E0000" in bad \
+                else tl.parse_command(bad)
+    sp = tl.LineSplitter()
+    assert sp.feed(b"00001 &\r\n00001 %") == ["00001 &"]
+    assert sp.feed(b"\n") == ["00001 %"]
+    with pytest.raises(tl.LineError):
+        sp.feed(b"x" * 2000)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.text(max_size=200))
+def test_fuzz_parsers_raise_only_line_errors(text):
+    for fn in (tl.parse_command, tl.parse_response):
+        try:
+            fn(text)
+        except tl.LineError:
+            pass
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=600))
+def test_fuzz_splitter_raises_only_line_errors(data):
+    try:
+        tl.LineSplitter().feed(data)
+    except tl.LineError:
+        pass
+
+
+def _cell() -> SimCell:
+    c = SimCell(SimCellConfig(camera_scale=16, seed=4))
+    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(np.array([3300.0, 0, 1100]))))
+    return c
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+def test_measure_over_tcp_is_within_the_noise_model_and_beam_breaks_on_occlusion():
+    async def main():
+        cell = _cell()
+        server = TcpTrackerServer(cell, event_period_s=0.05)
+        await server.start()
+        trk = LineTracker("tracker", {"url": f"socket://127.0.0.1:{server.port}"})
+        await trk.connect()
+        try:
+            truth = cell.smr_center_world()
+            errs = []
+            for _ in range(40):
+                m = await trk.measure()
+                errs.append((m.point_mm - truth) / m.sigma_mm)
+                assert m.device_stamp_ns > 0 and m.stamp_ns > 0
+            z = np.abs(np.array(errs))
+            assert z.max() < 5 and 0.5 < np.sqrt(np.mean(z**2)) < 1.6
+            st_ = await trk.status()
+            assert st_.beam_locked and st_.temperature_c == pytest.approx(20.0)
+            blocker = SceneObject("blocker", parts.flat(200.0), make_T(t=truth * 0.5))
+            cell.add_object(blocker)
+            with pytest.raises(BeamBroken, match="occluded"):
+                await trk.measure()
+            await asyncio.sleep(0.2)
+            assert any(e.name == "BeamBroken" for e in trk.events)
+            h = await trk.health()
+            assert (h.state, h.reason) == ("degraded", "beam_broken")
+            cell.scene.remove("blocker")
+            await asyncio.sleep(0.2)
+            assert any(e.name == "BeamLocked" for e in trk.events)
+            assert (await trk.measure()).point_mm.shape == (3,)
+        finally:
+            await trk.close()
+            await server.close()
+
+    run(main())
+
+
+def test_garbage_lines_are_dropped_and_stalls_time_out():
+    async def main():
+        server = TcpTrackerServer(_cell())
+        await server.start()
+        trk = LineTracker("tracker", {"url": f"socket://127.0.0.1:{server.port}",
+                                      "timeout_s": 0.5})
+        await trk.connect()
+        try:
+            server.inject(b"\xff\xfe garbage\r\n99999 # Point(1,2)\r\nnot a line at all\r\n")
+            await asyncio.sleep(0.1)
+            assert (await trk.measure()).point_mm.shape == (3,)
+            assert trk.garbage_lines >= 2
+            server.stall = True
+            with pytest.raises(Timeout, match="not answered"):
+                await trk.measure()
+            server.stall = False
+            assert (await trk.measure()).point_mm.shape == (3,)
+        finally:
+            await trk.close()
+            await server.close()
+
+    run(main())
+
+
+def test_server_killed_gives_connection_lost_and_reconnect_works():
+    async def main():
+        cell = _cell()
+        server = TcpTrackerServer(cell)
+        await server.start()
+        port = server.port
+        trk = LineTracker("tracker", {"url": f"socket://127.0.0.1:{port}"})
+        await trk.connect()
+        await server.close()
+        await asyncio.sleep(0.1)
+        with pytest.raises(ConnectionLost):
+            await trk.measure()
+        server2 = TcpTrackerServer(cell, port=port)
+        await server2.start()
+        try:
+            await trk.connect()
+            assert (await trk.measure()).point_mm.shape == (3,)
+        finally:
+            await trk.close()
+            await server2.close()
+
+    run(main())
+
+
+def test_same_driver_over_a_pseudo_terminal_and_the_port_disappearing():
+    async def main():
+        cell = _cell()
+        pty = PtyTrackerServer(cell)
+        trk = LineTracker("tracker", {"url": pty.path, "baudrate": 115200})
+        try:
+            await trk.connect()
+            m = await trk.measure()
+            assert np.linalg.norm(m.point_mm - cell.smr_center_world()) < 0.2
+            pty.close()
+            await asyncio.sleep(0.2)
+            with pytest.raises(ConnectionLost):
+                await trk.measure()
+        finally:
+            await trk.close()
+            pty.close()
+
+    run(main())
