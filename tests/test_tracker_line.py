@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from scancell.devices.errors import BeamBroken, ConnectionLost, Timeout
 from scancell.devices.line_tracker import LineTracker
 from scancell.devices.sim import parts

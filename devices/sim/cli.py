@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import sys
 import time
@@ -77,8 +78,58 @@ def render(args: argparse.Namespace) -> int:
     return 0
 
 
+async def _serve(args: argparse.Namespace) -> int:
+    import signal
+
+    cell = SimCell(SimCellConfig(seed=args.seed, camera_scale=16))
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(cell.cfg.T_world_from_part[:3, 3])))
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.device == "robot":
+        from scancell.devices.sim.robot_server import KarelRobotServer
+
+        server = KarelRobotServer(cell, args.host, args.motion_port, args.state_port,
+                                  args.byte_order)
+        await server.start()
+        print(f"simulated robot (KAREL simple_message, {args.byte_order}-endian): motion "
+              f"{args.host}:{server.motion_port}, state {args.host}:{server.state_port}",
+              flush=True)
+        await stop.wait()
+        await server.close()
+    elif args.pty:
+        from scancell.devices.sim.tracker_server import PtyTrackerServer
+
+        pty = PtyTrackerServer(cell)
+        print(f"simulated tracker (STLP) on pseudo-terminal {pty.path}", flush=True)
+        await stop.wait()
+        pty.close()
+    else:
+        from scancell.devices.sim.tracker_server import TcpTrackerServer
+
+        server = TcpTrackerServer(cell, args.host, args.port)
+        await server.start()
+        print(f"simulated tracker (STLP) on {args.host}:{server.port}", flush=True)
+        await stop.wait()
+        await server.close()
+    return 0
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="sim_command", required=True)
+    serve = sub.add_parser("serve", help="run a device simulator until SIGINT/SIGTERM")
+    dev = serve.add_subparsers(dest="device", required=True)
+    rob = dev.add_parser("robot", help="KAREL-style simple_message robot server")
+    rob.add_argument("--motion-port", type=int, default=11000)
+    rob.add_argument("--state-port", type=int, default=11002)
+    rob.add_argument("--byte-order", choices=["big", "little"], default="big")
+    trk = dev.add_parser("tracker", help="laser tracker speaking STLP over TCP or a pty")
+    trk.add_argument("--port", type=int, default=7000)
+    trk.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead")
+    for sp in (rob, trk):
+        sp.add_argument("--host", default="127.0.0.1")
+        sp.add_argument("--seed", type=int, default=0)
     r = sub.add_parser("render", help="render one station: DIR/left/00.png ..., "
                                       "stereo_true.yaml, truth.ply")
     r.add_argument("--joints-deg", help="J1,...,J6 in degrees (use --joints-deg=-10,... for "
@@ -94,4 +145,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.sim_command == "serve":
+        return asyncio.run(_serve(args))
     return render(args)
