@@ -115,8 +115,16 @@ class Status:
     motion_possible: int = TriState.UNKNOWN
 
 
+class _PaddedJointArrays:
+    """Pads positions, velocities and accelerations to the protocol's 10 joints."""
+
+    def __post_init__(self) -> None:
+        for name in ("positions", "velocities", "accelerations"):
+            object.__setattr__(self, name, _joints(getattr(self, name)))
+
+
 @dataclass(frozen=True)
-class JointTrajPtFull:
+class JointTrajPtFull(_PaddedJointArrays):
     robot_id: int
     sequence: int
     valid_fields: int
@@ -125,23 +133,15 @@ class JointTrajPtFull:
     velocities: tuple[float, ...] = (0.0,) * N_JOINTS
     accelerations: tuple[float, ...] = (0.0,) * N_JOINTS
 
-    def __post_init__(self) -> None:
-        for name in ("positions", "velocities", "accelerations"):
-            object.__setattr__(self, name, _joints(getattr(self, name)))
-
 
 @dataclass(frozen=True)
-class JointFeedback:
+class JointFeedback(_PaddedJointArrays):
     robot_id: int
     valid_fields: int
     time: float
     positions: tuple[float, ...]
     velocities: tuple[float, ...] = (0.0,) * N_JOINTS
     accelerations: tuple[float, ...] = (0.0,) * N_JOINTS
-
-    def __post_init__(self) -> None:
-        for name in ("positions", "velocities", "accelerations"):
-            object.__setattr__(self, name, _joints(getattr(self, name)))
 
 
 @dataclass(frozen=True)
