@@ -140,23 +140,19 @@ class SimCell:
 
     def mcs_pose_looking_at(self, target_world: np.ndarray, standoff_mm: float = 650.0,
                             view_dir: np.ndarray | None = None) -> np.ndarray:
-        """``T_world_from_mcs`` that puts the rig's crossing point on ``target_world``, looking
-        along ``view_dir`` (default +x), baseline horizontal."""
+        """``T_world_from_mcs`` that puts ``target_world`` on the rig's bisector (the flange z
+        axis), ``standoff_mm`` in front of the midpoint between the cameras, looking along
+        ``view_dir`` (default world +x) with the baseline horizontal."""
         v = np.array([1.0, 0, 0]) if view_dir is None else np.asarray(view_dir, float)
         v = v / np.linalg.norm(v)
-        T_flange_from_mcs = self.T_flange_from_mcs
-        # the rig bisector is the flange z axis by construction of the mount
         x = np.cross([0.0, 0.0, -1.0], v)
         x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([0.0, 1.0, 0.0])
-        y = np.cross(v, x)
-        crossing_in_flange = T_flange_from_mcs[:3, 3] + T_flange_from_mcs[:3, :3] @ np.array(
-            [self.rig.T_mcs_from_right[0, 3] / 2, 0.0, 0.0])
-        R = np.stack([x, y, v], axis=1)
+        R = np.stack([x, np.cross(v, x), v], axis=1)
+        T_fm = self.T_flange_from_mcs
+        rig_mid_in_flange = T_fm[:3, 3] + T_fm[:3, :3] @ (self.rig.T_mcs_from_right[:3, 3] / 2)
         T_world_from_flange = make_T(R, np.asarray(target_world, float) - v * standoff_mm
-                                     - R @ np.array([crossing_in_flange[0], crossing_in_flange[1],
-                                                     0.0]))
-        T_world_from_flange[:3, 3] -= R @ np.array([0.0, 0.0, crossing_in_flange[2]])
-        return T_world_from_flange @ T_flange_from_mcs
+                                     - R @ rig_mid_in_flange)
+        return T_world_from_flange @ T_fm
 
     def ik_for_mcs(self, T_world_from_mcs: np.ndarray, seed_rad: np.ndarray | None = None
                    ) -> np.ndarray:
