@@ -13,7 +13,7 @@ from __future__ import annotations
 import enum
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -236,7 +236,7 @@ class Robot(Device):
 
     @operation("robot.status")
     async def op_status(self, request: dict[str, Any]) -> dict[str, Any]:
-        return vars(await self.status()) | {}
+        return asdict(await self.status())
 
 
 # ====================================================================== Tracker
@@ -294,7 +294,7 @@ class Tracker(Device):
 
     @operation("tracker.status")
     async def op_status(self, request: dict[str, Any]) -> dict[str, Any]:
-        return vars(await self.status()) | {}
+        return asdict(await self.status())
 
 
 # ====================================================================== Camera
@@ -342,7 +342,7 @@ class Camera(Device):
 
     @operation("camera.configure")
     async def op_configure(self, request: dict[str, Any]) -> dict[str, Any]:
-        return vars(await self.configure(**request)) | {}
+        return asdict(await self.configure(**request))
 
     @operation("camera.grab", timeout_s=10.0)
     async def op_grab(self, request: dict[str, Any]) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from scancell.devices.base import (
     operation,
 )
 from scancell.devices.errors import BeamBroken, ConnectionLost, Timeout
+from scancell.protocols.commands import CommandError
 from scancell.protocols.messages import now_ns
 
 
@@ -184,8 +185,6 @@ class MockProjector(MockLink, Projector):
 
     async def show(self, index: int) -> None:
         self._check()
-        from scancell.protocols.commands import CommandError
-
         if not -1 <= index < self.count:
             raise CommandError("out_of_range",
                                f"{self.name}: pattern {index} not in loaded sequence of {self.count}")

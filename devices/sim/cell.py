@@ -235,28 +235,28 @@ class SimCell:
         return self.scene.get("ball").T_world_from_object[:3, 3].copy()
 
     # ------------------------------------------------------------------ tracker
+    def _reflector(self, target: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+        """Centre, opening direction and self-occluding object names of a tracker target."""
+        if target == "scanner":
+            return self.smr_center_world(), self.smr_opening_world(), ()
+        if target == "ball":
+            try:
+                T = self.scene.get("ball").T_world_from_object
+            except KeyError:
+                raise BeamBreak("no calibration ball in the cell") from None
+            return T[:3, 3], T[:3, 2], ("ball",)  # the ball does not occlude its own beam
+        raise KeyError(f"unknown tracker target {target!r}: use 'scanner' or 'ball'")
+
+    def beam_check(self, target: str = "scanner") -> None:
+        """Raise BeamBreak unless the tracker can lock on ``target``; draws no noise."""
+        c, o, exclude = self._reflector(target)
+        self.tracker.beam_check(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
+
     def measure_smr(self, target: str = "scanner") -> TrackerReading:
         """Tracker measurement of the scanner's SMR or of the calibration ball; BeamBreak if the
         beam cannot reach it."""
-        if target == "scanner":
-            c, o = self.smr_center_world(), self.smr_opening_world()
-            return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene)
-        if target == "ball":
-            try:
-                ball = self.scene.get("ball")
-            except KeyError:
-                raise BeamBreak("no calibration ball in the cell") from None
-            c = ball.T_world_from_object[:3, 3]
-            o = ball.T_world_from_object[:3, 2]
-            saved = ball.T_world_from_object
-            # the ball does not occlude its own beam
-            self.scene.remove("ball")
-            try:
-                return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene)
-            finally:
-                self.scene.objects.insert(0, SceneObject("ball", ball.mesh, saved, ball.albedo,
-                                                         _scene=ball._scene))
-        raise KeyError(f"unknown tracker target {target!r}: use 'scanner' or 'ball'")
+        c, o, exclude = self._reflector(target)
+        return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
 
     # ------------------------------------------------------------------ rendering
     def camera_model(self, camera: str) -> PinholeModel:

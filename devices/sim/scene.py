@@ -6,6 +6,7 @@ into the object frame, so objects move (robot, calibration ball) without rebuild
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,13 +86,16 @@ class Scene:
         return Hits(best_t, normal, idx)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray,
-                 tnear: float = 0.0) -> np.ndarray:
-        """True where a ray hits any object between tnear and tfar (per ray)."""
+                 tnear: float = 0.0, exclude: Collection[str] = ()) -> np.ndarray:
+        """True where a ray hits any object (but those named in ``exclude``) between tnear and
+        tfar (per ray)."""
         dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
         origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
         tfar = np.broadcast_to(np.asarray(tfar, np.float64), dirs.shape[:1])
         out = np.zeros(dirs.shape[0], bool)
         for obj in self.objects:
+            if obj.name in exclude:
+                continue
             rays = obj._local(origins, dirs)
             # rays leave unit length under a rigid transform, so tfar keeps its meaning
             occ = obj.scene.test_occlusions(o3d.core.Tensor(rays), tnear=tnear,

@@ -17,6 +17,7 @@ otherwise the measurement is a beam break, never a point.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,7 +60,7 @@ class TrackerModel:
         self.position = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
 
     def beam_check(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
-                   scene: Scene) -> None:
+                   scene: Scene, exclude: Collection[str] = ()) -> None:
         """Raise BeamBreak if the beam cannot lock on an SMR at ``center``."""
         to_smr = center - self.position
         dist = float(np.linalg.norm(to_smr))
@@ -69,12 +70,13 @@ class TrackerModel:
             angle = np.degrees(np.arccos(np.clip(cos_acc, -1, 1)))
             raise BeamBreak(f"beam {angle:.1f} deg off the SMR axis (acceptance "
                             f"±{self.spec.acceptance_half_angle_deg:.0f} deg)")
-        if scene.occluded(self.position, u[None], np.array([dist - radius_mm - 0.5]))[0]:
+        if scene.occluded(self.position, u[None], np.array([dist - radius_mm - 0.5]),
+                          exclude=exclude)[0]:
             raise BeamBreak("beam occluded before the SMR")
 
     def measure(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
-                scene: Scene) -> TrackerReading:
-        self.beam_check(center, opening_dir, radius_mm, scene)
+                scene: Scene, exclude: Collection[str] = ()) -> TrackerReading:
+        self.beam_check(center, opening_dir, radius_mm, scene, exclude)
         to_smr = center - self.position
         dist = float(np.linalg.norm(to_smr))
         u = to_smr / dist

@@ -28,7 +28,7 @@ class TrackerProtocolHandler:
 
     def _lock_state(self) -> tuple[bool, str]:
         try:
-            self.cell.measure_smr(self.target)
+            self.cell.beam_check(self.target)
             return True, ""
         except BeamBreak as exc:
             return False, str(exc)
