@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml deploy/install-system-deps.sh
 	sh deploy/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,basler]'
 	touch $(STAMP)
 
 demo: $(STAMP)

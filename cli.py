@@ -36,6 +36,9 @@ def _daemon_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", default=None,
                    help="override [bus] listen endpoints, comma-separated")
     p.add_argument("--cell", default=None, help="override [cell] name")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="override any config key, e.g. --set simulator.robot.motion_port=12000 "
+                        "--set devices.robot.motion_port=12000 (repeatable)")
 
 
 @subcommand("ctl", "talk to a running daemon: status, devices, call", "scancell.ctl:main")

@@ -47,9 +47,11 @@ class CellConfig:
     daemon: DaemonConfig
     devices: dict[str, DeviceConfig]
     raw: dict[str, Any]
+    #: The embedded simulated cell's ``[simulator]`` table (None: no simulator).
+    simulator: dict[str, Any] | None = None
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices"}
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:
@@ -64,8 +66,42 @@ def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) 
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     for table, values in (overrides or {}).items():
-        raw.setdefault(table, {}).update(values)
+        _merge(raw.setdefault(table, {}), values)
     return parse_cell_config(raw, str(p), p)
+
+
+def _merge(into: dict[str, Any], values: dict[str, Any]) -> None:
+    for key, value in values.items():
+        if isinstance(value, dict) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = value
+
+
+def parse_set_option(text: str) -> dict[str, Any]:
+    """``"simulator.robot.motion_port=12000"`` -> nested overrides; the value is read as a
+    TOML value (number, bool, string, array) and as a bare string if it is not one."""
+    key, sep, value = text.partition("=")
+    parts = [k.strip() for k in key.split(".")]
+    if not sep or not all(parts):
+        raise ConfigError(f"--set {text!r}: expected TABLE.KEY=VALUE, e.g. "
+                          f"devices.robot.motion_port=12000")
+    try:
+        parsed: Any = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    out: dict[str, Any] = {parts[-1]: parsed}
+    for k in reversed(parts[:-1]):
+        out = {k: out}
+    return out
+
+
+def merge_overrides(items: list[str]) -> dict[str, Any]:
+    """Several ``--set`` options merged into one override mapping."""
+    merged: dict[str, Any] = {}
+    for item in items:
+        _merge(merged, parse_set_option(item))
+    return merged
 
 
 def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
@@ -119,7 +155,17 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         options = {k: v for k, v in table.items() if k != "driver"}
         _check_driver(driver, options, key, err)
         devices[dev_name] = DeviceConfig(dev_name, driver, options)
-    return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw)
+    simulator = raw.get("simulator")
+    if simulator is not None:
+        if not isinstance(simulator, dict):
+            raise err("[simulator]", "must be a table")
+        from scancell.devices.sim.host import check_options
+
+        problem = check_options(simulator)
+        if problem:
+            raise err("[simulator]", problem)
+    return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
+                      simulator)
 
 
 def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:

@@ -30,6 +30,10 @@ from scancell.protocols.encoding import Attachment
 log = logging.getLogger(__name__)
 
 
+class SimulatorError(RuntimeError):
+    """The config's embedded simulated cell could not start (e.g. a port is taken)."""
+
+
 class Daemon:
     def __init__(self, cfg: CellConfig, bus_config: BusConfig | None = None) -> None:
         self.cfg = cfg
@@ -43,6 +47,7 @@ class Daemon:
         self._stop: asyncio.Event | None = None
         self._started = time.monotonic()
         self.ready = False
+        self.simulator: Any = None
 
     # ---------------------------------------------------------------- lifecycle
     def request_stop(self) -> None:
@@ -66,7 +71,34 @@ class Daemon:
             logging.getLogger("scancell").removeHandler(handler)
             self.bus.close()
 
+    async def _start_simulator(self) -> None:
+        if self.cfg.simulator is None:
+            return
+        # Imported only when a config asks for it: drivers never import simulation code.
+        from scancell.devices.sim.host import SimHost
+
+        host = SimHost(self.cfg.simulator)
+        try:
+            await asyncio.to_thread(host.start)
+        except Exception as exc:
+            raise SimulatorError(f"{self.cfg.path or '<config>'}: [simulator] could not start: "
+                                 f"{exc}") from exc
+        self.simulator = host
+
+    async def _stop_simulator(self) -> None:
+        host, self.simulator = self.simulator, None
+        if host is not None:
+            await asyncio.to_thread(host.stop)
+
     async def _serve(self) -> int:
+        assert self.bus is not None and self._stop is not None
+        await self._start_simulator()
+        try:
+            return await self._serve_devices()
+        finally:
+            await self._stop_simulator()
+
+    async def _serve_devices(self) -> int:
         assert self.bus is not None and self._stop is not None
         for name, dc in self.cfg.devices.items():
             dev = load_driver(dc.driver)(name, dc.options)

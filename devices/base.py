@@ -316,10 +316,15 @@ class Frame:
     seq: int
     device_stamp_ns: int | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    #: Trigger inputs the camera had counted when it exposed this frame (None if unknown).
+    trigger_count: int | None = None
 
 
 class Camera(Device):
+    """An area camera. ``settings`` holds what the camera was last configured to."""
+
     kind = "camera"
+    settings: CameraSettings = CameraSettings(10000.0, 0.0, "software")
 
     @abstractmethod
     async def configure(
@@ -334,6 +339,18 @@ class Camera(Device):
     @abstractmethod
     async def grab(self, timeout_s: float = 2.0) -> Frame:
         """Return the next frame; raise Timeout if none arrives in ``timeout_s``."""
+
+    async def pending(self) -> int:
+        """Frames acquired but not yet taken by :meth:`grab`."""
+        return 0
+
+    async def flush(self) -> int:
+        """Drop frames acquired but not taken; return how many."""
+        n = 0
+        while await self.pending():
+            await self.grab(1.0)
+            n += 1
+        return n
 
     def publish_frame(self, frame: Frame, meta: dict[str, Any] | None = None) -> None:
         msg = messages.raw_image(frame.image, frame.stamp_ns, self.name)
@@ -416,6 +433,10 @@ class Axis(Device):
     @abstractmethod
     async def stop(self) -> None: ...
 
+    async def reset_fault(self) -> None:
+        """Acknowledge a drive fault and make the axis ready to move again."""
+        raise CommandError("invalid", f"{self.name}: this axis driver has no fault reset")
+
     @operation("axis.move_to", timeout_s=120.0)
     async def op_move_to(self, request: dict[str, Any]) -> dict[str, Any]:
         await self.move_to(float(request["position"]), float(request.get("speed", 0.5)))
@@ -428,6 +449,11 @@ class Axis(Device):
     @operation("axis.home", timeout_s=120.0)
     async def op_home(self, request: dict[str, Any]) -> dict[str, Any]:
         await self.home()
+        return {"position": await self.position(), "units": self.units}
+
+    @operation("axis.reset_fault", timeout_s=10.0)
+    async def op_reset_fault(self, request: dict[str, Any]) -> dict[str, Any]:
+        await self.reset_fault()
         return {"position": await self.position(), "units": self.units}
 
     @operation("axis.stop", timeout_s=2.0, exclusive=False)

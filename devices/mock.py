@@ -139,7 +139,6 @@ class MockCamera(MockLink, Camera):
 
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
-        self._settings = CameraSettings(10000.0, 0.0, "software")
         self._triggered = 0
         self._frame_seq = 0
         self._rng = np.random.default_rng(int(self.options.get("seed", 0)))
@@ -147,13 +146,13 @@ class MockCamera(MockLink, Camera):
     async def configure(self, exposure_us: float | None = None, gain_db: float | None = None,
                         trigger: str | None = None) -> CameraSettings:
         self._check()
-        s = self._settings
-        self._settings = CameraSettings(
+        s = self.settings
+        self.settings = CameraSettings(
             s.exposure_us if exposure_us is None else float(exposure_us),
             s.gain_db if gain_db is None else float(gain_db),
             s.trigger if trigger is None else trigger,
         )
-        return self._settings
+        return self.settings
 
     async def trigger(self) -> None:
         self._check()
@@ -161,7 +160,7 @@ class MockCamera(MockLink, Camera):
 
     async def grab(self, timeout_s: float = 2.0) -> Frame:
         self._check()
-        if self._settings.trigger == "software" and self._triggered == 0:
+        if self.settings.trigger == "software" and self._triggered == 0:
             await asyncio.sleep(timeout_s)
             raise Timeout(f"{self.name}: no frame within {timeout_s} s (not triggered)")
         self._triggered = max(0, self._triggered - 1)
@@ -211,4 +210,7 @@ class MockAxis(MockLink, Axis):
         self._pos, self._homed = 0.0, True
 
     async def stop(self) -> None:
+        self._check()
+
+    async def reset_fault(self) -> None:
         self._check()

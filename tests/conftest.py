@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import os
 import socket
 import threading
 import time
@@ -18,6 +19,10 @@ from scancell.bus import Bus, BusConfig
 from scancell.client import CellClient
 from scancell.config import parse_cell_config
 from scancell.daemon.service import Daemon
+from scancell.deploy import cell_config_path
+
+# pylon's camera emulation: two emulated Basler cameras for the basler driver tests.
+os.environ.setdefault("PYLON_CAMEMU", "2")
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -65,6 +70,28 @@ MOCK_CELL: dict[str, Any] = {
 }
 
 
+def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[str, Any]:
+    """The packaged sim.toml with every simulator on a free port (drivers follow), small
+    cameras and its own world name, ready for :class:`DaemonThread`."""
+    import tomllib
+
+    raw = tomllib.loads(cell_config_path("sim").read_text())
+    sim, dev = raw["simulator"], raw["devices"]
+    sim["camera_scale"] = camera_scale
+    sim["world"] = world or f"w{uuid.uuid4().hex[:8]}"
+    motion, state, tracker, axis = (free_port() for _ in range(4))
+    sim["robot"].update(motion_port=motion, state_port=state)
+    sim["tracker"]["port"] = tracker
+    sim["axis"]["port"] = axis
+    dev["robot"].update(motion_port=motion, state_port=state)
+    dev["tracker"]["url"] = f"socket://127.0.0.1:{tracker}"
+    dev["axis"]["port"] = axis
+    for name in ("cam_left", "cam_right", "projector"):
+        dev[name]["world"] = sim["world"]
+    raw["daemon"].update(status_period_s=0.3, reconnect_initial_s=0.1, reconnect_max_s=0.5)
+    return raw
+
+
 class DaemonThread:
     """A daemon running in-process on its own event loop thread."""
 
@@ -77,7 +104,7 @@ class DaemonThread:
         self.rc: int | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60
         while not self.daemon.ready:
             if time.monotonic() > deadline or not self.thread.is_alive():
                 raise RuntimeError("daemon did not start")

@@ -344,9 +344,10 @@ class SimCell:
             raise IndexError(f"pattern {k} outside the loaded sequence of {len(self.sequence)}")
         self.pattern = k
 
-    def render(self, camera: str, pattern: int | None = None) -> np.ndarray:
+    def render(self, camera: str, pattern: int | None = None, brightness: float = 1.0
+               ) -> np.ndarray:
         """8-bit image of ``camera`` under projector pattern ``pattern`` (default: the one shown;
-        -1 dark, -2 full white)."""
+        -1 dark, -2 full white); ``brightness`` scales the signal (exposure time and gain)."""
         g = self.geometry(camera)
         k = self.pattern if pattern is None else pattern
         pw = self.rig.projector.width
@@ -356,7 +357,7 @@ class SimCell:
             light = np.where(np.isfinite(g.proj_x), 1.0, 0.0)
         else:
             light = np.nan_to_num(self.sequence.intensity(k, g.proj_x, pw), nan=0.0)
-        dn = g.base_dn + g.fringe_dn * light
+        dn = (g.base_dn + g.fringe_dn * light) * brightness
         if self.cfg.psf_sigma_px > 0:
             dn = cv2.GaussianBlur(dn, (0, 0), self.cfg.psf_sigma_px)
         rng = np.random.default_rng([self.cfg.seed, 3, self._frame])

@@ -1,0 +1,176 @@
+"""The embedded simulated cell: one SimCell and its protocol servers in a thread of their own.
+
+A cell config's ``[simulator]`` table starts it inside the daemon before the devices connect:
+
+- ``[simulator.robot]``: the KAREL-style simple_message server (motion/state ports);
+- ``[simulator.tracker]``: the STLP tracker server on TCP;
+- ``[simulator.axis]``: the CiA 402 drive on a virtual CAN channel, served over socketcand;
+- the world itself, for the in-process ``sim_camera`` and ``sim_projector`` drivers.
+
+The servers run on their own event loop so the daemon's drivers reach them through real
+sockets exactly as they would reach hardware.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from typing import Any
+
+import jsonschema
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.devices.sim.parts import PARTS
+from scancell.devices.sim.world import SimWorld, register, unregister
+
+log = logging.getLogger(__name__)
+
+_PORT = {"type": "integer", "minimum": 0, "maximum": 65535}
+_HOST = {"type": "string"}
+SIMULATOR_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "world": {"type": "string"},
+        "seed": {"type": "integer"},
+        "camera_scale": {"type": "number", "minimum": 1},
+        "part": {"enum": [*PARTS, ""]},
+        "look_at_part": {"type": "boolean"},
+        "robot": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "motion_port": _PORT, "state_port": _PORT,
+            "byte_order": {"enum": ["big", "little"]},
+            "state_hz": {"type": "number", "exclusiveMinimum": 0}}},
+        "tracker": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "port": _PORT}},
+        "axis": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "port": _PORT, "node_id": {"type": "integer", "minimum": 1,
+                                                     "maximum": 127},
+            "counts_per_mm": {"type": "number", "exclusiveMinimum": 0},
+            "can_channel": {"type": "string"}}},
+    },
+    "additionalProperties": False,
+}
+
+
+def check_options(options: dict[str, Any]) -> str | None:
+    """The first problem with a ``[simulator]`` table, as ``"key: message"``, or None."""
+    errors = sorted(jsonschema.Draft202012Validator(SIMULATOR_SCHEMA).iter_errors(options),
+                    key=lambda e: list(e.path))
+    if not errors:
+        return None
+    e = errors[0]
+    return f"{'.'.join(str(p) for p in e.path) or '(table)'}: {e.message}"
+
+
+class SimHost:
+    def __init__(self, options: dict[str, Any]) -> None:
+        problem = check_options(options)
+        if problem:
+            raise ValueError(f"[simulator] {problem}")
+        self.options = options
+        self.world: SimWorld | None = None
+        self.endpoints: dict[str, Any] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, daemon=True, name="sim-host")
+        self._servers: list[Any] = []
+        self._drive: Any = None
+
+    # ---------------------------------------------------------------- control
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Build the world and start the servers; raise if any cannot start."""
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise TimeoutError(f"simulated cell did not start within {timeout_s} s")
+        if self._error is not None:
+            self._thread.join(5.0)
+            raise self._error
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join(10.0)
+
+    # ---------------------------------------------------------------- thread
+    def _main(self) -> None:
+        try:
+            asyncio.run(self._run())
+        except BaseException as exc:  # reported to start()
+            self._error = exc
+            self._ready.set()
+
+    def _build_world(self) -> SimWorld:
+        o = self.options
+        cell = SimCell(SimCellConfig(seed=int(o.get("seed", 0)),
+                                     camera_scale=float(o.get("camera_scale", 1.0)),
+                                     part=o.get("part", "car_rear") or None))
+        if o.get("look_at_part", True) and cell.cfg.part:
+            target = cell.cfg.T_world_from_part[:3, 3]
+            cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target)))
+        return SimWorld(str(o.get("world", "default")), cell)
+
+    async def _run(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        world = self._build_world()
+        register(world)
+        self.world = world
+        try:
+            try:
+                await self._start_servers(world)
+            except BaseException:
+                await self._close_servers()
+                raise
+            log.info("simulated cell %r running: %s", world.name, self.endpoints)
+            self._ready.set()
+            await self._stop.wait()
+            await self._close_servers()
+        finally:
+            unregister(world.name)
+
+    async def _start_servers(self, world: SimWorld) -> None:
+        o = self.options
+        if "robot" in o:
+            from scancell.devices.sim.robot_server import KarelRobotServer
+
+            r = o["robot"]
+            robot = KarelRobotServer(world.cell, r.get("host", "127.0.0.1"),
+                                     int(r.get("motion_port", 11000)),
+                                     int(r.get("state_port", 11002)),
+                                     r.get("byte_order", "big"), float(r.get("state_hz", 30.0)))
+            await robot.start()
+            self._servers.append(robot)
+            self.endpoints["robot"] = {"motion_port": robot.motion_port,
+                                       "state_port": robot.state_port}
+        if "tracker" in o:
+            from scancell.devices.sim.tracker_server import TcpTrackerServer
+
+            t = o["tracker"]
+            tracker = TcpTrackerServer(world.cell, t.get("host", "127.0.0.1"), int(t.get("port", 7000)))
+            await tracker.start()
+            self._servers.append(tracker)
+            self.endpoints["tracker"] = {"port": tracker.port}
+        if "axis" in o:
+            from scancell.devices.sim.axis_server import SimulatedDrive, SocketcandServer
+
+            a = o["axis"]
+            channel = str(a.get("can_channel", f"scancell-{world.name}-{id(self)}"))
+            self._drive = SimulatedDrive(world.cell, int(a.get("node_id", 5)),
+                                         float(a.get("counts_per_mm", 1000.0)))
+            self._drive.connect("virtual", channel)
+            server = SocketcandServer(channel, a.get("host", "127.0.0.1"), int(a.get("port", 29536)))
+            await server.start()
+            self._servers.append(server)
+            self.endpoints["axis"] = {"port": server.port, "node_id": self._drive.node.id}
+
+    async def _close_servers(self) -> None:
+        for server in reversed(self._servers):
+            try:
+                await server.close()
+            except Exception as exc:
+                log.warning("closing %s: %s", type(server).__name__, exc)
+        self._servers.clear()
+        if self._drive is not None:
+            self._drive.close()
+            self._drive = None

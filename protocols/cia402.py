@@ -1,0 +1,133 @@
+"""CiA 402 (CANopen drives and motion control): the objects and bits scancell uses.
+
+Pure definitions, no I/O: the object dictionary of a profile-position drive with homing
+(shared by the ``canopen_axis`` driver and the simulated drive, and replaceable by a vendor's
+EDS file), the controlword commands and the statusword bits of CiA 402 part 2.
+"""
+
+from __future__ import annotations
+
+from canopen import objectdictionary as od
+from canopen.objectdictionary import datatypes as dt
+
+# ---- objects (index, subindex)
+DEVICE_TYPE = 0x1000
+ERROR_REGISTER = 0x1001
+DEVICE_NAME = 0x1008
+ERROR_CODE = 0x603F
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+MODES_OF_OPERATION = 0x6060
+MODES_OF_OPERATION_DISPLAY = 0x6061
+POSITION_ACTUAL = 0x6064
+VELOCITY_ACTUAL = 0x606C
+TARGET_POSITION = 0x607A
+HOME_OFFSET = 0x607C
+SOFTWARE_POSITION_LIMIT = 0x607D  # sub 1 min, sub 2 max
+PROFILE_VELOCITY = 0x6081
+PROFILE_ACCELERATION = 0x6083
+PROFILE_DECELERATION = 0x6084
+HOMING_METHOD = 0x6098
+SUPPORTED_DRIVE_MODES = 0x6502
+
+#: 0x1000 for a CiA 402 servo drive: profile 402 in the low word, "servo drive" type bits.
+DEVICE_TYPE_402_SERVO = 0x00020192
+
+# ---- modes of operation (0x6060 / 0x6061)
+MODE_PROFILE_POSITION = 1
+MODE_HOMING = 6
+SUPPORTED_MODES_BITS = 0x21  # bit 0 profile position, bit 5 homing
+
+# ---- controlword bits (0x6040)
+CW_SWITCH_ON = 1 << 0
+CW_ENABLE_VOLTAGE = 1 << 1
+CW_QUICK_STOP = 1 << 2  # active low
+CW_ENABLE_OPERATION = 1 << 3
+CW_NEW_SET_POINT = 1 << 4  # profile position; "homing operation start" in homing mode
+CW_CHANGE_IMMEDIATELY = 1 << 5
+CW_RELATIVE = 1 << 6
+CW_FAULT_RESET = 1 << 7  # rising edge
+CW_HALT = 1 << 8
+
+# ---- statusword bits (0x6041)
+SW_READY_TO_SWITCH_ON = 1 << 0
+SW_SWITCHED_ON = 1 << 1
+SW_OPERATION_ENABLED = 1 << 2
+SW_FAULT = 1 << 3
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_QUICK_STOP = 1 << 5  # active low
+SW_SWITCH_ON_DISABLED = 1 << 6
+SW_WARNING = 1 << 7
+SW_REMOTE = 1 << 9
+SW_TARGET_REACHED = 1 << 10
+SW_INTERNAL_LIMIT = 1 << 11
+SW_SET_POINT_ACK = 1 << 12  # profile position; "homing attained" in homing mode
+SW_FOLLOWING_ERROR = 1 << 13  # profile position; "homing error" in homing mode
+
+#: State name -> (statusword mask, value), as CiA 402 table 30 (and canopen's State402).
+STATES: dict[str, tuple[int, int]] = {
+    "NOT READY TO SWITCH ON": (0x4F, 0x00),
+    "SWITCH ON DISABLED": (0x4F, 0x40),
+    "READY TO SWITCH ON": (0x6F, 0x21),
+    "SWITCHED ON": (0x6F, 0x23),
+    "OPERATION ENABLED": (0x6F, 0x27),
+    "QUICK STOP ACTIVE": (0x6F, 0x07),
+    "FAULT REACTION ACTIVE": (0x4F, 0x0F),
+    "FAULT": (0x4F, 0x08),
+}
+
+#: Emergency error codes the simulated drive raises (CiA 301 / 402).
+ERROR_FOLLOWING = 0x8611
+ERROR_SOFTWARE_LIMIT = 0x8612  # manufacturer use within 0x86xx "positioning controller"
+ERROR_GENERIC = 0x1000
+
+
+def state_of(statusword: int) -> str:
+    """The CiA 402 state encoded in a statusword (``"UNKNOWN"`` if none matches)."""
+    for name, (mask, value) in STATES.items():
+        if statusword & mask == value:
+            return name
+    return "UNKNOWN"
+
+
+def _var(index: int, name: str, data_type: int, access: str, default: int | str = 0,
+         subindex: int = 0) -> od.ODVariable:
+    v = od.ODVariable(name, index, subindex)
+    v.data_type = data_type
+    v.access_type = access
+    v.default = default
+    return v
+
+
+def drive_object_dictionary(name: str = "scancell CiA 402 axis") -> od.ObjectDictionary:
+    """The object dictionary of a profile-position drive with homing and software limits."""
+    d = od.ObjectDictionary()
+    for var in (
+        _var(DEVICE_TYPE, "Device type", dt.UNSIGNED32, "ro", DEVICE_TYPE_402_SERVO),
+        _var(ERROR_REGISTER, "Error register", dt.UNSIGNED8, "ro"),
+        _var(DEVICE_NAME, "Manufacturer device name", dt.VISIBLE_STRING, "const", name),
+        _var(ERROR_CODE, "Error code", dt.UNSIGNED16, "ro"),
+        _var(CONTROLWORD, "Controlword", dt.UNSIGNED16, "rw"),
+        _var(STATUSWORD, "Statusword", dt.UNSIGNED16, "ro"),
+        _var(MODES_OF_OPERATION, "Modes of operation", dt.INTEGER8, "rw"),
+        _var(MODES_OF_OPERATION_DISPLAY, "Modes of operation display", dt.INTEGER8, "ro"),
+        _var(POSITION_ACTUAL, "Position actual value", dt.INTEGER32, "ro"),
+        _var(VELOCITY_ACTUAL, "Velocity actual value", dt.INTEGER32, "ro"),
+        _var(TARGET_POSITION, "Target position", dt.INTEGER32, "rw"),
+        _var(HOME_OFFSET, "Home offset", dt.INTEGER32, "rw"),
+        _var(PROFILE_VELOCITY, "Profile velocity", dt.UNSIGNED32, "rw", 100_000),
+        _var(PROFILE_ACCELERATION, "Profile acceleration", dt.UNSIGNED32, "rw", 500_000),
+        _var(PROFILE_DECELERATION, "Profile deceleration", dt.UNSIGNED32, "rw", 500_000),
+        _var(HOMING_METHOD, "Homing method", dt.INTEGER8, "rw", 35),
+        _var(SUPPORTED_DRIVE_MODES, "Supported drive modes", dt.UNSIGNED32, "ro",
+             SUPPORTED_MODES_BITS),
+    ):
+        d.add_object(var)
+    limits = od.ODRecord("Software position limit", SOFTWARE_POSITION_LIMIT)
+    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Number of entries", dt.UNSIGNED8, "ro", 2, 0))
+    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Min position limit", dt.INTEGER32, "rw",
+                           -(2**31), 1))
+    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Max position limit", dt.INTEGER32, "rw",
+                           2**31 - 1, 2))
+    d.add_object(limits)
+    return d
