@@ -66,14 +66,14 @@ def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) 
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     for table, values in (overrides or {}).items():
-        _merge(raw.setdefault(table, {}), values)
+        merge_into(raw.setdefault(table, {}), values)
     return parse_cell_config(raw, str(p), p)
 
 
-def _merge(into: dict[str, Any], values: dict[str, Any]) -> None:
+def merge_into(into: dict[str, Any], values: dict[str, Any]) -> None:
     for key, value in values.items():
         if isinstance(value, dict) and isinstance(into.get(key), dict):
-            _merge(into[key], value)
+            merge_into(into[key], value)
         else:
             into[key] = value
 
@@ -100,7 +100,7 @@ def merge_overrides(items: list[str]) -> dict[str, Any]:
     """Several ``--set`` options merged into one override mapping."""
     merged: dict[str, Any] = {}
     for item in items:
-        _merge(merged, parse_set_option(item))
+        merge_into(merged, parse_set_option(item))
     return merged
 
 

@@ -52,7 +52,9 @@ def smoke_job(client: CellClient, devices: list[dict]) -> None:
     for d in devices:
         by_kind.setdefault(d["kind"], []).append(d["name"])
     for robot in by_kind.get("robot", []):
-        for q in ([10, 5, -5, 0, -80, 15], [0, 0, 0, 0, -90, 0]):
+        q0 = client.call(f"device/{robot}/joints")["joints_deg"]
+        nearby = [a + d for a, d in zip(q0, [3, 2, -2, 0, 2, 5], strict=True)]
+        for q in (nearby, q0):
             t0 = time.monotonic()
             r = client.call(f"device/{robot}/move_joints", {"joints_deg": q, "speed": 0.5})
             print(f"{robot}: moved to {[round(v, 2) for v in r['joints_deg']]} deg "
@@ -89,10 +91,20 @@ def main(args: argparse.Namespace) -> int:
         print(f"scancell demo: {exc}", file=sys.stderr)
         return 2
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sets: list[str] = []
+    if cfg.simulator is not None:
+        # Free ports for the embedded simulators, so the demo never collides with a running cell.
+        from scancell.devices.sim.host import flatten_overrides, relocated_ports
+
+        sets = flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port()))
+        if args.quick:
+            sets.append("simulator.camera_scale=8")
     _step(f"starting daemon for cell {cfg.cell!r} on {endpoint} ({config})")
     t_start = time.monotonic()
+    set_args = [a for s in sets for a in ("--set", s)]
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "scancell", "daemon", "--config", str(config), "--listen", endpoint],
+        [sys.executable, "-m", "scancell", "daemon", "--config", str(config), "--listen", endpoint,
+         *set_args],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
     log_lines: list[str] = []
@@ -104,7 +116,7 @@ def main(args: argparse.Namespace) -> int:
             prefix = client.bus.keys.prefix + "/"
             sub = client.bus.subscribe(client.bus.keys.dev("*", "*"),
                                        lambda s: counts.update([s.key.removeprefix(prefix)]))
-            status = wait_connected(client, 20.0)
+            status = wait_connected(client, 60.0)
             print(format_status(status))
             _step("smoke job")
             smoke_job(client, client.devices())

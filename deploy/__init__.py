@@ -6,11 +6,11 @@ from importlib import resources
 from pathlib import Path
 
 #: The cell config ``scancell daemon`` and ``scancell demo`` use when none is given.
-DEFAULT_CELL = "mock"
+DEFAULT_CELL = "sim"
 
 
 def cell_config_path(name: str) -> Path:
-    """Path of a packaged cell config, e.g. ``cell_config_path("mock")``."""
+    """Path of a packaged cell config, e.g. ``cell_config_path("sim")``."""
     return Path(str(resources.files("scancell.deploy") / "cells" / f"{name}.toml"))
 
 

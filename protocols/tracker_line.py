@@ -71,9 +71,14 @@ def parse_call(text: str) -> tuple[str, list[Value]]:
     return m.group(1), _split_args(m.group(2)) if m.group(2).strip() else []
 
 
+def _printable(text: str) -> str:
+    """Strings on the wire are printable ASCII: anything else becomes '?'."""
+    return "".join(c if " " <= c <= "~" else "?" for c in text)
+
+
 def _fmt(v: Value) -> str:
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return '"' + _printable(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, bool):
         return str(int(v))
     if isinstance(v, int):
@@ -124,11 +129,12 @@ def format_response(tag: str, kind: str, name: str = "", args: tuple[Value, ...]
     if body is None:
         mark = "!" if kind == "error" else "#"
         body = f"{mark} {format_call('Error' if kind == 'error' else name, list(args))}"
-    return f"{tag} {body}\r\n".encode("ascii")
+    return f"{tag} {body}\r\n".encode("ascii", "replace")  # the grammar is ASCII
 
 
 def error_response(tag: str, code: int, text: str) -> bytes:
-    return format_response(tag, "error", "Error", (code, f"{ERRORS.get(code, 'Error')}: {text}"))
+    message = f"{ERRORS.get(code, 'Error')}: {text}"[: MAX_LINE // 2]
+    return format_response(tag, "error", "Error", (code, message))
 
 
 def parse_response(line: str) -> Response:

@@ -75,17 +75,14 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[st
     cameras and its own world name, ready for :class:`DaemonThread`."""
     import tomllib
 
+    from scancell.config import merge_into
+    from scancell.devices.sim.host import relocated_ports
+
     raw = tomllib.loads(cell_config_path("sim").read_text())
+    merge_into(raw, relocated_ports(raw, lambda _old: free_port()))
     sim, dev = raw["simulator"], raw["devices"]
     sim["camera_scale"] = camera_scale
     sim["world"] = world or f"w{uuid.uuid4().hex[:8]}"
-    motion, state, tracker, axis = (free_port() for _ in range(4))
-    sim["robot"].update(motion_port=motion, state_port=state)
-    sim["tracker"]["port"] = tracker
-    sim["axis"]["port"] = axis
-    dev["robot"].update(motion_port=motion, state_port=state)
-    dev["tracker"]["url"] = f"socket://127.0.0.1:{tracker}"
-    dev["axis"]["port"] = axis
     for name in ("cam_left", "cam_right", "projector"):
         dev[name]["world"] = sim["world"]
     raw["daemon"].update(status_period_s=0.3, reconnect_initial_s=0.1, reconnect_max_s=0.5)

@@ -73,3 +73,28 @@ def test_serve_tracker_on_a_pty():
         asyncio.run(asyncio.wait_for(main(), 60))
     finally:
         _stop(proc)
+
+
+def test_serve_axis_over_socketcand_until_sigterm():
+    from scancell.devices.canopen_axis import CanopenAxis
+
+    port = free_port()
+    proc, banner = _start("axis", "--port", str(port), "--node-id", "7")
+    assert f"127.0.0.1:{port}" in banner
+
+    async def main():
+        axis = CanopenAxis("axis", {"interface": "socketcand", "host": "127.0.0.1",
+                                    "port": port, "node_id": 7, "homing_method": 19})
+        await axis.connect()
+        try:
+            await axis.move_to(120.0, 1.0)
+            assert abs(await axis.position() - 120.0) < 0.001
+            await axis.home()
+            assert abs(await axis.position()) < 0.001
+        finally:
+            await axis.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 60))
+    finally:
+        _stop(proc)

@@ -174,3 +174,10 @@ def test_same_driver_over_a_pseudo_terminal_and_the_port_disappearing():
             pty.close()
 
     run(main())
+
+
+@given(st.text(max_size=80))
+def test_server_responses_stay_ascii_whatever_the_message(text):
+    line = tl.error_response("00001", 3, text)
+    line.decode("ascii")
+    assert tl.parse_response(line.decode("ascii")).kind == "error"

@@ -98,6 +98,19 @@ async def _serve(args: argparse.Namespace) -> int:
               flush=True)
         await stop.wait()
         await server.close()
+    elif args.device == "axis":
+        from scancell.devices.sim.axis_server import SimulatedDrive, SocketcandServer
+
+        channel = f"scancell-sim-axis-{args.port}"
+        drive = SimulatedDrive(cell, args.node_id, args.counts_per_mm)
+        drive.connect("virtual", channel)
+        server = SocketcandServer(channel, args.host, args.port)
+        await server.start()
+        print(f"simulated CiA 402 rail drive, node {args.node_id}, {args.counts_per_mm:g} "
+              f"counts/mm: socketcand on {args.host}:{server.port} (bus can0)", flush=True)
+        await stop.wait()
+        await server.close()
+        drive.close()
     elif args.pty:
         from scancell.devices.sim.tracker_server import PtyTrackerServer
 
@@ -127,7 +140,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     trk = dev.add_parser("tracker", help="laser tracker speaking STLP over TCP or a pty")
     trk.add_argument("--port", type=int, default=7000)
     trk.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead")
-    for sp in (rob, trk):
+    axs = dev.add_parser("axis", help="CiA 402 rail drive (CANopen) served over socketcand/TCP")
+    axs.add_argument("--port", type=int, default=29536)
+    axs.add_argument("--node-id", type=int, default=5)
+    axs.add_argument("--counts-per-mm", type=float, default=1000.0)
+    for sp in (rob, trk, axs):
         sp.add_argument("--host", default="127.0.0.1")
         sp.add_argument("--seed", type=int, default=0)
     r = sub.add_parser("render", help="render one station: DIR/left/00.png ..., "

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import jsonschema
@@ -59,6 +60,44 @@ def check_options(options: dict[str, Any]) -> str | None:
         return None
     e = errors[0]
     return f"{'.'.join(str(p) for p in e.path) or '(table)'}: {e.message}"
+
+
+_SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "axis": ("port",)}
+
+
+def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:
+    """Overrides moving every simulator server of a raw cell config to ``port_for(old)`` and
+    every device option that pointed at the old port (an integer option equal to it, or a URL
+    ending in ``:<old>``) with it. Used by tests and the demo to run on free ports."""
+    sim = raw.get("simulator") or {}
+    moved: dict[int, int] = {}
+    out: dict[str, Any] = {"simulator": {}, "devices": {}}
+    for server, keys in _SERVER_PORTS.items():
+        for key in keys:
+            if server in sim:
+                old = int(sim[server].get(key, 0))
+                moved[old] = port_for(old)
+                out["simulator"].setdefault(server, {})[key] = moved[old]
+    for name, table in (raw.get("devices") or {}).items():
+        for key, value in table.items():
+            if isinstance(value, int) and not isinstance(value, bool) and value in moved:
+                out["devices"].setdefault(name, {})[key] = moved[value]
+            elif isinstance(value, str):
+                head, sep, tail = value.rpartition(":")
+                if sep and tail.isdigit() and int(tail) in moved:
+                    out["devices"].setdefault(name, {})[key] = f"{head}:{moved[int(tail)]}"
+    return out
+
+
+def flatten_overrides(overrides: dict[str, Any], prefix: str = "") -> list[str]:
+    """Nested overrides -> ``--set`` arguments (``table.key=value``)."""
+    args: list[str] = []
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            args += flatten_overrides(value, f"{prefix}{key}.")
+        else:
+            args.append(f"{prefix}{key}={value}")
+    return args
 
 
 class SimHost:

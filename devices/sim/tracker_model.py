@@ -69,7 +69,7 @@ class TrackerModel:
         if cos_acc < np.cos(np.radians(self.spec.acceptance_half_angle_deg)):
             angle = np.degrees(np.arccos(np.clip(cos_acc, -1, 1)))
             raise BeamBreak(f"beam {angle:.1f} deg off the SMR axis (acceptance "
-                            f"±{self.spec.acceptance_half_angle_deg:.0f} deg)")
+                            f"+/-{self.spec.acceptance_half_angle_deg:.0f} deg)")
         if scene.occluded(self.position, u[None], np.array([dist - radius_mm - 0.5]),
                           exclude=exclude)[0]:
             raise BeamBreak("beam occluded before the SMR")

@@ -1,0 +1,184 @@
+"""Acceptance of the embedded sim cell: the daemon on deploy/cells/sim.toml starts the
+simulators and reaches them through the real protocols (simple_message, STLP, CANopen over
+socketcand, trigger-coupled cameras). Checked against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from scancell.deploy import cell_config_path
+from scancell.devices.sim.host import flatten_overrides, relocated_ports
+from scancell.devices.sim.world import get_world
+
+from .conftest import free_port, sim_cell_raw, wait_until
+
+
+def _all_connected(client) -> bool:
+    return all(s["state"] == "connected" for s in client.status()["devices"].values())
+
+
+def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
+    d = make_daemon(sim_cell_raw(camera_scale=8))
+    wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")
+    cell = get_world(d.cfg.simulator["world"]).cell
+    joints: list = []
+    lock = threading.Lock()
+
+    def on_joints(s):
+        with lock:
+            joints.append(np.array([j.position for j in s.decode().joints]))
+
+    sub = client.bus.subscribe(client.bus.keys.dev("robot", "joints"), on_joints)
+    try:
+        # robot: joint state follows the move, and the simulated arm is really there
+        q0 = np.array(client.call("device/robot/joints")["joints_deg"])
+        target = q0 + np.array([4.0, -2.0, 1.5, 0.0, 2.0, 10.0])
+        r = client.call("device/robot/move_joints", {"joints_deg": target.tolist(), "speed": 0.5})
+        assert np.allclose(r["joints_deg"], target, atol=0.05)
+        assert np.allclose(np.degrees(cell.q_commanded), target, atol=1e-3)
+        wait_until(lambda: joints and np.allclose(np.degrees(joints[-1]), target, atol=0.05),
+                   5, what="published joint state at the target")
+
+        # tracker: the SMR on the scanner, within the noise model of the truth
+        truth = cell.smr_center_world()
+        for _ in range(3):
+            m = client.call("device/tracker/measure")
+            err = np.abs(np.array(m["point_mm"]) - truth)
+            assert np.all(err < 5 * np.array(m["sigma_mm"]) + 1e-3), (err, m["sigma_mm"])
+
+        # scanner: a fringe image from each camera under the projected pattern
+        assert client.call("device/projector/load_sequence",
+                           {"kind": "fringe", "steps": 3, "periods": [70, 64, 59]})["patterns"] == 9
+        client.call("device/projector/show", {"index": 4})
+        for cam in ("cam_left", "cam_right"):
+            g = client.call(f"device/{cam}/grab", {"meta": {"pattern": 4}})
+            assert (g["width"], g["height"]) == (306, 256)
+            assert 20 < g["mean"] < 200
+
+        # axis: the rail carries the robot base, so the tracker sees the SMR move with it
+        client.call("device/axis/home")
+        r = client.call("device/axis/move_to", {"position": 250.0, "speed": 0.5})
+        assert r["position"] == pytest.approx(250.0, abs=0.001)
+        assert cell.rail_mm == pytest.approx(250.0, abs=0.001)
+        moved = np.array(client.call("device/tracker/measure")["point_mm"])
+        assert np.allclose(moved - truth, [0, 250.0, 0], atol=0.1)
+        with pytest.raises(Exception, match="out_of_range"):
+            client.call("device/axis/move_to", {"position": 5000.0})
+    finally:
+        sub.undeclare()
+
+
+def test_a_simulator_port_in_use_is_a_clear_startup_error(tmp_path):
+    import socket
+
+    raw = sim_cell_raw()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        raw["simulator"]["tracker"]["port"] = port
+        cfg = tmp_path / "cell.toml"
+        cfg.write_text(_toml(raw, f"tcp/127.0.0.1:{free_port()}"))
+        out = subprocess.run([sys.executable, "-m", "scancell", "daemon", "--config", str(cfg)],
+                             capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "[simulator] could not start" in out.stderr and str(port) in out.stderr
+
+
+def _toml(raw: dict, endpoint: str) -> str:
+    """Just enough TOML writing for the sim cell tables."""
+    def value(v):
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    lines: list[str] = []
+
+    def table(name: str, t: dict) -> None:
+        lines.append(f"[{name}]")
+        subs = []
+        for k, v in t.items():
+            if isinstance(v, dict):
+                subs.append((k, v))
+            else:
+                lines.append(f"{k} = {value(v)}")
+        for k, v in subs:
+            table(f"{name}.{k}", v)
+
+    raw = dict(raw, bus={"listen": [endpoint]})
+    for name, t in raw.items():
+        table(name, t)
+    return "\n".join(lines) + "\n"
+
+
+def test_scancell_daemon_on_sim_toml_with_ctl(tmp_path, cell, endpoint):
+    """The acceptance path: `scancell daemon --config deploy/cells/sim.toml` (ports and camera
+    size overridden with --set) driven by `scancell ctl` from other processes."""
+    import tomllib
+    import uuid
+
+    raw = tomllib.loads(cell_config_path("sim").read_text())
+    world = f"w{uuid.uuid4().hex[:8]}"
+    sets = flatten_overrides(relocated_ports(raw, lambda _old: free_port()))
+    sets += [f"cell.name={cell}", "simulator.camera_scale=8", f"simulator.world={world}"]
+    sets += [f"devices.{dev}.world={world}" for dev in ("cam_left", "cam_right", "projector")]
+    args = [sys.executable, "-m", "scancell", "daemon", "--listen", endpoint]
+    for s in sets:
+        args += ["--set", s]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+
+    def ctl(*a: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "scancell", "ctl", *a], capture_output=True,
+                              text=True, env=env, timeout=90)
+
+    def call(verb: str, body: dict | None = None) -> dict:
+        out = ctl("--json-out", "call", verb, "--json", json.dumps(body or {}))
+        assert out.returncode == 0, out.stdout + out.stderr
+        return json.loads(out.stdout)
+
+    try:
+        def connected():
+            out = ctl("--json-out", "status")
+            if out.returncode != 0:
+                return False
+            return all(d["state"] == "connected"
+                       for d in json.loads(out.stdout)["devices"].values())
+
+        wait_until(connected, 60, period_s=0.5, what="sim cell connected")
+        status = ctl("status")
+        assert "canopen_axis" in ctl("devices").stdout and "robot" in status.stdout
+        q = call("device/robot/joints")["joints_deg"]
+        q[0] += 3.0
+        assert call("device/robot/move_joints", {"joints_deg": q})["joints_deg"][0] == \
+            pytest.approx(q[0], abs=0.05)
+        m = call("device/tracker/measure")
+        assert len(m["point_mm"]) == 3 and max(m["sigma_mm"]) < 0.05
+        call("device/projector/load_sequence", {"kind": "fringe", "steps": 3,
+                                                "periods": [70, 64, 59]})
+        call("device/projector/show", {"index": 0})
+        for camera in ("cam_left", "cam_right"):
+            assert call(f"device/{camera}/grab")["width"] == 306
+        assert call("device/axis/move_to", {"position": -80.0})["position"] == \
+            pytest.approx(-80.0, abs=0.001)
+        bad = ctl("call", "device/axis/move_to", "--json", '{"position": 1e6}')
+        assert bad.returncode == 1 and "out_of_range" in bad.stdout + bad.stderr
+    finally:
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(20)
+        log = proc.stdout.read() if proc.stdout else ""
+    assert rc == 0, log
+    assert time.monotonic() - t0 < 10
