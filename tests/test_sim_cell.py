@@ -16,6 +16,9 @@ import numpy as np
 import pytest
 from scancell.deploy import cell_config_path
 from scancell.devices.sim.host import flatten_overrides, relocated_ports
+from scancell.devices.sim import parts
+from scancell.devices.sim.optics import make_T
+from scancell.devices.sim.scene import SceneObject
 from scancell.devices.sim.world import get_world
 
 from .conftest import free_port, sim_cell_raw, wait_until
@@ -182,3 +185,56 @@ def test_scancell_daemon_on_sim_toml_with_ctl(tmp_path, cell, endpoint):
         log = proc.stdout.read() if proc.stdout else ""
     assert rc == 0, log
     assert time.monotonic() - t0 < 10
+
+
+def test_faults_on_one_device_never_stop_the_others(make_daemon, client):
+    d = make_daemon(sim_cell_raw(camera_scale=16))
+    wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")
+    host = d.daemon.simulator
+    points: list = []
+    sub = client.bus.subscribe(client.bus.keys.dev("tracker", "point"), points.append)
+    try:
+        first = client.call("device/tracker/measure")
+        wait_until(lambda: len(points) == 1, 5, what="first point published")
+
+        # beam break during a measurement: someone walks through the beam
+        world = get_world(d.cfg.simulator["world"])
+        with world.lock:
+            c = world.cell.smr_center_world()
+            world.cell.add_object(SceneObject("person", parts.flat(300.0), make_T(t=c * 0.5)))
+        with pytest.raises(Exception, match="device_fault") as err:
+            client.call("device/tracker/measure")
+        assert "beam" in str(err.value).lower()
+        with world.lock:
+            world.cell.remove_object("person")
+        again = client.call("device/tracker/measure")
+        assert np.allclose(again["point_mm"], first["point_mm"], atol=0.2)
+
+        # the tracker server dies: the tracker reconnects, everything else keeps serving
+        tracker = host.server("tracker")
+        host.run(tracker.close())
+        with pytest.raises(Exception, match="connection_lost|device_unavailable"):
+            client.call("device/tracker/measure")
+        wait_until(lambda: client.status()["devices"]["tracker"]["state"] != "connected", 5,
+                   what="tracker marked down")
+        assert client.call("device/axis/move_to", {"position": 20.0})["position"] == \
+            pytest.approx(20.0, abs=0.001)
+        client.call("device/projector/show", {"index": -1})
+        assert client.call("device/cam_left/grab")["width"] == 153
+        host.run(tracker.start())
+        wait_until(lambda: client.status()["devices"]["tracker"]["state"] == "connected", 15,
+                   what="tracker reconnected")
+        client.call("device/tracker/measure")
+
+        # the axis drive faults: health says so, motion is refused, reset brings it back
+        host._drive.set_fault(0x8611)
+        with pytest.raises(Exception, match="device_fault"):
+            client.call("device/axis/move_to", {"position": 30.0})
+        client.call("device/axis/reset_fault")
+        client.call("device/axis/move_to", {"position": 30.0})
+        # nothing published earlier was lost: every successful measurement is on the bus
+        wait_until(lambda: len(points) == 3, 5, what="3 published points")
+        time.sleep(0.3)
+        assert len(points) == 3  # and no point for the failed ones
+    finally:
+        sub.undeclare()

@@ -231,6 +231,10 @@ class SimCell:
         self.scene.add(obj)
         self._scene_version += 1
 
+    def remove_object(self, name: str) -> None:
+        self.scene.remove(name)
+        self._scene_version += 1
+
     def ball_center_world(self) -> np.ndarray:
         return self.scene.get("ball").T_world_from_object[:3, 3].copy()
 

@@ -126,6 +126,21 @@ class SimHost:
             self._thread.join(5.0)
             raise self._error
 
+    def run(self, coro: Any, timeout_s: float = 10.0) -> Any:
+        """Run a coroutine on the simulators' event loop (tests: kill or restart a server)."""
+        if self._loop is None:
+            raise RuntimeError("simulated cell not running")
+        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout_s)
+
+    def server(self, kind: str) -> Any:
+        """The running server object of ``kind`` ("robot", "tracker" or "axis")."""
+        names = {"robot": "KarelRobotServer", "tracker": "TcpTrackerServer",
+                 "axis": "SocketcandServer"}
+        for s in self._servers:
+            if type(s).__name__ == names[kind]:
+                return s
+        raise KeyError(f"no {kind} simulator in this cell")
+
     def stop(self) -> None:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():
             self._loop.call_soon_threadsafe(self._stop.set)
