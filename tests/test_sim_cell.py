@@ -15,8 +15,8 @@ import time
 import numpy as np
 import pytest
 from scancell.deploy import cell_config_path
-from scancell.devices.sim.host import flatten_overrides, relocated_ports
 from scancell.devices.sim import parts
+from scancell.devices.sim.host import flatten_overrides, relocated_ports
 from scancell.devices.sim.optics import make_T
 from scancell.devices.sim.scene import SceneObject
 from scancell.devices.sim.world import get_world
@@ -213,7 +213,7 @@ def test_faults_on_one_device_never_stop_the_others(make_daemon, client):
         # the tracker server dies: the tracker reconnects, everything else keeps serving
         tracker = host.server("tracker")
         host.run(tracker.close())
-        with pytest.raises(Exception, match="connection_lost|device_unavailable"):
+        with pytest.raises(Exception, match=r"connection_lost|device_unavailable"):
             client.call("device/tracker/measure")
         wait_until(lambda: client.status()["devices"]["tracker"]["state"] != "connected", 5,
                    what="tracker marked down")
