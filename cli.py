@@ -67,6 +67,22 @@ def _sim_args(p: argparse.ArgumentParser) -> None:
     add_arguments(p)
 
 
+@subcommand("decode", "fringe images of both cameras -> point cloud (PLY, mm, left camera frame)",
+            "scancell.analysis.scan_cli:decode_main")
+def _decode_args(p: argparse.ArgumentParser) -> None:
+    from scancell.analysis.scan_cli import add_decode_arguments
+
+    add_decode_arguments(p)
+
+
+@subcommand("calibrate", "calibrations: cameras (stereo, Zhang)",
+            "scancell.analysis.scan_cli:calibrate_main")
+def _calibrate_args(p: argparse.ArgumentParser) -> None:
+    from scancell.analysis.scan_cli import add_calibrate_arguments
+
+    add_calibrate_arguments(p)
+
+
 @subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")

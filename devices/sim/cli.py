@@ -129,6 +129,26 @@ async def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def targets(args: argparse.Namespace) -> int:
+    from scancell.devices.sim.optics import default_rig
+    from scancell.devices.sim.target import render_calibration_set
+
+    rig = default_rig()
+    rig = rig if args.scale == 1 else rig.scaled(args.scale)
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    views = render_calibration_set(rig, n=args.count, seed=args.seed)
+    for side in ("left", "right"):
+        (out / side).mkdir(parents=True, exist_ok=True)
+    for i, v in enumerate(views):
+        cv2.imwrite(str(out / "left" / f"{i:02d}.png"), v.left)
+        cv2.imwrite(str(out / "right" / f"{i:02d}.png"), v.right)
+    rig.write_opencv_yaml(out / "stereo_true.yaml")
+    print(f"rendered {len(views)} chessboard pairs (9x7 inner corners, 20 mm) of "
+          f"{rig.left.width} x {rig.left.height} in {time.perf_counter() - t0:.1f} s -> {out}")
+    return 0
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="sim_command", required=True)
     serve = sub.add_parser("serve", help="run a device simulator until SIGINT/SIGTERM")
@@ -159,9 +179,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--periods", default="70,64,59")
     r.add_argument("--steps", type=int, default=3)
     r.add_argument("--out", required=True)
+    tg = sub.add_parser("targets", help="render chessboard pairs for `scancell calibrate cameras`: "
+                                        "DIR/left/NN.png, DIR/right/NN.png, stereo_true.yaml")
+    tg.add_argument("--count", type=int, default=15)
+    tg.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
+    tg.add_argument("--seed", type=int, default=0)
+    tg.add_argument("--out", required=True)
 
 
 def main(args: argparse.Namespace) -> int:
     if args.sim_command == "serve":
         return asyncio.run(_serve(args))
+    if args.sim_command == "targets":
+        return targets(args)
     return render(args)

@@ -35,6 +35,20 @@ class TargetView:
     corners_right: np.ndarray
 
 
+def _box_filtered_checker(x: np.ndarray, y: np.ndarray, s: float) -> np.ndarray:
+    """Share of each pixel's footprint that is black (0..1), the checker averaged over the
+    pixel (ramp across each edge), so corners land where they are and not on the pixel grid."""
+    def ramp(coord: np.ndarray) -> np.ndarray:
+        g0, g1 = np.gradient(np.nan_to_num(coord))
+        footprint = np.maximum(np.abs(g0) + np.abs(g1), 1e-6)  # mm per pixel along this axis
+        cell = np.floor(coord / s)
+        to_edge = s / 2 - np.abs(np.mod(coord, s) - s / 2)
+        sign = np.where(np.mod(cell, 2) == 0, 1.0, -1.0)
+        return sign * np.clip(to_edge / (footprint / 2), 0.0, 1.0)
+
+    return (1.0 + ramp(x) * ramp(y)) / 2
+
+
 def render_board(cam: PinholeModel, rays: np.ndarray, T_cam_from_target: np.ndarray,
                  board: Chessboard, rng: np.random.Generator, noise_dn: float = 1.0,
                  psf_sigma_px: float = 0.6) -> np.ndarray:
@@ -50,8 +64,8 @@ def render_board(cam: PinholeModel, rays: np.ndarray, T_cam_from_target: np.ndar
     on_board = (t > 0) & (x > -1.6 * s) & (x < (board.cols + 0.6) * s) & \
         (y > -1.6 * s) & (y < (board.rows + 0.6) * s)
     in_squares = (x > -s) & (x < board.cols * s) & (y > -s) & (y < board.rows * s)
-    black = in_squares & ((np.floor(x / s) + np.floor(y / s)) % 2 == 0)
-    albedo = np.where(black, 0.06, 0.85)
+    black = _box_filtered_checker(x, y, s)
+    albedo = np.where(in_squares, 0.85 + (0.06 - 0.85) * black, 0.85)
     cos_v = np.abs(denom)
     dn = np.where(on_board, 235.0 * albedo * (0.55 + 0.45 * cos_v), 12.0)
     if psf_sigma_px > 0:

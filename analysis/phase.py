@@ -1,0 +1,189 @@
+"""Phase decoding: wrapped phase, modulation, quality mask and temporal unwrapping.
+
+Input: the K·N images of one camera in the sequence order of :mod:`scancell.analysis.patterns`
+(image k = j·N + n). Output: the absolute projector column (0 … W−1, projector pixels) seen by
+every camera pixel, with the fringe modulation and background (DN) and a validity mask.
+
+Unwrapping methods:
+
+- ``heterodyne`` (the paper's): beat phases of neighbouring frequencies, repeated until one beat
+  spans the projector once (70, 64, 59 -> 6, 5 -> 1), then unwrapped back down the tree;
+- ``hierarchical``: coarse to fine, the first pattern has at most one period (e.g. 1, 8, 64).
+
+Every frequency gives its own estimate of the column; a pixel whose estimates disagree by more
+than ``order_tolerance_px`` has a wrong fringe order somewhere and is masked, never passed on.
+The accepted column is the p²-weighted mean of the estimates (finer fringes are more precise).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scancell.analysis.patterns import FringeSequence
+
+TWO_PI = np.float32(2 * np.pi)
+
+
+class DecodeError(ValueError):
+    """The images cannot be decoded (wrong count, sizes, all dark, periods not unwrappable)."""
+
+
+@dataclass
+class PhaseMap:
+    """Per-pixel decode of one camera (all arrays H x W)."""
+
+    column: np.ndarray  # float32 absolute projector column (px), NaN where invalid
+    modulation: np.ndarray  # float32 fringe amplitude B (DN), smallest over frequencies
+    background: np.ndarray  # float32 mean intensity A (DN)
+    valid: np.ndarray  # bool
+    #: why pixels were masked: reason -> pixel count
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def valid_share(self) -> float:
+        return float(self.valid.mean())
+
+
+@dataclass(frozen=True)
+class DecodeSettings:
+    method: str = "heterodyne"  # or "hierarchical"
+    min_modulation_dn: float = 4.0
+    saturation_dn: float = 254.5  # a pixel at or above this in any image is masked
+    order_tolerance_px: float = 1.0  # max disagreement between frequency estimates (projector px)
+
+
+def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """N-step least-squares phase of I_n = A + B·cos(φ − 2πn/N): (φ in [0, 2π), B, A), float32."""
+    n = len(images)
+    shifts = 2 * np.pi * np.arange(n) / n
+    s = np.zeros(images[0].shape, np.float32)
+    c = np.zeros(images[0].shape, np.float32)
+    a = np.zeros(images[0].shape, np.float32)
+    for img, d in zip(images, shifts, strict=True):
+        f = img.astype(np.float32, copy=False)
+        cv2.scaleAdd(f, float(np.sin(d)), s, s)
+        cv2.scaleAdd(f, float(np.cos(d)), c, c)
+        cv2.add(a, f, a)
+    phase = cv2.phase(c, s)  # atan2(s, c) in [0, 2π)
+    b = cv2.magnitude(s, c)
+    b *= 2.0 / n
+    a *= 1.0 / n
+    return phase, b, a
+
+
+def _wrap(x: np.ndarray) -> np.ndarray:
+    return np.mod(x, TWO_PI)
+
+
+def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float) -> np.ndarray:
+    """Absolute phase from wrapped ``phi`` and an absolute ``reference`` of ``ratio`` times
+    fewer periods."""
+    k = np.rint((reference * np.float32(ratio) - phi) / TWO_PI)
+    return phi + TWO_PI * k
+
+
+def heterodyne_tree(periods: Sequence[float]) -> list[list[float]]:
+    """Beat periods level by level, e.g. (70, 64, 59) -> [[70, 64, 59], [6, 5], [1]]; raises
+    DecodeError unless the top beat spans the projector at most once."""
+    levels = [list(map(float, periods))]
+    while len(levels[-1]) > 1:
+        prev = levels[-1]
+        levels.append([prev[i] - prev[i + 1] for i in range(len(prev) - 1)])
+    top = levels[-1][0]
+    if any(p <= 0 for lvl in levels[1:] for p in lvl) or top > 1.0 + 1e-9:
+        raise DecodeError(f"periods {list(periods)} cannot be unwrapped by the heterodyne method: "
+                          f"beats {levels[1:]} must stay positive and end at 1 period "
+                          f"(e.g. 70, 64, 59 -> 6, 5 -> 1)")
+    return levels
+
+
+def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float]) -> list[np.ndarray]:
+    """Absolute phases of every frequency (same order as given)."""
+    levels = heterodyne_tree(periods)
+    wrapped = [list(phases)]
+    for lvl in range(1, len(levels)):
+        prev = wrapped[-1]
+        wrapped.append([_wrap(prev[i] - prev[i + 1]) for i in range(len(prev) - 1)])
+    absolute = wrapped[-1]  # top: one period or less, already absolute
+    for lvl in range(len(levels) - 2, -1, -1):
+        parents, parent_p = absolute, levels[lvl + 1]
+        absolute = []
+        for i, phi in enumerate(wrapped[lvl]):
+            j = min(i, len(parents) - 1)
+            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j]))
+    return absolute
+
+
+def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float]) -> list[np.ndarray]:
+    """Coarse to fine: the first pattern must have at most one period."""
+    if periods[0] > 1.0 + 1e-9 or list(periods) != sorted(periods):
+        raise DecodeError(f"hierarchical unwrapping needs increasing periods starting at <= 1 "
+                          f"(e.g. 1, 8, 64), got {list(periods)}")
+    absolute = [phases[0]]
+    for j in range(1, len(phases)):
+        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1]))
+    return absolute
+
+
+def _check_images(images: Sequence[np.ndarray], expected: int, names: Sequence[str] | None) -> None:
+    label = (lambda i: names[i]) if names else (lambda i: f"image {i}")
+    if len(images) != expected:
+        raise DecodeError(f"expected {expected} images (K periods x N steps), got {len(images)}")
+    shape = images[0].shape
+    for i, img in enumerate(images):
+        if img.ndim != 2:
+            raise DecodeError(f"{label(i)}: expected a single-channel image, got shape {img.shape}")
+        if img.shape != shape:
+            raise DecodeError(f"{label(i)}: size {img.shape[1]} x {img.shape[0]} differs from "
+                              f"{label(0)}'s {shape[1]} x {shape[0]}")
+
+
+def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
+                 settings: DecodeSettings | None = None,
+                 names: Sequence[str] | None = None) -> PhaseMap:
+    """Decode one camera's K·N images to absolute projector columns."""
+    st = settings or DecodeSettings()
+    _check_images(images, len(sequence), names)
+    n, periods = sequence.steps, sequence.periods
+    if st.method == "heterodyne":
+        heterodyne_tree(periods)
+    elif st.method != "hierarchical":
+        raise DecodeError(f"unknown unwrapping method {st.method!r}: 'heterodyne' or 'hierarchical'")
+    scale = 255.0 if images[0].dtype == np.uint8 else float(np.iinfo(images[0].dtype).max) \
+        if np.issubdtype(images[0].dtype, np.integer) else 1.0
+    sat_level = st.saturation_dn * scale / 255.0
+    phases, mods = [], []
+    background = np.zeros(images[0].shape, np.float32)
+    saturated = np.zeros(images[0].shape, bool)
+    for j in range(len(periods)):
+        group = images[j * n:(j + 1) * n]
+        phi, b, a = wrapped_phase(group)
+        phases.append(phi)
+        mods.append(b)
+        background += a
+        for img in group:
+            saturated |= img >= sat_level
+    background /= len(periods)
+    modulation = np.minimum.reduce(mods) * np.float32(255.0 / scale)
+    background *= np.float32(255.0 / scale)
+    absolute = (unwrap_heterodyne(phases, periods) if st.method == "heterodyne"
+                else unwrap_hierarchical(phases, periods))
+    w = np.float32(projector_width)
+    estimates = [phi * (w / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
+    weights = np.asarray(periods, np.float32) ** 2
+    column = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
+    spread = np.zeros_like(column)
+    for e in estimates:
+        np.maximum(spread, np.abs(e - column), out=spread)
+
+    low = modulation < st.min_modulation_dn
+    inconsistent = ~low & ~saturated & (spread > st.order_tolerance_px)
+    outside = ~low & ~saturated & ~inconsistent & ((column < -0.5) | (column > w - 0.5))
+    valid = ~(low | saturated | inconsistent | outside)
+    column[~valid] = np.nan
+    rejected = {"low_modulation": int(low.sum()), "saturated": int((saturated & ~low).sum()),
+                "order_inconsistent": int(inconsistent.sum()), "outside_projector": int(outside.sum())}
+    return PhaseMap(column, modulation, background, valid, rejected)

@@ -1,0 +1,124 @@
+"""The scanner pipeline: two cameras' fringe images -> a cloud in MCS, with timings.
+
+Used by ``scancell decode`` (files), ``scancell worker scan`` (the bus) and reprocessing, so all
+three produce the same cloud from the same frames.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scancell.analysis.patterns import FringeSequence
+from scancell.analysis.phase import DecodeError, DecodeSettings, PhaseMap, decode_phase
+from scancell.analysis.stereo import Cloud, Rectification, rectify, reconstruct
+from scancell.analysis.stereo_calibration import StereoCalibration
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+
+
+@dataclass
+class ScanResult:
+    cloud: Cloud
+    left: PhaseMap
+    right: PhaseMap
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class ScanDecoder:
+    """Decodes image sets of one calibrated scanner (rectification maps computed once)."""
+
+    def __init__(self, calib: StereoCalibration, sequence: FringeSequence,
+                 projector_width: int = 1280, settings: DecodeSettings | None = None) -> None:
+        self.calib = calib
+        self.sequence = sequence
+        self.projector_width = projector_width
+        self.settings = settings or DecodeSettings()
+        self._rect: Rectification | None = None
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="decode")
+
+    @property
+    def rect(self) -> Rectification:
+        if self._rect is None:
+            self._rect = rectify(self.calib)
+        return self._rect
+
+    def decode(self, left: Sequence[np.ndarray], right: Sequence[np.ndarray],
+               names: tuple[Sequence[str], Sequence[str]] | None = None) -> ScanResult:
+        """Raise DecodeError (or CalibrationError for a size mismatch) naming the problem."""
+        for side, imgs in (("left", left), ("right", right)):
+            if imgs:
+                h, w = imgs[0].shape[:2]
+                self.calib.check_image_size(w, h, f"{side} images")
+        t0 = time.perf_counter()
+        rect = self.rect
+        t1 = time.perf_counter()
+        futures = [self._pool.submit(decode_phase, imgs, self.sequence, self.projector_width,
+                                     self.settings, names[i] if names else None)
+                   for i, imgs in enumerate((left, right))]
+        pl, pr = (f.result() for f in futures)
+        t2 = time.perf_counter()
+        for side, pm, imgs in (("left", pl, left), ("right", pr, right)):
+            if pm.valid.sum() < 0.001 * pm.valid.size:
+                mean = float(np.mean([im.mean() for im in imgs]))
+                raise DecodeError(
+                    f"{side} images: only {pm.valid.sum()} pixels decodable ({pm.rejected}); mean "
+                    f"intensity {mean:.1f}: all dark, saturated or no fringes in view")
+        steps: dict[str, float] = {}
+        cloud = reconstruct(self.calib, pl, pr, rect, timings=steps)
+        t3 = time.perf_counter()
+        timings = {"rectify_maps": t1 - t0, "phase": t2 - t1, **steps, "total": t3 - t0}
+        return ScanResult(cloud, pl, pr, timings)
+
+
+class ImageSetError(ValueError):
+    pass
+
+
+def image_path(folder: Path, k: int) -> Path:
+    for suffix in IMAGE_SUFFIXES:
+        p = folder / f"{k:02d}{suffix}"
+        if p.exists():
+            return p
+    raise ImageSetError(f"{folder / f'{k:02d}.png'}: missing (need {k:02d}.png, .tif or .tiff)")
+
+
+def read_image(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageSetError(f"{path}: unreadable or not an image")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise ImageSetError(f"{path}: {img.dtype} pixels; expected 8- or 16-bit")
+    return img
+
+
+def read_image_set(folder: str | Path, count: int) -> tuple[list[np.ndarray], list[np.ndarray],
+                                                            tuple[list[str], list[str]]]:
+    """``DIR/left/00.png …`` and ``DIR/right/00.png …`` (k = j·N + n, two digits)."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise ImageSetError(f"{root}: no such directory")
+    out: dict[str, list[np.ndarray]] = {}
+    names: dict[str, list[str]] = {}
+    for side in ("left", "right"):
+        d = root / side
+        if not d.is_dir():
+            raise ImageSetError(f"{d}: missing (expected {root}/left/00.png … and {root}/right/00.png …)")
+        paths = [image_path(d, k) for k in range(count)]
+        out[side] = [read_image(p) for p in paths]
+        names[side] = [str(p) for p in paths]
+    first = out["left"][0]
+    for side in ("left", "right"):
+        for img, name in zip(out[side], names[side], strict=True):
+            if img.shape != first.shape or img.dtype != first.dtype:
+                raise ImageSetError(f"{name}: {img.shape[1]} x {img.shape[0]} {img.dtype} differs "
+                                    f"from {names['left'][0]}: {first.shape[1]} x {first.shape[0]} "
+                                    f"{first.dtype}")
+    return out["left"], out["right"], (names["left"], names["right"])

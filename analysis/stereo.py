@@ -1,0 +1,169 @@
+"""Stereo reconstruction from absolute phase: rectification, phase matching, triangulation.
+
+Rectification keeps the whole common field of a converging rig: OpenCV's rectifying rotations
+(``cv2.stereoRectify``) with our own projections, at the cameras' native focal length, each
+camera's rectified image wide enough for its whole field and the rows every row both cameras
+see. (``stereoRectify``'s own projections with ``alpha`` either crop a 25° converging rig's
+overlap or shrink the focal length.)
+
+Matching: along each rectified row the projector column seen by the right camera grows with x;
+a left pixel's match is where the right row reaches the same column, interpolated between two
+adjacent right pixels. Pixels next to a phase jump (a depth discontinuity or an occlusion edge)
+are dropped before rectification, and interpolation never crosses a gap, so no point bridges two
+surfaces. Output: points in MCS (the left camera's optical frame), mm.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scancell.analysis.phase import PhaseMap
+from scancell.analysis.stereo_calibration import StereoCalibration
+
+
+@dataclass
+class Rectification:
+    R1: np.ndarray  # rectified-left <- left camera rotation
+    R2: np.ndarray
+    f: float  # px, both rectified cameras
+    cx1: float
+    cx2: float
+    cy: float
+    size1: tuple[int, int]  # (width, height)
+    size2: tuple[int, int]
+    baseline_mm: float
+    maps1: tuple[np.ndarray, np.ndarray]
+    maps2: tuple[np.ndarray, np.ndarray]
+
+
+def _border(w: int, h: int, n: int = 64) -> np.ndarray:
+    t = np.linspace(0, 1, n)
+    xs, ys = t * (w - 1), t * (h - 1)
+    return np.concatenate([np.stack([xs, np.zeros(n)], 1), np.stack([xs, np.full(n, h - 1.0)], 1),
+                           np.stack([np.zeros(n), ys], 1), np.stack([np.full(n, w - 1.0), ys], 1)])
+
+
+def rectify(calib: StereoCalibration) -> Rectification:
+    """Rectifying maps for both cameras covering the whole common field (see module doc)."""
+    w, h = calib.image_size
+    R1, R2, *_ = cv2.stereoRectify(calib.K1, calib.D1, calib.K2, calib.D2, (w, h), calib.R,
+                                   calib.T.reshape(3, 1), flags=0, alpha=-1)
+    f = float(np.mean([calib.K1[0, 0], calib.K1[1, 1], calib.K2[0, 0], calib.K2[1, 1]]))
+    P = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1]], float)
+    border = _border(w, h).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-6)
+    b1 = cv2.undistortPoints(border, calib.K1, calib.D1, R=R1, P=P, criteria=crit).reshape(-1, 2)
+    b2 = cv2.undistortPoints(border, calib.K2, calib.D2, R=R2, P=P, criteria=crit).reshape(-1, 2)
+    y0 = max(b1[:, 1].min(), b2[:, 1].min())
+    y1 = min(b1[:, 1].max(), b2[:, 1].max())
+    if y1 <= y0:
+        raise ValueError("the two cameras share no rectified rows: is R, T right?")
+    cy = -np.floor(y0)
+    height = int(np.ceil(y1) - np.floor(y0)) + 1
+    cx1, cx2 = -np.floor(b1[:, 0].min()), -np.floor(b2[:, 0].min())
+    size1 = (int(np.ceil(b1[:, 0].max()) + cx1) + 1, height)
+    size2 = (int(np.ceil(b2[:, 0].max()) + cx2) + 1, height)
+    maps = []
+    for K, D, R, cx, size in ((calib.K1, calib.D1, R1, cx1, size1), (calib.K2, calib.D2, R2, cx2, size2)):
+        Pn = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]], float)
+        maps.append(cv2.initUndistortRectifyMap(K, D, R, Pn, size, cv2.CV_32FC1))
+    return Rectification(R1, R2, f, float(cx1), float(cx2), float(cy), size1, size2,
+                         calib.baseline_mm, maps[0], maps[1])
+
+
+@dataclass
+class Cloud:
+    """Points in MCS (mm) with per-point quality (fringe modulation, DN) and intensity (DN)."""
+
+    points: np.ndarray  # (N, 3) float32
+    quality: np.ndarray  # (N,) float32
+    intensity: np.ndarray  # (N,) float32
+    pixels: np.ndarray  # (N, 2) int32 rectified-left (x, y) of each point
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def mask_discontinuities(column: np.ndarray, max_step_px: float) -> np.ndarray:
+    """``column`` with NaN next to any jump larger than ``max_step_px`` projector px between
+    neighbouring camera pixels (depth edges, occlusions)."""
+    c = column.copy()
+    bad = np.zeros(c.shape, bool)
+    with np.errstate(invalid="ignore"):
+        dx = np.abs(np.diff(column, axis=1)) > max_step_px
+        dy = np.abs(np.diff(column, axis=0)) > max_step_px
+    bad[:, :-1] |= dx
+    bad[:, 1:] |= dx
+    bad[:-1, :] |= dy
+    bad[1:, :] |= dy
+    c[bad] = np.nan
+    return c
+
+
+def _remap(img: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    return cv2.remap(img.astype(np.float32, copy=False), maps[0], maps[1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+
+
+def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every valid rectified-left pixel, the sub-pixel right x with the same projector
+    column on the same row: (rows, left x, right x) of the matched pixels."""
+    h, w2 = col_right.shape
+    span = np.float64(1 << 16)  # > any projector column: keys of different rows never mix
+    right = col_right.astype(np.float64)
+    prev_max = np.fmax.accumulate(np.where(np.isnan(right), -np.inf, right), axis=1)
+    prev_max = np.concatenate([np.full((h, 1), -np.inf), prev_max[:, :-1]], axis=1)
+    keep = np.isfinite(right) & (right > prev_max)  # strictly increasing along each row
+    rr, xr = np.nonzero(keep)
+    keys = rr * span + right[rr, xr]
+    rl, xl = np.nonzero(np.isfinite(col_left))
+    q = rl * span + col_left[rl, xl].astype(np.float64)
+    i1 = np.searchsorted(keys, q)
+    ok = (i1 > 0) & (i1 < len(keys))
+    i1 = np.where(ok, i1, 1)
+    i0 = i1 - 1
+    ok &= (rr[i0] == rl) & (rr[i1] == rl) & (xr[i1] - xr[i0] == 1)
+    step = keys[i1] - keys[i0]
+    ok &= step <= max_step_px
+    t = (q - keys[i0]) / np.where(step > 0, step, 1.0)
+    x_right = xr[i0] + t
+    return rl[ok], xl[ok], x_right[ok]
+
+
+def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
+                rect: Rectification | None = None, max_step_px: float = 2.0,
+                z_range_mm: tuple[float, float] = (50.0, 5000.0),
+                timings: dict[str, float] | None = None) -> Cloud:
+    """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s)."""
+    clock = time.perf_counter
+    t0 = clock()
+    w, h = calib.image_size
+    for side, pm in (("left", left), ("right", right)):
+        calib.check_image_size(pm.column.shape[1], pm.column.shape[0], f"{side} phase maps")
+    rect = rect or rectify(calib)
+    col_l = _remap(mask_discontinuities(left.column, max_step_px), rect.maps1)
+    col_r = _remap(mask_discontinuities(right.column, max_step_px), rect.maps2)
+    t1 = clock()
+    rows, xl, xr = match_rows(col_l, col_r, max_step_px)
+    t2 = clock()
+    d = (xl - rect.cx1) - (xr - rect.cx2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = rect.f * rect.baseline_mm / d
+    good = (d > 0) & (z > z_range_mm[0]) & (z < z_range_mm[1])
+    rows, xl, z = rows[good], xl[good], z[good]
+    p_rect = np.stack([(xl - rect.cx1) * z / rect.f, (rows - rect.cy) * z / rect.f, z], axis=1)
+    points = (p_rect @ rect.R1).astype(np.float32)  # R1^T applied to each row vector
+    mod_l = _remap(left.modulation, rect.maps1)[rows, xl]
+    mod_r = cv2.remap(right.modulation.astype(np.float32), rect.maps2[0], rect.maps2[1],
+                      cv2.INTER_LINEAR)
+    quality = np.minimum(mod_l, mod_r[rows, np.clip(np.rint(xr[good]).astype(int), 0,
+                                                    rect.size2[0] - 1)])
+    intensity = _remap(left.background, rect.maps1)[rows, xl]
+    if timings is not None:
+        timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
+    return Cloud(points, quality.astype(np.float32), intensity.astype(np.float32),
+                 np.stack([xl, rows], 1).astype(np.int32))

@@ -1,0 +1,246 @@
+"""Stereo camera calibration (Zhang's method, OpenCV) and its file format.
+
+File: OpenCV FileStorage YAML with ``image_width, image_height, K1, D1, K2, D2, R, T`` where
+X_right = R·X_left + T in mm (the cv2.stereoCalibrate convention); calibration reports add
+``rms_left_px, rms_right_px, rms_stereo_px`` when known.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+REQUIRED_KEYS = ("image_width", "image_height", "K1", "D1", "K2", "D2", "R", "T")
+
+
+class CalibrationError(ValueError):
+    """A calibration file or a calibration image set is unusable; the message says why."""
+
+
+@dataclass
+class StereoCalibration:
+    image_size: tuple[int, int]  # (width, height) px
+    K1: np.ndarray
+    D1: np.ndarray
+    K2: np.ndarray
+    D2: np.ndarray
+    R: np.ndarray  # X_right = R @ X_left + T
+    T: np.ndarray  # (3,) mm
+    rms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def baseline_mm(self) -> float:
+        return float(np.linalg.norm(self.T))
+
+    @property
+    def T_left_from_right(self) -> np.ndarray:
+        """Pose of the right camera in MCS (the left camera frame), 4x4, mm."""
+        T = np.eye(4)
+        T[:3, :3] = self.R.T
+        T[:3, 3] = -self.R.T @ self.T
+        return T
+
+    def check_image_size(self, width: int, height: int, where: str = "images") -> None:
+        if (width, height) != tuple(self.image_size):
+            raise CalibrationError(
+                f"{where} are {width} x {height} but the calibration is for "
+                f"{self.image_size[0]} x {self.image_size[1]}")
+
+    def write(self, path: str | Path) -> None:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        try:
+            fs.write("image_width", int(self.image_size[0]))
+            fs.write("image_height", int(self.image_size[1]))
+            for key in ("K1", "D1", "K2", "D2", "R"):
+                value = np.asarray(getattr(self, key), float)
+                fs.write(key, value.reshape(1, -1) if key.startswith("D") else value)
+            fs.write("T", np.asarray(self.T, float).reshape(3, 1))
+            for key, value in self.rms.items():
+                fs.write(key, float(value))
+        finally:
+            fs.release()
+
+    @classmethod
+    def read(cls, path: str | Path) -> StereoCalibration:
+        p = Path(path)
+        if not p.is_file():
+            raise CalibrationError(f"{p}: no such calibration file")
+        try:
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+        except cv2.error as exc:
+            raise CalibrationError(f"{p}: not an OpenCV FileStorage file: {exc.err}") from None
+        try:
+            if not fs.isOpened():
+                raise CalibrationError(f"{p}: cannot be opened as OpenCV FileStorage")
+            values = {}
+            for key in REQUIRED_KEYS:
+                node = fs.getNode(key)
+                if node.empty():
+                    raise CalibrationError(f"{p}: missing key {key!r} (needs {', '.join(REQUIRED_KEYS)})")
+                values[key] = int(node.real()) if key.startswith("image_") else node.mat()
+                if not key.startswith("image_") and values[key] is None:
+                    raise CalibrationError(f"{p}: key {key!r} is not a matrix")
+            rms = {}
+            for key in ("rms_left_px", "rms_right_px", "rms_stereo_px"):
+                node = fs.getNode(key)
+                if not node.empty():
+                    rms[key] = float(node.real())
+        finally:
+            fs.release()
+        shapes = {"K1": (3, 3), "K2": (3, 3), "R": (3, 3)}
+        for key, shape in shapes.items():
+            if values[key].shape != shape:
+                raise CalibrationError(f"{p}: {key} must be 3 x 3, got {values[key].shape}")
+        if values["T"].size != 3:
+            raise CalibrationError(f"{p}: T must have 3 values, got {values['T'].size}")
+        if values["image_width"] <= 0 or values["image_height"] <= 0:
+            raise CalibrationError(f"{p}: image_width and image_height must be positive")
+        return cls((values["image_width"], values["image_height"]), values["K1"],
+                   values["D1"].reshape(-1), values["K2"], values["D2"].reshape(-1), values["R"],
+                   values["T"].reshape(3), rms)
+
+
+# ---------------------------------------------------------------------------- calibration
+
+
+@dataclass(frozen=True)
+class ChessboardSpec:
+    cols: int = 9  # inner corners along the board's x
+    rows: int = 7
+    square_mm: float = 20.0
+
+    @classmethod
+    def parse(cls, text: str) -> ChessboardSpec:
+        """``"9x7x20"``: inner corners along x and y, square size in mm."""
+        try:
+            c, r, s = text.lower().split("x")
+            spec = cls(int(c), int(r), float(s))
+        except ValueError:
+            raise CalibrationError(f"target {text!r}: expected COLSxROWSxSQUARE_MM, e.g. 9x7x20 "
+                                   f"(inner corners and square size)") from None
+        if spec.cols < 3 or spec.rows < 3 or spec.square_mm <= 0:
+            raise CalibrationError(f"target {text!r}: needs >= 3 x 3 inner corners and a positive square")
+        return spec
+
+    def object_points(self) -> np.ndarray:
+        j, i = np.mgrid[0:self.rows, 0:self.cols]
+        return (np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], 1) * self.square_mm).astype(np.float32)
+
+
+def find_corners(image: np.ndarray, board: ChessboardSpec) -> np.ndarray | None:
+    """Sub-pixel inner corners (N, 2) in OpenCV's order, or None if the board is not found."""
+    found, corners = cv2.findChessboardCornersSB(
+        image, (board.cols, board.rows), flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+    if not found:
+        return None
+    c = corners.reshape(-1, 2).astype(np.float32)
+    # A board with an even number of squares both ways looks the same turned by 180 deg, and the
+    # detector may start from either end: start at the image's top-left so both cameras agree.
+    if float(np.dot(c[-1] - c[0], (1.0, 1.0))) < 0:
+        c = c[::-1].copy()
+    return c
+
+
+@dataclass
+class CalibrationReport:
+    calibration: StereoCalibration
+    views_used: list[str]
+    views_rejected: dict[str, str]
+    per_view_rms_px: dict[str, float]
+    warnings: list[str]
+
+    def table(self) -> str:
+        c = self.calibration
+        lines = [f"stereo calibration from {len(self.views_used)} views "
+                 f"({len(self.views_rejected)} rejected)",
+                 f"  RMS reprojection: left {c.rms['rms_left_px']:.3f} px, right "
+                 f"{c.rms['rms_right_px']:.3f} px, stereo {c.rms['rms_stereo_px']:.3f} px",
+                 f"  baseline {c.baseline_mm:.3f} mm, convergence "
+                 f"{np.degrees(np.arccos(np.clip((np.trace(c.R) - 1) / 2, -1, 1))):.2f} deg",
+                 f"  f left {c.K1[0, 0]:.1f} px, f right {c.K2[0, 0]:.1f} px"]
+        for name, why in self.views_rejected.items():
+            lines.append(f"  rejected {name}: {why}")
+        lines += [f"  WARNING: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _coverage_warnings(corners: Sequence[np.ndarray], size: tuple[int, int], side: str,
+                       normals_deg: Sequence[float]) -> list[str]:
+    w, h = size
+    pts = np.concatenate(corners)
+    grid = np.zeros((3, 3), bool)
+    gx = np.clip((pts[:, 0] / w * 3).astype(int), 0, 2)
+    gy = np.clip((pts[:, 1] / h * 3).astype(int), 0, 2)
+    grid[gy, gx] = True
+    out = []
+    if grid.sum() < 8:
+        out.append(f"{side} camera: corners cover only {grid.sum()} of 9 image regions; "
+                   f"move the target into the corners of the field")
+    if len(normals_deg) and max(normals_deg) < 20.0:
+        out.append(f"{side} camera: the target was never tilted more than {max(normals_deg):.0f} "
+                   f"deg; tilt it 20-45 deg in several directions for a stable focal length")
+    return out
+
+
+def calibrate_stereo(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]],
+                     board: ChessboardSpec) -> CalibrationReport:
+    """Calibrate both cameras and their pose from (name, left image, right image) views."""
+    if not pairs:
+        raise CalibrationError("no image pairs given")
+    size = (pairs[0][1].shape[1], pairs[0][1].shape[0])
+    obj = board.object_points()
+    used, rejected = [], {}
+    obj_pts, left_pts, right_pts = [], [], []
+    for name, left, right in pairs:
+        for img, side in ((left, "left"), (right, "right")):
+            if (img.shape[1], img.shape[0]) != size:
+                raise CalibrationError(f"{name} ({side}): size {img.shape[1]} x {img.shape[0]} "
+                                       f"differs from the first view's {size[0]} x {size[1]}")
+        cl, cr = find_corners(left, board), find_corners(right, board)
+        if cl is None or cr is None:
+            rejected[name] = "board not found in " + ("both images" if cl is None and cr is None
+                                                      else "left" if cl is None else "right")
+            continue
+        used.append(name)
+        obj_pts.append(obj)
+        left_pts.append(cl)
+        right_pts.append(cr)
+    if len(used) < 4:
+        raise CalibrationError(f"the board was found in only {len(used)} view pair(s); at least 4 "
+                               f"are needed (rejected: {rejected})")
+    flags = cv2.CALIB_FIX_K3
+    rms_l, K1, D1, rv_l, tv_l = cv2.calibrateCamera(obj_pts, left_pts, size, None, None, flags=flags)
+    rms_r, K2, D2, _, _ = cv2.calibrateCamera(obj_pts, right_pts, size, None, None, flags=flags)
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+    rms_s, K1, D1, K2, D2, R, T, _, _ = cv2.stereoCalibrate(
+        obj_pts, left_pts, right_pts, K1, D1, K2, D2, size, criteria=criteria,
+        flags=cv2.CALIB_USE_INTRINSIC_GUESS | flags)
+    per_view = {}
+    tilts = []
+    for name, o, pl, rv, tv in zip(used, obj_pts, left_pts, rv_l, tv_l, strict=True):
+        proj, _ = cv2.projectPoints(o, rv, tv, K1, D1)
+        per_view[name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - pl) ** 2, 1))))
+        normal = cv2.Rodrigues(rv)[0][:, 2]
+        tilts.append(float(np.degrees(np.arccos(abs(normal[2])))))
+    warnings = (_coverage_warnings(left_pts, size, "left", tilts)
+                + _coverage_warnings(right_pts, size, "right", tilts))
+    median = float(np.median(list(per_view.values())))
+    for name, e in per_view.items():
+        if e > 3 * median and e > 0.3:
+            warnings.append(f"view {name}: reprojection {e:.2f} px, {e / median:.1f}x the median "
+                            f"(blur, motion or a misdetected board?)")
+    if rms_s > 0.5:
+        warnings.append(f"stereo RMS {rms_s:.2f} px is high: check focus and the target's flatness")
+    calib = StereoCalibration(size, K1, D1.reshape(-1), K2, D2.reshape(-1), R, T.reshape(3),
+                              {"rms_left_px": float(rms_l), "rms_right_px": float(rms_r),
+                               "rms_stereo_px": float(rms_s)})
+    for w in warnings:
+        log.warning("calibration: %s", w)
+    return CalibrationReport(calib, used, rejected, per_view, warnings)
