@@ -13,6 +13,11 @@ Unwrapping methods:
 Every frequency gives its own estimate of the column; a pixel whose estimates disagree by more
 than ``order_tolerance_px`` has a wrong fringe order somewhere and is masked, never passed on.
 The accepted column is the p²-weighted mean of the estimates (finer fringes are more precise).
+
+Limit of any three-frequency check: with periods 70, 64, 59, shifting the column by 694 px is
+38 fringes of 70 and 32.0 fringes of 59; if the 64-period phase alone is off by 0.28 (or 0.72)
+of a fringe, that alias is self-consistent and cannot be told from the truth by the phases of
+one pixel.
 """
 
 from __future__ import annotations
@@ -50,9 +55,13 @@ class PhaseMap:
 @dataclass(frozen=True)
 class DecodeSettings:
     method: str = "heterodyne"  # or "hierarchical"
-    min_modulation_dn: float = 4.0
+    min_modulation_dn: float = 8.0  # with ~1 DN noise, weaker fringes give wrong orders
     saturation_dn: float = 254.5  # a pixel at or above this in any image is masked
-    order_tolerance_px: float = 1.0  # max disagreement between frequency estimates (projector px)
+    #: max disagreement between frequency estimates (projector px; coarse fringes get up to a
+    #: tenth of their width)
+    order_tolerance_px: float = 1.0
+    #: an order decision closer than this to a tie (fringes from .5) is not trusted
+    order_margin: float = 0.3
 
 
 def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,10 +87,14 @@ def _wrap(x: np.ndarray) -> np.ndarray:
     return np.mod(x, TWO_PI)
 
 
-def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float) -> np.ndarray:
+def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float,
+                 margin: np.ndarray | None = None) -> np.ndarray:
     """Absolute phase from wrapped ``phi`` and an absolute ``reference`` of ``ratio`` times
-    fewer periods."""
-    k = np.rint((reference * np.float32(ratio) - phi) / TWO_PI)
+    fewer periods; ``margin`` keeps the largest distance (fringes) of a rounding from .0."""
+    orders = (reference * np.float32(ratio) - phi) / TWO_PI
+    k = np.rint(orders)
+    if margin is not None:
+        np.maximum(margin, np.abs(orders - k), out=margin)
     return phi + TWO_PI * k
 
 
@@ -100,11 +113,12 @@ def heterodyne_tree(periods: Sequence[float]) -> list[list[float]]:
     return levels
 
 
-def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float]) -> list[np.ndarray]:
+def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
+                      margin: np.ndarray | None = None) -> list[np.ndarray]:
     """Absolute phases of every frequency (same order as given)."""
     levels = heterodyne_tree(periods)
     wrapped = [list(phases)]
-    for lvl in range(1, len(levels)):
+    for _ in range(1, len(levels)):
         prev = wrapped[-1]
         wrapped.append([_wrap(prev[i] - prev[i + 1]) for i in range(len(prev) - 1)])
     absolute = wrapped[-1]  # top: one period or less, already absolute
@@ -113,18 +127,19 @@ def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float]) ->
         absolute = []
         for i, phi in enumerate(wrapped[lvl]):
             j = min(i, len(parents) - 1)
-            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j]))
+            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j], margin))
     return absolute
 
 
-def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float]) -> list[np.ndarray]:
+def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float],
+                        margin: np.ndarray | None = None) -> list[np.ndarray]:
     """Coarse to fine: the first pattern must have at most one period."""
     if periods[0] > 1.0 + 1e-9 or list(periods) != sorted(periods):
         raise DecodeError(f"hierarchical unwrapping needs increasing periods starting at <= 1 "
                           f"(e.g. 1, 8, 64), got {list(periods)}")
     absolute = [phases[0]]
     for j in range(1, len(phases)):
-        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1]))
+        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1], margin))
     return absolute
 
 
@@ -169,18 +184,23 @@ def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, project
     background /= len(periods)
     modulation = np.minimum.reduce(mods) * np.float32(255.0 / scale)
     background *= np.float32(255.0 / scale)
-    absolute = (unwrap_heterodyne(phases, periods) if st.method == "heterodyne"
-                else unwrap_hierarchical(phases, periods))
+    margin = np.zeros(images[0].shape, np.float32)
+    absolute = (unwrap_heterodyne(phases, periods, margin) if st.method == "heterodyne"
+                else unwrap_hierarchical(phases, periods, margin))
     w = np.float32(projector_width)
     estimates = [phi * (w / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
     weights = np.asarray(periods, np.float32) ** 2
     column = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
+    # How far each frequency's estimate may stray: ``order_tolerance_px``, widened for coarse
+    # fringes whose own noise is larger (a wrong order moves an estimate by a whole fringe, W/p).
     spread = np.zeros_like(column)
-    for e in estimates:
-        np.maximum(spread, np.abs(e - column), out=spread)
+    for e, p in zip(estimates, periods, strict=True):
+        tol = max(st.order_tolerance_px, 0.1 * float(w) / p)
+        np.maximum(spread, np.abs(e - column) * np.float32(st.order_tolerance_px / tol), out=spread)
 
     low = modulation < st.min_modulation_dn
-    inconsistent = ~low & ~saturated & (spread > st.order_tolerance_px)
+    inconsistent = ~low & ~saturated & ((spread > st.order_tolerance_px)
+                                        | (margin > st.order_margin))
     outside = ~low & ~saturated & ~inconsistent & ((column < -0.5) | (column > w - 0.5))
     valid = ~(low | saturated | inconsistent | outside)
     column[~valid] = np.nan

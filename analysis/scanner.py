@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.phase import DecodeError, DecodeSettings, PhaseMap, decode_phase
-from scancell.analysis.stereo import Cloud, Rectification, rectify, reconstruct
+from scancell.analysis.stereo import Cloud, Rectification, reconstruct, rectify
 from scancell.analysis.stereo_calibration import StereoCalibration
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")

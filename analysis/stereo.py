@@ -87,10 +87,23 @@ class Cloud:
         return len(self.points)
 
 
-def mask_discontinuities(column: np.ndarray, max_step_px: float) -> np.ndarray:
+def typical_step(column: np.ndarray) -> float:
+    """Median change of the projector column between horizontal neighbours (projector px)."""
+    with np.errstate(invalid="ignore"):
+        step = np.nanmedian(np.abs(np.diff(column[::4], axis=1)))
+    return float(step) if np.isfinite(step) else 1.0
+
+
+def mask_discontinuities(column: np.ndarray, max_step_px: float, max_bend_px: float = 0.75,
+                         border_px: int = 3) -> np.ndarray:
     """``column`` with NaN next to any jump larger than ``max_step_px`` projector px between
-    neighbouring camera pixels (depth edges, occlusions)."""
+    neighbouring camera pixels (depth edges, occlusions), where the column bends by more than
+    ``max_bend_px`` (second difference: pixels that mix two surfaces through the lens blur),
+    and on the image's outer ``border_px`` pixels (blur and vignetting)."""
     c = column.copy()
+    if border_px:
+        c[:border_px] = c[-border_px:] = np.nan
+        c[:, :border_px] = c[:, -border_px:] = np.nan
     bad = np.zeros(c.shape, bool)
     with np.errstate(invalid="ignore"):
         dx = np.abs(np.diff(column, axis=1)) > max_step_px
@@ -99,6 +112,12 @@ def mask_discontinuities(column: np.ndarray, max_step_px: float) -> np.ndarray:
     bad[:, 1:] |= dx
     bad[:-1, :] |= dy
     bad[1:, :] |= dy
+    with np.errstate(invalid="ignore"):
+        bx = np.abs(column[:, :-2] - 2 * column[:, 1:-1] + column[:, 2:]) > max_bend_px
+        by = np.abs(column[:-2] - 2 * column[1:-1] + column[2:]) > max_bend_px
+    for shift in (0, 1, 2):
+        bad[:, shift:shift + bx.shape[1]] |= bx
+        bad[shift:shift + by.shape[0], :] |= by
     c[bad] = np.nan
     return c
 
@@ -112,7 +131,7 @@ def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every valid rectified-left pixel, the sub-pixel right x with the same projector
     column on the same row: (rows, left x, right x) of the matched pixels."""
-    h, w2 = col_right.shape
+    h = col_right.shape[0]
     span = np.float64(1 << 16)  # > any projector column: keys of different rows never mix
     right = col_right.astype(np.float64)
     prev_max = np.fmax.accumulate(np.where(np.isnan(right), -np.inf, right), axis=1)
@@ -135,16 +154,17 @@ def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
 
 
 def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
-                rect: Rectification | None = None, max_step_px: float = 2.0,
+                rect: Rectification | None = None, max_step_px: float | None = None,
                 z_range_mm: tuple[float, float] = (50.0, 5000.0),
                 timings: dict[str, float] | None = None) -> Cloud:
     """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s)."""
     clock = time.perf_counter
     t0 = clock()
-    w, h = calib.image_size
     for side, pm in (("left", left), ("right", right)):
         calib.check_image_size(pm.column.shape[1], pm.column.shape[0], f"{side} phase maps")
     rect = rect or rectify(calib)
+    if max_step_px is None:  # a few times the surface's own slope: depth edges jump far more
+        max_step_px = 3.0 * typical_step(left.column)
     col_l = _remap(mask_discontinuities(left.column, max_step_px), rect.maps1)
     col_r = _remap(mask_discontinuities(right.column, max_step_px), rect.maps2)
     t1 = clock()

@@ -1,0 +1,274 @@
+"""The fringe scanner pipeline: phase decoding, unwrapping, calibration, reconstruction and the
+`scancell decode` / `scancell calibrate cameras` CLIs, against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scancell.analysis.cloud_io import read_ply
+from scancell.analysis.patterns import FringeSequence
+from scancell.analysis.phase import (
+    DecodeError,
+    DecodeSettings,
+    decode_phase,
+    heterodyne_tree,
+)
+from scancell.analysis.scanner import ScanDecoder
+from scancell.analysis.stereo import rectify
+from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.devices.sim.optics import apply_T
+
+W = 1280
+
+
+def synthetic(seq: FringeSequence, column: np.ndarray, b: float = 80.0, noise: float = 1.0,
+              seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [np.clip(np.rint(40 + 2 * b * seq.intensity(k, column, W) - b * 0.0
+                            + rng.normal(0, noise, column.shape)), 0, 255).astype(np.uint8)
+            for k in range(len(seq))]
+
+
+def test_heterodyne_tree_and_unwrappable_periods():
+    assert heterodyne_tree((70, 64, 59)) == [[70, 64, 59], [6, 5], [1]]
+    assert heterodyne_tree((16, 15)) == [[16, 15], [1]]
+    for bad in ((70, 60, 50), (59, 64, 70), (8,)):
+        with pytest.raises(DecodeError, match="cannot be unwrapped"):
+            heterodyne_tree(bad)
+
+
+@pytest.mark.parametrize("periods, method", [((70, 64, 59), "heterodyne"),
+                                             ((1, 8, 64), "hierarchical"),
+                                             ((16, 15), "heterodyne")])
+def test_decode_recovers_the_projector_column(periods, method):
+    seq = FringeSequence(periods, 4 if len(periods) == 2 else 3)
+    column = np.tile(np.linspace(2, W - 3, 400), (60, 1))
+    pm = decode_phase(synthetic(seq, column), seq, W, DecodeSettings(method=method))
+    assert pm.valid.mean() > 0.99
+    err = pm.column[pm.valid] - column[pm.valid]
+    assert np.abs(err).max() < 0.5
+    assert np.abs(err).std() < 0.1
+
+
+# (Not 0.28 or 0.72 fringe: with 70, 64, 59 periods that error on the 64-period images matches
+# the alias 38 fringes of 70 = 32 fringes of 59 away, which no consistency check can see.)
+@pytest.mark.parametrize("cycles", [0.15, 0.45, 0.6])
+def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (60, 1))
+    imgs = synthetic(seq, column)
+    # the 64-period images of a patch are off by a fraction of a fringe (a glint, a vibration):
+    # the heterodyne beats amplify that into wrong fringe orders
+    shifted = column + cycles * W / 64
+    disturbed = synthetic(seq, shifted, seed=1)
+    for k in (3, 4, 5):
+        imgs[k][10:30, 100:200] = disturbed[k][10:30, 100:200]
+    pm = decode_phase(imgs, seq, W)
+    assert pm.rejected["order_inconsistent"] > 0
+    wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
+    assert wrong.sum() == 0
+    with pytest.raises(DecodeError, match="hierarchical"):
+        decode_phase(imgs, seq, W, DecodeSettings(method="hierarchical"))
+
+
+def test_noisy_weak_fringes_leave_almost_no_wrong_order():
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
+    pm = decode_phase(synthetic(seq, column, b=9.0, noise=1.0, seed=5), seq, W)
+    wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
+    assert pm.valid.mean() > 0.3
+    assert wrong.sum() <= 0.001 * pm.valid.sum()
+
+
+def test_dark_saturated_and_malformed_inputs():
+    seq = FringeSequence()
+    dark = [np.zeros((20, 30), np.uint8) for _ in range(9)]
+    pm = decode_phase(dark, seq, W)
+    assert pm.valid.sum() == 0 and pm.rejected["low_modulation"] == 600
+    column = np.tile(np.linspace(2, W - 3, 30), (20, 1))
+    hot = synthetic(seq, column, b=200.0)
+    assert decode_phase(hot, seq, W).rejected["saturated"] > 0
+    with pytest.raises(DecodeError, match="expected 9 images"):
+        decode_phase(dark[:8], seq, W)
+    with pytest.raises(DecodeError, match="image 4: size 31 x 20"):
+        decode_phase([*dark[:4], np.zeros((20, 31), np.uint8), *dark[5:]], seq, W)
+
+
+# ---------------------------------------------------------------------------- with the simulator
+
+
+@pytest.fixture(scope="module")
+def station(tmp_path_factory) -> dict:
+    """One station of the car-body rear at 1/4 resolution, its images on disk, a calibration
+    from rendered chessboard images (not the true parameters) and the ground truth."""
+    root = tmp_path_factory.mktemp("scan")
+    run = [sys.executable, "-m", "scancell"]
+    subprocess.run([*run, "sim", "targets", "--scale", "4", "--out", str(root / "cal")],
+                   check=True, capture_output=True, timeout=120)
+    out = subprocess.run([*run, "calibrate", "cameras", "--images", str(root / "cal"),
+                          "--out", str(root / "stereo.yaml")], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    cell = SimCell(SimCellConfig(camera_scale=4))
+    target = cell.cfg.T_world_from_part[:3, 3] + [-200.0, 0, 0]
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target, 600.0)))
+    cell.load_sequence(FringeSequence())
+    for side in ("left", "right"):
+        (root / "images" / side).mkdir(parents=True)
+        for k, img in enumerate(cell.render_sequence(side)):
+            cv2.imwrite(str(root / "images" / side / f"{k:02d}.png"), img)
+    return {"root": root, "cell": cell, "calib": root / "stereo.yaml", "out": out.stdout}
+
+
+def test_calibration_from_rendered_targets_is_close_to_the_truth(station):
+    cal = StereoCalibration.read(station["calib"])
+    rig = station["cell"].rig
+    R, T = rig.R_T
+    assert cal.rms["rms_stereo_px"] < 0.1
+    assert np.linalg.norm(cal.T - T) < 1.5  # mm, at 1/4 resolution (full size: see benchmarks)
+    angle = np.degrees(np.arccos(np.clip((np.trace(cal.R @ R.T) - 1) / 2, -1, 1)))
+    assert angle < 0.4  # deg; correlated with the intrinsics, the cloud test below is the check
+    assert abs(cal.K1[0, 0] - rig.left.K[0, 0]) / rig.left.K[0, 0] < 3e-3
+    assert "RMS reprojection" in station["out"]
+
+
+def test_decode_cli_matches_the_true_surface(station, tmp_path):
+    root, cell = station["root"], station["cell"]
+    out = subprocess.run([sys.executable, "-m", "scancell", "decode", "--calib",
+                          str(station["calib"]), "--images", str(root / "images"),
+                          "--periods", "70,64,59", "--steps", "3", "--out",
+                          str(tmp_path / "cloud.ply")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "points ->" in out.stdout and "decode" in out.stdout
+    pts, fields = read_ply(tmp_path / "cloud.ply")
+    assert set(fields) == {"quality", "intensity"}
+    world = apply_T(cell.T_world_from_mcs(), pts)
+    raw = cell.surface_distance(world)
+    # An estimated calibration also places MCS slightly off the true left camera (a principal
+    # point error tilts it); the hand-eye absorbs that. The shape is compared after a rigid fit.
+    assert np.sqrt(np.mean(raw**2)) < 1.5
+    d = cell.surface_distance(apply_T(_rigid_fit(world, cell), world))
+    assert np.sqrt(np.mean(d**2)) < 0.08  # mm, at 1/4 resolution and with estimated calibration
+    assert np.percentile(d, 99.9) < 0.5  # no bridging points across depth edges
+    assert len(pts) > 0.6 * len(cell.true_points())
+
+
+def _rigid_fit(points_world: np.ndarray, cell: SimCell) -> np.ndarray:
+    """Point-to-plane ICP of the cloud onto the true surface (world), 4x4."""
+    import open3d as o3d
+
+    truth = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        apply_T(cell.T_world_from_mcs(), cell.true_points("left"))))
+    truth.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_world))
+    reg = o3d.pipelines.registration.registration_icp(
+        src, truth, 2.0, np.eye(4),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50))
+    return np.asarray(reg.transformation)
+
+
+def test_rectification_keeps_the_common_field_of_a_converging_rig(station, tmp_path):
+    cell = station["cell"]
+    cell.rig.write_opencv_yaml(tmp_path / "true.yaml")  # the geometry, not the estimate
+    cal = StereoCalibration.read(tmp_path / "true.yaml")
+    rect = rectify(cal)
+    assert abs(rect.f - cal.K1[0, 0]) / cal.K1[0, 0] < 0.01  # native resolution kept
+    # every true surface point both cameras see lands inside both rectified images
+    pts_left = cell.true_points("left")
+    T_right_from_left = np.linalg.inv(cell.rig.T_mcs_from_right)
+    pr = apply_T(T_right_from_left, pts_left)
+    uv = cell.rig.right.project(pr)
+    w, h = cal.image_size
+    both = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    common = pts_left[both]
+    for R, cx, size in ((rect.R1, rect.cx1, rect.size1), (rect.R2, rect.cx2, rect.size2)):
+        p = common if R is rect.R1 else apply_T(T_right_from_left, common)
+        q = p @ R.T
+        x = rect.f * q[:, 0] / q[:, 2] + cx
+        y = rect.f * q[:, 1] / q[:, 2] + rect.cy
+        inside = (x >= 0) & (x < size[0]) & (y >= 0) & (y < size[1])
+        assert inside.mean() > 0.999
+
+
+def test_decoder_refuses_images_of_another_size(station):
+    cal = StereoCalibration.read(station["calib"])
+    small = [np.zeros((10, 10), np.uint8)] * 9
+    with pytest.raises(CalibrationError, match="10 x 10"):
+        ScanDecoder(cal, FringeSequence()).decode(small, small)
+
+
+def _decode(args: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "scancell", "decode", *args],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_decode_cli_bad_input_names_the_problem_and_writes_nothing(station, tmp_path):
+    root = station["root"]
+    images, calib = root / "images", station["calib"]
+    out = tmp_path / "c.ply"
+    base = ["--out", str(out)]
+
+    def bad(args: list[str], *expected: str) -> None:
+        r = _decode([*args, *base])
+        assert r.returncode == 2, r.stdout + r.stderr
+        for e in expected:
+            assert e in r.stderr, (e, r.stderr)
+        assert not out.exists() and not list(tmp_path.glob("*.ply"))
+
+    bad(["--calib", str(calib), "--images", str(tmp_path / "nope")], "nope", "no such directory")
+    # a missing image
+    broken = tmp_path / "broken"
+    for side in ("left", "right"):
+        (broken / side).mkdir(parents=True)
+        for k in range(9):
+            (broken / side / f"{k:02d}.png").write_bytes((images / side / f"{k:02d}.png").read_bytes())
+    (broken / "right" / "05.png").unlink()
+    bad(["--calib", str(calib), "--images", str(broken)], "right/05.png", "missing")
+    # an unreadable one
+    (broken / "right" / "05.png").write_bytes(b"not a png")
+    bad(["--calib", str(calib), "--images", str(broken)], "right/05.png", "unreadable")
+    # mixed sizes
+    cv2.imwrite(str(broken / "right" / "05.png"), np.zeros((100, 100), np.uint8))
+    bad(["--calib", str(calib), "--images", str(broken)], "right/05.png", "100 x 100")
+    # all dark
+    for side in ("left", "right"):
+        for k in range(9):
+            cv2.imwrite(str(broken / side / f"{k:02d}.png"), np.full((128, 153), 3, np.uint8))
+    cal = StereoCalibration.read(calib)
+    small = StereoCalibration((153, 128), cal.K1 / 4, cal.D1, cal.K2 / 4, cal.D2, cal.R, cal.T)
+    small.K1[2, 2] = small.K2[2, 2] = 1
+    small.write(tmp_path / "small.yaml")
+    bad(["--calib", str(tmp_path / "small.yaml"), "--images", str(broken)], "all dark")
+    # calibration for another size, or missing a key
+    bad(["--calib", str(tmp_path / "small.yaml"), "--images", str(images)], "153 x 128")
+    text = Path(calib).read_text().replace("D2:", "D9:")
+    (tmp_path / "nokey.yaml").write_text(text)
+    bad(["--calib", str(tmp_path / "nokey.yaml"), "--images", str(images)], "nokey.yaml", "'D2'")
+    bad(["--calib", str(tmp_path / "none.yaml"), "--images", str(images)], "none.yaml")
+    # periods that cannot be unwrapped
+    bad(["--calib", str(calib), "--images", str(images), "--periods", "70,60,50"],
+        "cannot be unwrapped")
+
+
+def test_calibrate_cli_bad_input(tmp_path):
+    run = [sys.executable, "-m", "scancell", "calibrate", "cameras"]
+    r = subprocess.run([*run, "--images", str(tmp_path), "--out", str(tmp_path / "s.yaml")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "left" in r.stderr
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        cv2.imwrite(str(tmp_path / side / "00.png"), np.zeros((50, 60), np.uint8))
+    r = subprocess.run([*run, "--images", str(tmp_path), "--out", str(tmp_path / "s.yaml")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "found in only 0" in r.stderr
+    r = subprocess.run([*run, "--images", str(tmp_path), "--target", "9by7",
+                        "--out", str(tmp_path / "s.yaml")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "COLSxROWSxSQUARE_MM" in r.stderr
+    assert not (tmp_path / "s.yaml").exists()
