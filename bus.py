@@ -89,12 +89,15 @@ class BusConfig:
 
     @classmethod
     def client_default(cls, connect: str | list[str] | None = None) -> BusConfig:
-        """A non-daemon process: connect to ``connect``, $SCANCELL_CONNECT or the loopback default."""
+        """A non-daemon process (ctl, worker, recorder, monitor): a zenoh *client* of ``connect``,
+        $SCANCELL_CONNECT or the loopback default. Client mode matters: the daemon's peer routes
+        between its clients, while connect-only peers behind it never hear each other (a
+        worker's clouds would not reach a viewer)."""
         if connect is None:
             connect = os.environ.get(ENV_CONNECT, DEFAULT_ENDPOINT)
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         eps = tuple(e.strip() for ep in endpoints for e in ep.split(",") if e.strip())
-        return cls(connect=eps)
+        return cls(mode="client", connect=eps)
 
     def to_zenoh(self) -> zenoh.Config:
         c = zenoh.Config()
@@ -158,8 +161,22 @@ class Bus:
         self._closed = False
 
     @classmethod
-    def open(cls, cfg: BusConfig, cell: str) -> Bus:
-        return cls(open_session(cfg), CellKeys(cell), cfg)
+    def open(cls, cfg: BusConfig, cell: str, wait_s: float = 3.0) -> Bus:
+        """Open a session. A client session needs its daemon (or router) up: it retries for
+        ``wait_s`` and then raises NoDaemon."""
+        keys = CellKeys(cell)
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                return cls(open_session(cfg), keys, cfg)
+            except ConnectionError as exc:
+                if cfg.mode != "client":
+                    raise
+                if time.monotonic() >= deadline:
+                    raise NoDaemon(f"no daemon reachable at {', '.join(cfg.connect)} for cell "
+                                   f"{cell!r} after {wait_s:g} s (is `scancell daemon` running "
+                                   f"there?): {exc}") from None
+                time.sleep(0.2)
 
     # ---- publish
     def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None) -> None:

@@ -83,6 +83,22 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     add_calibrate_arguments(p)
 
 
+@subcommand("worker", "analysis workers on the bus: scan", "scancell.cli:_worker_main")
+def _worker_args(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="worker", required=True)
+    scan = sub.add_parser("scan", help="reassemble scans from dev/*/image, decode, publish "
+                                       "scan/<station>/cloud")
+    _bus_args(scan)
+    scan.add_argument("--calib", required=True, help="stereo.yaml of the scanner")
+    scan.add_argument("--projector-width", type=int, default=1280)
+
+
+def _worker_main(args: argparse.Namespace) -> int:
+    import importlib
+
+    return int(importlib.import_module(f"scancell.analysis.{args.worker}_worker").main(args))
+
+
 @subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")

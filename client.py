@@ -23,9 +23,20 @@ class CellClient:
     """A zenoh session bound to one cell's command keys."""
 
     def __init__(self, cell: str = "sim", connect: str | list[str] | None = None,
-                 bus_config: BusConfig | None = None, timeout_s: float = 130.0) -> None:
-        self.bus = Bus.open(bus_config or BusConfig.client_default(connect), cell)
+                 bus_config: BusConfig | None = None, timeout_s: float = 130.0,
+                 connect_wait_s: float = 3.0) -> None:
+        self.cell = cell
+        self.bus_config = bus_config or BusConfig.client_default(connect)
         self.timeout_s = timeout_s
+        self.connect_wait_s = connect_wait_s
+        self._bus: Bus | None = None
+
+    @property
+    def bus(self) -> Bus:
+        """The zenoh session, opened on first use (raises NoDaemon if the daemon is not up)."""
+        if self._bus is None:
+            self._bus = Bus.open(self.bus_config, self.cell, self.connect_wait_s)
+        return self._bus
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
              timeout_s: float | None = None) -> Any:
@@ -46,7 +57,9 @@ class CellClient:
         return self.bus.alive()
 
     def close(self) -> None:
-        self.bus.close()
+        if self._bus is not None:
+            self._bus.close()
+            self._bus = None
 
     def __enter__(self) -> CellClient:
         return self

@@ -20,6 +20,7 @@ from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
 from scancell.daemon.router import CellVerb, CommandRouter
+from scancell.daemon.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import Device
 from scancell.devices.registry import load_driver
@@ -108,7 +109,8 @@ class Daemon:
                 dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
         self.router = CommandRouter(
             self.supervisors,
-            {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices)},
+            {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
+             "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0)},
             self.cfg.daemon.timeouts,
         )
         tasks = [asyncio.create_task(s.run(), name=f"supervise-{n}")

@@ -51,6 +51,9 @@ class CellKeys:
     def scan_cloud(self, station: str | int) -> str:
         return f"{self.prefix}/scan/{station}/cloud"
 
+    def scan_result(self, station: str | int) -> str:
+        return f"{self.prefix}/scan/{station}/result"
+
     @property
     def hand_eye(self) -> str:
         return f"{self.prefix}/calib/hand_eye"

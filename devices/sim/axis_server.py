@@ -24,6 +24,8 @@ from scancell.devices.sim.cell import SimCell
 from scancell.protocols import cia402 as p
 
 log = logging.getLogger(__name__)
+# canopen's SDO server logs every expedited transfer at INFO: a status poll floods the daemon log.
+logging.getLogger("canopen.sdo.server").setLevel(logging.WARNING)
 
 HOME_SWITCH_METHODS = (19, 20, 21, 22)
 CURRENT_POSITION_METHODS = (35, 37)

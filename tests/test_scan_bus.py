@@ -1,0 +1,106 @@
+"""The scanner on the bus: `cmd/scan` on the sim cell publishes a reassemblable frame set, and
+`scancell worker scan` (a separate process) turns it into the same cloud as the file path."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from scancell.analysis.patterns import FringeSequence
+from scancell.analysis.scanner import ScanDecoder
+from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.devices.sim.optics import apply_T
+from scancell.devices.sim.world import get_world
+from scancell.protocols import messages
+
+from .conftest import sim_cell_raw, wait_until
+
+
+def _all_connected(client) -> bool:
+    return all(s["state"] == "connected" for s in client.status()["devices"].values())
+
+
+@pytest.fixture
+def sim_daemon(make_daemon, client):
+    d = make_daemon(sim_cell_raw(camera_scale=8))
+    wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
+    return d
+
+
+def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, client, cell,
+                                                                  endpoint, tmp_path):
+    world = get_world(sim_daemon.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    frames: list = []
+    clouds: list = []
+    results: list = []
+    lock = threading.Lock()
+
+    def keep(store):
+        def cb(s):
+            with lock:
+                store.append(s)
+        return cb
+
+    subs = [client.bus.subscribe(client.bus.keys.dev("*", "image"), keep(frames)),
+            client.bus.subscribe(client.bus.keys.scan_cloud("*"), keep(clouds)),
+            client.bus.subscribe(client.bus.keys.scan_result("*"), keep(results))]
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",
+                               str(tmp_path / "stereo.yaml")], env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert "waiting for scans" in worker.stdout.readline()
+        reply = client.call("scan", {"station": "s1"})
+        assert reply["patterns"] == 9 and reply["station"] == "s1"
+        wait_until(lambda: clouds and results, 60, what="cloud and result from the worker")
+        result = results[0].decode()
+        assert result["ok"] and result["scan_id"] == reply["scan_id"], result
+        msg = clouds[0].decode()
+        assert msg.frame_id == "mcs" and clouds[0].schema == "foxglove.PointCloud"
+        bus_points = messages.cloud_points(msg)
+        assert len(bus_points) == result["points"] > 1000
+
+        # the frames on the bus carry everything needed to reassemble the scan ...
+        with lock:
+            scan_frames = [f for f in frames if f.attachment.meta.get("scan_id") == reply["scan_id"]]
+        assert len(scan_frames) == 18
+        by_role: dict[str, dict[int, np.ndarray]] = {"left": {}, "right": {}}
+        for f in scan_frames:
+            m = f.attachment.meta
+            by_role[m["role"]][m["pattern"]] = messages.image_array(f.decode())
+        # ... and decoding them as `scancell decode` does gives the very same cloud
+        decoder = ScanDecoder(StereoCalibration.read(tmp_path / "stereo.yaml"), FringeSequence())
+        local = decoder.decode([by_role["left"][k] for k in range(9)],
+                               [by_role["right"][k] for k in range(9)])
+        assert np.array_equal(local.cloud.points, bus_points)
+
+        # and the cloud lies on the part where the scanner looked
+        cell_ = world.cell
+        d = cell_.surface_distance(apply_T(cell_.T_world_from_mcs(), bus_points.astype(float)))
+        assert np.median(d) < 0.15
+    finally:
+        for s in subs:
+            s.undeclare()
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(20) == 0, worker.stderr.read()
+
+
+def test_scan_with_broken_trigger_coupling_is_refused_and_the_next_one_works(sim_daemon, client):
+    client.call("device/projector/trigger_fault", {"camera": "cam_right", "fault": "drop"})
+    with pytest.raises(Exception, match="cam_right") as err:
+        client.call("scan", {"station": "s2", "timeout_s": 0.5})
+    assert "device_fault" in str(err.value) and "pattern 0" in str(err.value)
+    client.call("device/projector/trigger_fault", {"camera": "cam_left", "fault": "double"})
+    with pytest.raises(Exception, match="extra frame"):
+        client.call("scan", {"station": "s2", "timeout_s": 0.5})
+    assert client.call("scan", {"station": "s2"})["patterns"] == 9
+    with pytest.raises(Exception, match="invalid"):
+        client.call("scan", {"station": "bad station/../"})
+    with pytest.raises(Exception, match="unknown_device"):
+        client.call("scan", {"cameras": ["cam_left", "robot"]})
