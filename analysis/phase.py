@@ -83,8 +83,11 @@ def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray,
     return phase, b, a
 
 
-def _wrap(x: np.ndarray) -> np.ndarray:
-    return np.mod(x, TWO_PI)
+def _beat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """wrap(a − b) into [0, 2π) for a, b in [0, 2π) (np.mod on float32 is ~10x slower)."""
+    d = a - b
+    d += TWO_PI * (d < 0)
+    return d
 
 
 def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float,
@@ -120,7 +123,7 @@ def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
     wrapped = [list(phases)]
     for _ in range(1, len(levels)):
         prev = wrapped[-1]
-        wrapped.append([_wrap(prev[i] - prev[i + 1]) for i in range(len(prev) - 1)])
+        wrapped.append([_beat(prev[i], prev[i + 1]) for i in range(len(prev) - 1)])
     absolute = wrapped[-1]  # top: one period or less, already absolute
     for lvl in range(len(levels) - 2, -1, -1):
         parents, parent_p = absolute, levels[lvl + 1]

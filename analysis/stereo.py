@@ -130,27 +130,37 @@ def _remap(img: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every valid rectified-left pixel, the sub-pixel right x with the same projector
-    column on the same row: (rows, left x, right x) of the matched pixels."""
-    h = col_right.shape[0]
-    span = np.float64(1 << 16)  # > any projector column: keys of different rows never mix
-    right = col_right.astype(np.float64)
-    prev_max = np.fmax.accumulate(np.where(np.isnan(right), -np.inf, right), axis=1)
-    prev_max = np.concatenate([np.full((h, 1), -np.inf), prev_max[:, :-1]], axis=1)
-    keep = np.isfinite(right) & (right > prev_max)  # strictly increasing along each row
-    rr, xr = np.nonzero(keep)
-    keys = rr * span + right[rr, xr]
-    rl, xl = np.nonzero(np.isfinite(col_left))
-    q = rl * span + col_left[rl, xl].astype(np.float64)
-    i1 = np.searchsorted(keys, q)
-    ok = (i1 > 0) & (i1 < len(keys))
-    i1 = np.where(ok, i1, 1)
-    i0 = i1 - 1
-    ok &= (rr[i0] == rl) & (rr[i1] == rl) & (xr[i1] - xr[i0] == 1)
-    step = keys[i1] - keys[i0]
-    ok &= step <= max_step_px
-    t = (q - keys[i0]) / np.where(step > 0, step, 1.0)
-    x_right = xr[i0] + t
-    return rl[ok], xl[ok], x_right[ok]
+    column on the same row: (rows, left x, right x) of the matched pixels.
+
+    Row by row: the right row's usable pixels (strictly increasing column) and one binary search
+    for the row's left pixels; a match needs two horizontally adjacent right pixels around it.
+    (One global search over ``row · 2^16 + column`` keys measured 2x slower: bench_decode_speed.)
+    """
+    right_ok = np.isfinite(col_right)
+    left_ok = np.isfinite(col_left)
+    out_r, out_xl, out_xr = [], [], []
+    for r in np.flatnonzero(left_ok.any(axis=1) & (right_ok.sum(axis=1) >= 2)):
+        xs = np.flatnonzero(right_ok[r])
+        vals = col_right[r, xs]
+        increasing = np.empty(len(vals), bool)
+        increasing[0] = True
+        np.greater(vals[1:], np.maximum.accumulate(vals)[:-1], out=increasing[1:])
+        xs, vals = xs[increasing], vals[increasing]
+        xl = np.flatnonzero(left_ok[r])
+        q = col_left[r, xl]
+        i1 = np.searchsorted(vals, q)
+        good = (i1 > 0) & (i1 < len(vals))
+        i1[~good] = 1
+        i0 = i1 - 1
+        step = vals[i1] - vals[i0]
+        good &= (xs[i1] - xs[i0] == 1) & (step <= max_step_px)
+        out_r.append(np.full(int(good.sum()), r, np.int64))
+        out_xl.append(xl[good])
+        out_xr.append(xs[i0[good]] + (q[good] - vals[i0[good]]) / step[good])
+    if not out_r:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros(0)
+    return np.concatenate(out_r), np.concatenate(out_xl), np.concatenate(out_xr).astype(np.float64)
 
 
 def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,

@@ -9,8 +9,10 @@ import subprocess
 import sys
 import threading
 
+import cv2
 import numpy as np
 import pytest
+from scancell.analysis.cloud_io import read_ply
 from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo_calibration import StereoCalibration
@@ -74,11 +76,22 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
         for f in scan_frames:
             m = f.attachment.meta
             by_role[m["role"]][m["pattern"]] = messages.image_array(f.decode())
-        # ... and decoding them as `scancell decode` does gives the very same cloud
+        # ... and `scancell decode` on those frames gives the very same cloud
         decoder = ScanDecoder(StereoCalibration.read(tmp_path / "stereo.yaml"), FringeSequence())
         local = decoder.decode([by_role["left"][k] for k in range(9)],
                                [by_role["right"][k] for k in range(9)])
         assert np.array_equal(local.cloud.points, bus_points)
+        for role, imgs in by_role.items():
+            (tmp_path / "frames" / role).mkdir(parents=True)
+            for k, img in imgs.items():
+                cv2.imwrite(str(tmp_path / "frames" / role / f"{k:02d}.png"), img)
+        cli = subprocess.run([sys.executable, "-m", "scancell", "decode", "--calib",
+                              str(tmp_path / "stereo.yaml"), "--images", str(tmp_path / "frames"),
+                              "--out", str(tmp_path / "cli.ply")], capture_output=True, text=True,
+                             timeout=120)
+        assert cli.returncode == 0, cli.stderr
+        cli_points, _ = read_ply(tmp_path / "cli.ply")
+        assert np.array_equal(cli_points.astype(np.float32), bus_points)
 
         # and the cloud lies on the part where the scanner looked
         cell_ = world.cell
