@@ -184,15 +184,20 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
     with np.errstate(divide="ignore", invalid="ignore"):
         z = rect.f * rect.baseline_mm / d
     good = (d > 0) & (z > z_range_mm[0]) & (z < z_range_mm[1])
-    rows, xl, z = rows[good], xl[good], z[good]
-    p_rect = np.stack([(xl - rect.cx1) * z / rect.f, (rows - rect.cy) * z / rect.f, z], axis=1)
-    points = (p_rect @ rect.R1).astype(np.float32)  # R1^T applied to each row vector
-    mod_l = _remap(left.modulation, rect.maps1)[rows, xl]
+    rows, xl, xr, z = rows[good], xl[good], xr[good], z[good].astype(np.float32)
+    inv_f = np.float32(1.0 / rect.f)
+    p_rect = np.empty((len(z), 3), np.float32)
+    p_rect[:, 0] = (xl - rect.cx1).astype(np.float32) * z * inv_f
+    p_rect[:, 1] = (rows - rect.cy).astype(np.float32) * z * inv_f
+    p_rect[:, 2] = z
+    points = p_rect @ rect.R1.astype(np.float32)  # R1^T applied to each row vector
+    flat_l = rows * rect.size1[0] + xl
+    flat_r = rows * rect.size2[0] + np.clip(np.rint(xr).astype(np.int64), 0, rect.size2[0] - 1)
+    mod_l = _remap(left.modulation, rect.maps1).ravel()[flat_l]
     mod_r = cv2.remap(right.modulation.astype(np.float32), rect.maps2[0], rect.maps2[1],
-                      cv2.INTER_LINEAR)
-    quality = np.minimum(mod_l, mod_r[rows, np.clip(np.rint(xr[good]).astype(int), 0,
-                                                    rect.size2[0] - 1)])
-    intensity = _remap(left.background, rect.maps1)[rows, xl]
+                      cv2.INTER_LINEAR).ravel()[flat_r]
+    quality = np.minimum(mod_l, mod_r)
+    intensity = _remap(left.background, rect.maps1).ravel()[flat_l]
     if timings is not None:
         timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
     return Cloud(points, quality.astype(np.float32), intensity.astype(np.float32),
