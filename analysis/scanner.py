@@ -58,10 +58,17 @@ class ScanDecoder:
         t0 = time.perf_counter()
         rect = self.rect
         t1 = time.perf_counter()
-        futures = [self._pool.submit(decode_phase, imgs, self.sequence, self.projector_width,
-                                     self.settings, names[i] if names else None)
-                   for i, imgs in enumerate((left, right))]
-        pl, pr = (f.result() for f in futures)
+        if self.settings.engine == "fast":
+            # the numba kernels use every core already (and numba's default threading layer
+            # must not be entered from two threads at once)
+            pl, pr = (decode_phase(imgs, self.sequence, self.projector_width, self.settings,
+                                   names[i] if names else None)
+                      for i, imgs in enumerate((left, right)))
+        else:
+            futures = [self._pool.submit(decode_phase, imgs, self.sequence, self.projector_width,
+                                         self.settings, names[i] if names else None)
+                       for i, imgs in enumerate((left, right))]
+            pl, pr = (f.result() for f in futures)
         t2 = time.perf_counter()
         for side, pm, imgs in (("left", pl, left), ("right", pr, right)):
             if pm.valid.sum() < 0.001 * pm.valid.size:
@@ -70,7 +77,7 @@ class ScanDecoder:
                     f"{side} images: only {pm.valid.sum()} pixels decodable ({pm.rejected}); mean "
                     f"intensity {mean:.1f}: all dark, saturated or no fringes in view")
         steps: dict[str, float] = {}
-        cloud = reconstruct(self.calib, pl, pr, rect, timings=steps)
+        cloud = reconstruct(self.calib, pl, pr, rect, timings=steps, engine=self.settings.engine)
         t3 = time.perf_counter()
         timings = {"rectify_maps": t1 - t0, "phase": t2 - t1, **steps, "total": t3 - t0}
         return ScanResult(cloud, pl, pr, timings)

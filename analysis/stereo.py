@@ -166,8 +166,9 @@ def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
 def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
                 rect: Rectification | None = None, max_step_px: float | None = None,
                 z_range_mm: tuple[float, float] = (50.0, 5000.0),
-                timings: dict[str, float] | None = None) -> Cloud:
-    """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s)."""
+                timings: dict[str, float] | None = None, engine: str = "fast") -> Cloud:
+    """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s).
+    ``engine="numpy"`` matches with the numpy reference instead of the numba kernel."""
     clock = time.perf_counter
     t0 = clock()
     for side, pm in (("left", left), ("right", right)):
@@ -175,6 +176,8 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
     rect = rect or rectify(calib)
     if max_step_px is None:  # a few times the surface's own slope: depth edges jump far more
         max_step_px = 3.0 * typical_step(left.column)
+    if engine == "fast":
+        return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0)
     col_l = _remap(mask_discontinuities(left.column, max_step_px), rect.maps1)
     col_r = _remap(mask_discontinuities(right.column, max_step_px), rect.maps2)
     t1 = clock()
@@ -202,3 +205,40 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
         timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
     return Cloud(points, quality.astype(np.float32), intensity.astype(np.float32),
                  np.stack([xl, rows], 1).astype(np.int32))
+
+
+def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_step: float,
+                      z_range_mm: tuple[float, float], timings: dict[str, float] | None,
+                      t0: float) -> Cloud:
+    """The same reconstruction with the numba kernels (scancell.analysis.kernels)."""
+    from scancell.analysis import kernels as k
+
+    clock = time.perf_counter
+    masked = []
+    for pm, maps in ((left, rect.maps1), (right, rect.maps2)):
+        out = np.empty(pm.column.shape, np.float32)
+        k.mask_discontinuities(pm.column, max_step, 0.75, 3, out)
+        masked.append(_remap(out, maps))
+    col_l, col_r = masked
+    t1 = clock()
+    h = col_l.shape[0]
+    x_right = np.empty(col_l.shape, np.float64)
+    per_row = np.zeros(h, np.int64)
+    fb = rect.f * rect.baseline_mm
+    k.match_and_count(col_l, col_r, max_step, rect.cx1, rect.cx2, fb, float(z_range_mm[0]),
+                      float(z_range_mm[1]), x_right, per_row)
+    t2 = clock()
+    offsets = np.zeros(h, np.int64)
+    np.cumsum(per_row[:-1], out=offsets[1:])
+    n = int(per_row.sum())
+    points = np.empty((n, 3), np.float32)
+    quality = np.empty(n, np.float32)
+    intensity = np.empty(n, np.float32)
+    pixels = np.empty((n, 2), np.int32)
+    k.triangulate_compact(x_right, offsets, rect.cx1, rect.cx2, rect.cy, rect.f, fb, rect.R1,
+                          rect.maps1[0], rect.maps1[1], rect.maps2[0], rect.maps2[1],
+                          left.modulation, right.modulation, left.background, points, quality,
+                          intensity, pixels)
+    if timings is not None:
+        timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
+    return Cloud(points, quality, intensity, pixels)

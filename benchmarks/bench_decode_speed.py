@@ -16,7 +16,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo import mask_discontinuities, rectify, typical_step
@@ -24,7 +23,7 @@ from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.devices.sim.cell import SimCell, SimCellConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
-import reference_decode as ref  # noqa: E402
+import reference_decode as ref
 
 
 def main() -> dict[str, float]:

@@ -42,7 +42,7 @@ def calibration(tmp: Path) -> tuple[StereoCalibration, StereoCalibration]:
     est = report.calibration
     rig.write_opencv_yaml(tmp / "true.yaml")
     true = StereoCalibration.read(tmp / "true.yaml")
-    R, T = rig.R_T
+    R = rig.R_T[0]
     angle = np.degrees(np.arccos(np.clip((np.trace(est.R @ R.T) - 1) / 2, -1, 1))) * 3600
     print(f"calibration from {len(report.views_used)} rendered pairs in "
           f"{time.perf_counter() - t0:.0f} s: stereo RMS {est.rms['rms_stereo_px']:.3f} px; "

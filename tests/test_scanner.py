@@ -197,6 +197,32 @@ def test_rectification_keeps_the_common_field_of_a_converging_rig(station, tmp_p
         assert inside.mean() > 0.999
 
 
+def test_fast_kernels_agree_with_the_numpy_reference(station):
+    """The numba engine (default) and the numpy reference give the same phase and cloud."""
+    cell = station["cell"]
+    cal = StereoCalibration.read(station["calib"])
+    imgs = {side: [cv2.imread(str(station["root"] / "images" / side / f"{k:02d}.png"),
+                              cv2.IMREAD_UNCHANGED) for k in range(9)] for side in ("left", "right")}
+    seq = FringeSequence()
+    fast = decode_phase(imgs["left"], seq, W)
+    ref = decode_phase(imgs["left"], seq, W, DecodeSettings(engine="numpy"))
+    assert (fast.valid != ref.valid).mean() < 1e-4  # ties at thresholds may differ (float32)
+    both = fast.valid & ref.valid
+    assert np.abs(fast.column[both] - ref.column[both]).max() < 0.01
+    assert np.allclose(fast.modulation, ref.modulation, atol=1e-3)
+    assert fast.rejected.keys() == ref.rejected.keys()
+    clouds = {eng: ScanDecoder(cal, seq, settings=DecodeSettings(engine=eng))
+              .decode(imgs["left"], imgs["right"]).cloud for eng in ("fast", "numpy")}
+    a, b = clouds["fast"], clouds["numpy"]
+    assert abs(len(a) - len(b)) < 1e-3 * len(b)
+    index = {tuple(p): i for i, p in enumerate(a.pixels.tolist())}
+    pairs = np.array([(index[tuple(p)], j) for j, p in enumerate(b.pixels.tolist())
+                      if tuple(p) in index])
+    assert len(pairs) > 0.999 * len(b)
+    assert np.abs(a.points[pairs[:, 0]] - b.points[pairs[:, 1]]).max() < 0.01  # mm
+    assert cell is not None
+
+
 def test_decoder_refuses_images_of_another_size(station):
     cal = StereoCalibration.read(station["calib"])
     small = [np.zeros((10, 10), np.uint8)] * 9

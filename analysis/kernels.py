@@ -1,0 +1,273 @@
+"""Fused per-pixel kernels (numba) for the scanner's hot path.
+
+The numpy/OpenCV implementations in :mod:`scancell.analysis.phase` and
+:mod:`scancell.analysis.stereo` are the reference and handle every configuration. They make
+about ten full-image passes per frequency; on 2 x 5 Mpx that measured 0.5-0.75 s for the phase
+alone (benchmarks/bench_decode_speed.py), against a 0.3 s budget for the whole decode. These
+kernels do the same arithmetic in one pass per pixel, in parallel over rows, for the paper's
+configuration (three frequencies, heterodyne, any number of steps) and for row matching.
+tests/test_scanner.py checks they agree with the reference.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# OpenMP first: the TBB found next to other wheels is too old for numba and only warns.
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+TWO_PI = 2.0 * math.pi
+
+# Minimax odd polynomial for atan(t), t in [0, 1]: |error| < 1.5e-7 rad (libm atan2 costs
+# ~20 ns a call; three per pixel for 10 Mpx were a third of the budget).
+_A = (0.99999929, -0.33329491, 0.19946510, -0.13908534, 0.09642004, -0.05596729,
+      0.02186797, -0.00405401)
+
+
+_FM = {"contract", "arcp", "reassoc", "afn"}  # no "nnan": NaN marks invalid pixels
+
+
+@numba.njit(inline="always", cache=True, fastmath=_FM)
+def _atan2_0_2pi(y: float, x: float) -> float:
+    """atan2 in [0, 2π) without branches: phases are random, so branches mispredict half the
+    time (measured: the branchy version spent most of the kernel's time here)."""
+    ax, ay = abs(x), abs(y)
+    hi = max(ax, ay)
+    lo = min(ax, ay)
+    t = lo / (hi + 1e-30)
+    t2 = t * t
+    p = _A[7]
+    p = p * t2 + _A[6]
+    p = p * t2 + _A[5]
+    p = p * t2 + _A[4]
+    p = p * t2 + _A[3]
+    p = p * t2 + _A[2]
+    p = p * t2 + _A[1]
+    p = p * t2 + _A[0]
+    a = p * t
+    swap = 1.0 if ay > ax else 0.0
+    a += swap * (0.5 * math.pi - 2.0 * a)
+    neg_x = 1.0 if x < 0.0 else 0.0
+    a += neg_x * (math.pi - 2.0 * a)
+    neg_y = 1.0 if y < 0.0 else 0.0
+    return a + neg_y * (TWO_PI - 2.0 * a)
+
+
+INV_TWO_PI = 1.0 / TWO_PI
+
+
+@numba.njit(inline="always", cache=True)
+def _unwrap(phi: float, ref: float, ratio: float) -> tuple[float, float]:
+    o = (ref * ratio - phi) * INV_TWO_PI  # divisions cost ~20 cycles: multiply by inverses
+    k = math.floor(o + 0.5)
+    return phi + TWO_PI * k, abs(o - k)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def decode3_heterodyne(images: np.ndarray, steps: int, p1: float, p2: float, p3: float,
+                       width: float, dn_scale: float, sat_level: float, min_mod: float,
+                       tol: float, margin_max: float, column: np.ndarray, modulation: np.ndarray,
+                       background: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
+    """Three-frequency heterodyne decode of (3·steps, H, W) images into the output arrays.
+
+    reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
+    counts (H, 5): pixels of each reason per row.
+    """
+    h, w = images.shape[1:]
+    sin_t = np.empty(steps)
+    cos_t = np.empty(steps)
+    for n in range(steps):
+        sin_t[n] = math.sin(TWO_PI * n / steps)
+        cos_t[n] = math.cos(TWO_PI * n / steps)
+    b1, b2 = p1 - p2, p2 - p3
+    top = b1 - b2
+    r_b1, r_b2 = b1 / top, b2 / top
+    r1, r2, r3 = p1 / b1, p2 / b2, p3 / b2
+    inv_wsum = 1.0 / (p1 * p1 + p2 * p2 + p3 * p3)
+    s1 = tol / max(tol, 0.1 * width / p1)
+    s2 = tol / max(tol, 0.1 * width / p2)
+    s3 = tol / max(tol, 0.1 * width / p3)
+    c1 = width / (TWO_PI * p1)
+    c2 = width / (TWO_PI * p2)
+    c3 = width / (TWO_PI * p3)
+    mod_scale = 2.0 / steps * dn_scale
+    bg_scale = dn_scale / (3 * steps)
+    for y in numba.prange(h):
+        # stage by stage over one row: simple loops over contiguous rows vectorise (SIMD)
+        ph = np.empty((3, w))
+        q = np.empty((3, w))
+        a_sum = np.zeros(w)
+        sat = np.zeros(w)
+        for j in range(3):
+            s = np.zeros(w)
+            c = np.zeros(w)
+            for n in range(steps):
+                sn, cn = sin_t[n], cos_t[n]
+                row = images[j * steps + n, y]
+                for x in range(w):
+                    v = float(row[x])
+                    s[x] += v * sn
+                    c[x] += v * cn
+                    a_sum[x] += v
+                    sat[x] = max(sat[x], 1.0 if v >= sat_level else 0.0)
+            for x in range(w):
+                ph[j, x] = _atan2_0_2pi(s[x], c[x])
+                q[j, x] = s[x] * s[x] + c[x] * c[x]
+        for x in range(w):
+            ph0, ph1, ph2 = ph[0, x], ph[1, x], ph[2, x]
+            mod = math.sqrt(min(q[0, x], q[1, x], q[2, x])) * mod_scale
+            modulation[y, x] = mod
+            background[y, x] = a_sum[x] * bg_scale
+            w12 = ph0 - ph1
+            w12 += TWO_PI if w12 < 0.0 else 0.0
+            w23 = ph1 - ph2
+            w23 += TWO_PI if w23 < 0.0 else 0.0
+            wt = w12 - w23
+            wt += TWO_PI if wt < 0.0 else 0.0
+            a12, m1 = _unwrap(w12, wt, r_b1)
+            a23, m2 = _unwrap(w23, wt, r_b2)
+            a1, m3 = _unwrap(ph0, a12, r1)
+            a2, m4 = _unwrap(ph1, a23, r2)
+            a3, m5 = _unwrap(ph2, a23, r3)
+            margin = max(m1, m2, m3, m4, m5)
+            e1 = a1 * c1
+            e2 = a2 * c2
+            e3 = a3 * c3
+            col = (p1 * p1 * e1 + p2 * p2 * e2 + p3 * p3 * e3) * inv_wsum
+            spread = max(abs(e1 - col) * s1, abs(e2 - col) * s2, abs(e3 - col) * s3)
+            code = 0
+            code = 4 if (col < -0.5 or col > width - 0.5) else code
+            code = 3 if (spread > tol or margin > margin_max) else code
+            code = 2 if sat[x] > 0.0 else code
+            code = 1 if mod < min_mod else code
+            reason[y, x] = code
+            counts[y, code] += 1
+            column[y, x] = col if code == 0 else np.nan
+
+
+@numba.njit(parallel=True, cache=True)
+def mask_discontinuities(column: np.ndarray, max_step: float, max_bend: float, border: int,
+                         out: np.ndarray) -> None:
+    """Same rule as :func:`scancell.analysis.stereo.mask_discontinuities`, in one pass: NaN on
+    the border, next to a step > max_step, or within one pixel of a second difference
+    > max_bend (NaN neighbours never trigger either test)."""
+    h, w = column.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            v = column[y, x]
+            bad = y < border or y >= h - border or x < border or x >= w - border
+            for dy, dx in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+                yn, xn = y + dy, x + dx
+                if 0 <= yn < h and 0 <= xn < w and abs(column[yn, xn] - v) > max_step:
+                    bad = True
+            for dy, dx in ((0, 1), (1, 0)):
+                for m in (-1, 0, 1):
+                    yc, xc = y + dy * m, x + dx * m
+                    ya, xa, yb, xb = yc - dy, xc - dx, yc + dy, xc + dx
+                    if 0 <= ya and 0 <= xa and yb < h and xb < w:
+                        bend = column[ya, xa] - 2.0 * column[yc, xc] + column[yb, xb]
+                        if abs(bend) > max_bend:
+                            bad = True
+            out[y, x] = np.nan if bad else v
+
+
+@numba.njit(inline="always", cache=True)
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    h, w = img.shape
+    if not (x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0):
+        return np.nan
+    x0 = min(int(x), w - 2)
+    y0 = min(int(y), h - 2)
+    fx, fy = x - x0, y - y0
+    return ((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
+            + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+
+
+@numba.njit(parallel=True, cache=True)
+def match_and_count(col_left: np.ndarray, col_right: np.ndarray, max_step: float, cx1: float,
+                    cx2: float, fb: float, z_min: float, z_max: float, x_right: np.ndarray,
+                    per_row: np.ndarray) -> None:
+    """For each rectified-left pixel, the right x with the same projector column on the same
+    row (NaN if none), as :func:`scancell.analysis.stereo.match_rows`: the right row's strictly
+    increasing pixels, a binary search, two adjacent pixels around the match; then the
+    disparity and depth-range checks. per_row counts each row's matches (for compaction)."""
+    h, w1 = col_left.shape
+    w2 = col_right.shape[1]
+    for y in numba.prange(h):
+        xs = np.empty(w2, np.int64)
+        vals = np.empty(w2, np.float64)
+        m = 0
+        best = -np.inf
+        for x in range(w2):
+            v = col_right[y, x]
+            if v == v and v > best:
+                xs[m] = x
+                vals[m] = v
+                m += 1
+                best = v
+        count = 0
+        for x in range(w1):
+            q = col_left[y, x]
+            x_right[y, x] = np.nan
+            if not (q == q) or m < 2:
+                continue
+            lo, hi = 0, m
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if vals[mid] < q:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo == 0 or lo == m:
+                continue
+            i0 = lo - 1
+            step = vals[lo] - vals[i0]
+            if xs[lo] - xs[i0] != 1 or step > max_step:
+                continue
+            xr = xs[i0] + (q - vals[i0]) / step
+            d = (x - cx1) - (xr - cx2)
+            if d <= 0.0:
+                continue
+            z = fb / d
+            if z <= z_min or z >= z_max:
+                continue
+            x_right[y, x] = xr
+            count += 1
+        per_row[y] = count
+
+
+@numba.njit(parallel=True, cache=True)
+def triangulate_compact(x_right: np.ndarray, offsets: np.ndarray, cx1: float, cx2: float,
+                        cy: float, f: float, fb: float, r1: np.ndarray, map1x: np.ndarray,
+                        map1y: np.ndarray, map2x: np.ndarray, map2y: np.ndarray,
+                        mod_l: np.ndarray, mod_r: np.ndarray, bg_l: np.ndarray,
+                        points: np.ndarray, quality: np.ndarray, intensity: np.ndarray,
+                        pixels: np.ndarray) -> None:
+    """Points in MCS (R1ᵀ · rectified-left point) for every matched pixel, written at
+    ``offsets[row]`` onwards; quality = min modulation of both cameras at the point's source
+    pixels, intensity = left background, both sampled in the unrectified images."""
+    h, w1 = x_right.shape
+    w2 = map2x.shape[1]
+    for y in numba.prange(h):
+        k = offsets[y]
+        for x in range(w1):
+            xr = x_right[y, x]
+            if not (xr == xr):
+                continue
+            z = fb / ((x - cx1) - (xr - cx2))
+            px = (x - cx1) * z / f
+            py = (y - cy) * z / f
+            for i in range(3):
+                points[k, i] = r1[0, i] * px + r1[1, i] * py + r1[2, i] * z
+            sx, sy = map1x[y, x], map1y[y, x]
+            xi = min(max(int(xr + 0.5), 0), w2 - 1)
+            ml = _bilinear(mod_l, sx, sy)
+            mr = _bilinear(mod_r, map2x[y, xi], map2y[y, xi])
+            quality[k] = min(ml, mr) if mr == mr else ml
+            intensity[k] = _bilinear(bg_l, sx, sy)
+            pixels[k, 0] = x
+            pixels[k, 1] = y
+            k += 1
