@@ -223,6 +223,22 @@ def test_fast_kernels_agree_with_the_numpy_reference(station):
     assert cell is not None
 
 
+def test_16_bit_tiff_images_decode_like_8_bit(station, tmp_path):
+    root = station["root"]
+    for side in ("left", "right"):
+        (tmp_path / "img16" / side).mkdir(parents=True)
+        for k in range(9):
+            img = cv2.imread(str(root / "images" / side / f"{k:02d}.png"), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(tmp_path / "img16" / side / f"{k:02d}.tif"), img.astype(np.uint16) * 257)
+    outs = {}
+    for name, folder in (("8", root / "images"), ("16", tmp_path / "img16")):
+        r = _decode(["--calib", str(station["calib"]), "--images", str(folder),
+                     "--out", str(tmp_path / f"c{name}.ply")])
+        assert r.returncode == 0, r.stderr
+        outs[name], _ = read_ply(tmp_path / f"c{name}.ply")
+    assert abs(len(outs["8"]) - len(outs["16"])) < 1e-3 * len(outs["8"])
+
+
 def test_decoder_refuses_images_of_another_size(station):
     cal = StereoCalibration.read(station["calib"])
     small = [np.zeros((10, 10), np.uint8)] * 9
