@@ -75,7 +75,7 @@ def _decode_args(p: argparse.ArgumentParser) -> None:
     add_decode_arguments(p)
 
 
-@subcommand("calibrate", "calibrations: cameras (stereo, Zhang)",
+@subcommand("calibrate", "calibrations: cameras (stereo), hand-eye, ecs",
             "scancell.analysis.scan_cli:calibrate_main")
 def _calibrate_args(p: argparse.ArgumentParser) -> None:
     from scancell.analysis.scan_cli import add_calibrate_arguments
@@ -83,7 +83,7 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     add_calibrate_arguments(p)
 
 
-@subcommand("worker", "analysis workers on the bus: scan", "scancell.cli:_worker_main")
+@subcommand("worker", "analysis workers on the bus: scan, calibrate", "scancell.cli:_worker_main")
 def _worker_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="worker", required=True)
     scan = sub.add_parser("scan", help="reassemble scans from dev/*/image, decode, publish "
@@ -91,6 +91,11 @@ def _worker_args(p: argparse.ArgumentParser) -> None:
     _bus_args(scan)
     scan.add_argument("--calib", required=True, help="stereo.yaml of the scanner")
     scan.add_argument("--projector-width", type=int, default=1280)
+    cal = sub.add_parser("calibrate", help="hand-eye from calibrate_hand_eye jobs -> "
+                                           "calib/hand_eye and the active calibration on disk")
+    _bus_args(cal)
+    cal.add_argument("--store", default="calibration",
+                     help="directory of the cell's calibrations (hand_eye/active.json ...)")
 
 
 def _worker_main(args: argparse.Namespace) -> int:

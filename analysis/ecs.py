@@ -38,3 +38,50 @@ def ecs_from_points(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray,
     T[:3, :3] = np.stack([x, y, z], axis=1)
     T[:3, 3] = p1
     return T
+
+
+def fit_rotation_circle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Centre, unit axis, radius and in-plane residuals (mm) of the circle through >= 3 points
+    (least squares: plane by SVD, then an algebraic circle fit in that plane)."""
+    p = np.asarray(points, float)
+    if len(p) < 3 or not np.all(np.isfinite(p)):
+        raise DegenerateGeometry(f"a rotation circle needs >= 3 finite points, got {len(p)}")
+    c0 = p.mean(axis=0)
+    _, s, vt = np.linalg.svd(p - c0)
+    if s[0] < 1.0 or s[1] < 1e-3 * s[0]:
+        raise DegenerateGeometry("points coincide or are collinear: no rotation circle")
+    u, v, n = vt[0], vt[1], vt[2]
+    xy = np.stack([(p - c0) @ u, (p - c0) @ v], axis=1)
+    A = np.hstack([2 * xy, np.ones((len(xy), 1))])
+    sol, *_ = np.linalg.lstsq(A, (xy**2).sum(axis=1), rcond=None)
+    centre = c0 + sol[0] * u + sol[1] * v
+    radius = float(np.sqrt(sol[2] + sol[0] ** 2 + sol[1] ** 2))
+    resid = np.linalg.norm(xy - sol[:2], axis=1) - radius
+    return centre, n, radius, resid
+
+
+def ecs_from_circle(points: np.ndarray, angles_deg: np.ndarray | None = None) -> np.ndarray:
+    """``T_world_from_ecs`` from n >= 3 SMR positions under J6 rotation, less noise-sensitive
+    than the three-point construction and the same frame: the points are fitted by one
+    circle, P1, P2, P3 are replaced by the circle's points at the first three positions (at
+    the commanded J6 ``angles_deg`` relative to the first one if given, which lets every point
+    inform every parameter) and then :func:`ecs_from_points` applies."""
+    p = np.asarray(points, float)
+    centre, n, radius, _ = fit_rotation_circle(p)
+    rel = p - centre
+    rel -= np.outer(rel @ n, n)
+    u = rel[0] / np.linalg.norm(rel[0])
+    w = np.cross(n, u)
+    theta = np.arctan2(rel @ w, rel @ u)  # measured angles around n, first point at 0
+    if angles_deg is None:
+        ideal = theta[:3]
+    else:
+        a = np.radians(np.asarray(angles_deg, float))
+        if a.shape != (len(p),):
+            raise DegenerateGeometry(f"{len(p)} points but {a.size} J6 angles")
+        a = a - a[0]
+        direction = 1.0 if np.sum(np.sin(theta) * np.sin(a)) >= 0 else -1.0
+        offset = np.angle(np.mean(np.exp(1j * (theta - direction * a))))
+        ideal = offset + direction * a[:3]
+    q = [centre + radius * (np.cos(t) * u + np.sin(t) * w) for t in ideal]
+    return ecs_from_points(*q)

@@ -82,3 +82,98 @@ def fit_sphere(points: np.ndarray, radius: float | None = None) -> SphereFit:
     center = out.x[:3]
     return SphereFit(center, float(out.x[3]) if radius is None else float(radius), r,
                      np.sqrt(np.diag(cov)[:3]))
+
+
+@dataclass(frozen=True)
+class SphereDetection:
+    fit: SphereFit
+    inliers: np.ndarray  # indices into the input points
+    candidates: int  # points the detector looked at
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.fit.center
+
+
+def detect_sphere(points: np.ndarray, radius: float | None = None,
+                  radius_range: tuple[float, float] = (5.0, 100.0), inlier_mm: float = 0.15,
+                  iterations: int = 1500, sample: int = 30000, seed: int = 0,
+                  known_radius: bool = False) -> SphereDetection:
+    """Find the dominant sphere in a cloud with background, a stand and a corner-cube opening:
+    RANSAC on 4-point samples drawn from one neighbourhood (a ball is a few percent of a scan;
+    four points drawn from the whole cloud would almost never all be on it), only spheres of
+    ``radius`` ± 2 mm (or inside ``radius_range``), then geometric least squares on the inliers
+    (``known_radius``: centre only, radius fixed).
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, float)
+    if len(p) < 50:
+        raise FitError(f"only {len(p)} points: too few to find a sphere")
+    rng = np.random.default_rng(seed)
+    sub = p[rng.choice(len(p), size=min(sample, len(p)), replace=False)]
+    lo, hi = (radius - 2.0, radius + 2.0) if radius else radius_range
+    tree = cKDTree(sub)
+    # surface normals of the sample: a sphere's inliers must face its centre, which a cylinder
+    # (the ball's stand) or a flat patch with a few points at the right distance do not
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    normals = np.asarray(pcd.normals)
+    best, best_count = None, 0
+    if radius:
+        # Known radius: every point with its normal (turned towards the scanner at the origin)
+        # proposes a centre one radius behind it; the ball's points all propose the same one.
+        n_out = normals * np.where(np.einsum("ij,ij->i", normals, sub) > 0, -1.0, 1.0)[:, None]
+        proposals = sub - radius * n_out
+        votes = cKDTree(proposals).query_ball_point(proposals, r=max(1.0, 4 * inlier_mm),
+                                                    return_length=True)
+        for i in np.argsort(votes)[::-1][:20]:
+            c = proposals[i]
+            d = sub - c
+            dist = np.linalg.norm(d, axis=1)
+            near = np.abs(dist - radius) < 2 * inlier_mm
+            radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
+            if radial.sum() > best_count:
+                best, best_count = (c, radius), int(radial.sum())
+    seeds = rng.integers(0, len(sub), size=iterations)
+    neighbourhoods = tree.query_ball_point(sub[seeds], r=1.6 * hi)
+    for s0, near in zip(seeds, neighbourhoods, strict=True):
+        if radius or len(near) < 20:
+            continue
+        i4 = np.r_[s0, rng.choice(near, size=3, replace=False)]
+        q = sub[i4]
+        A = np.hstack([2 * q, np.ones((4, 1))])
+        try:
+            sol = np.linalg.solve(A, (q**2).sum(axis=1))
+        except np.linalg.LinAlgError:
+            continue
+        c = sol[:3]
+        r2 = sol[3] + c @ c
+        if r2 <= 0:
+            continue
+        r = np.sqrt(r2)
+        if not lo <= r <= hi:
+            continue
+        d = sub - c
+        dist = np.linalg.norm(d, axis=1)
+        near = np.abs(dist - r) < 2 * inlier_mm
+        radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
+        count = int(radial.sum())
+        if count > best_count:
+            best, best_count = (c, r), count
+    if best is None or best_count < 20:
+        raise FitError(f"no sphere with radius in [{lo:.1f}, {hi:.1f}] mm found "
+                       f"({len(p)} points)")
+    c, r = best
+    inl = np.flatnonzero(np.abs(np.linalg.norm(p - c, axis=1) - r) < 3 * inlier_mm)
+    for _ in range(3):  # refine and re-select the inliers
+        f = fit_sphere(p[inl], radius if known_radius and radius else None)
+        new = np.flatnonzero(np.abs(np.linalg.norm(p - f.center, axis=1) - f.radius)
+                             < max(3 * f.rms, inlier_mm))
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    f = fit_sphere(p[inl], radius if known_radius and radius else None)
+    return SphereDetection(f, inl, len(p))

@@ -106,9 +106,17 @@ def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
     cams.add_argument("--target", default="9x7x20",
                       help="chessboard inner corners and square size, COLSxROWSxMM (default 9x7x20)")
     cams.add_argument("--out", required=True, help="stereo.yaml to write")
+    from scancell.analysis.calib_cli import add_arguments
+
+    add_arguments(sub)
 
 
 def calibrate_main(args: argparse.Namespace) -> int:
     if args.calibrate_command == "cameras":
         return calibrate_cameras_main(args)
+    if args.calibrate_command in ("hand-eye", "ecs"):
+        from scancell.analysis import calib_cli
+
+        return (calib_cli.hand_eye_main if args.calibrate_command == "hand-eye"
+                else calib_cli.ecs_main)(args)
     return _fail("calibrate", f"unknown calibration {args.calibrate_command!r}")

@@ -40,9 +40,10 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
             "periods": [float(p) for p in request.get("periods", [70, 64, 59])]}
     sups = [proj_sup, *cam_sups]
     async with contextlib.AsyncExitStack() as stack:
-        for sup in sups:  # hold every device of the scanner: no other command interleaves
-            await sup.lock.acquire()
-            stack.callback(sup.lock.release)
+        if not request.get("_locked"):  # a job holding the scanner's devices passes _locked
+            for sup in sups:  # hold every device of the scanner: no other command interleaves
+                await sup.lock.acquire()
+                stack.callback(sup.lock.release)
         t0 = time.monotonic()
         try:
             acq = await acquire_sequence(proj_sup.device, [s.device for s in cam_sups], spec,

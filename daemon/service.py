@@ -19,6 +19,8 @@ import zenoh
 from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
+from scancell.daemon.job_hand_eye import calibrate_hand_eye
+from scancell.daemon.jobs import JobRunner
 from scancell.daemon.router import CellVerb, CommandRouter
 from scancell.daemon.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor
@@ -107,10 +109,18 @@ class Daemon:
             self.devices[name] = dev
             self.supervisors[name] = DeviceSupervisor(
                 dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
+        self.jobs = JobRunner(self.bus, {
+            "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
+                                                                 self.simulator)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
-             "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0)},
+             "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0),
+             "job/calibrate_hand_eye": CellVerb(
+                 lambda r: self.jobs.start("calibrate_hand_eye", r)),
+             "job/abort": CellVerb(self.jobs.abort, timeout_s=10.0),
+             "job/confirm": CellVerb(self.jobs.confirm),
+             "job/status": CellVerb(self.jobs.status)},
             self.cfg.daemon.timeouts,
         )
         tasks = [asyncio.create_task(s.run(), name=f"supervise-{n}")
@@ -125,6 +135,7 @@ class Daemon:
         log.info("daemon shutting down")
         t_end = time.monotonic() + self.cfg.daemon.shutdown_timeout_s
         queryable.undeclare()
+        await self.jobs.abort({})
         self.router.abort_all()
         for s in self.supervisors.values():
             s.stop()

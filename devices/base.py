@@ -284,6 +284,10 @@ class Tracker(Device):
     @abstractmethod
     async def status(self) -> TrackerStatus: ...
 
+    async def find_reflector(self, approx_mm: np.ndarray) -> None:
+        """Search and lock on the reflector near ``approx_mm`` (world, mm)."""
+        raise CommandError("invalid", f"{self.name}: this tracker driver cannot search a reflector")
+
     @operation("tracker.measure", timeout_s=10.0)
     async def op_measure(self, request: dict[str, Any]) -> dict[str, Any]:
         m = await self.measure()

@@ -133,6 +133,9 @@ class MockTracker(MockLink, Tracker):
         self._check()
         return TrackerStatus(beam_locked=self.beam_locked, temperature_c=20.0, pressure_hpa=1013.25)
 
+    async def find_reflector(self, approx_mm: np.ndarray) -> None:
+        self._check()
+
 
 class MockCamera(MockLink, Camera):
     """A horizontal intensity ramp of ``width`` x ``height`` (default 64 x 48) with noise."""

@@ -166,17 +166,19 @@ class SimCell:
         q[5] += np.radians(turn_deg)
         return q
 
-    def true_T_world_from_ecs(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+    def true_T_world_from_ecs(self, q_rad: np.ndarray | None = None,
+                              j6_angles_deg: tuple[float, float] | None = None) -> np.ndarray:
         """ECS at a station, from noise-free SMR centres at J6 = q6, q6 + a1, q6 + a2."""
         q = self.q_commanded if q_rad is None else np.asarray(q_rad, float)
-        a1, a2 = self.cfg.j6_angles_deg
+        a1, a2 = j6_angles_deg or self.cfg.j6_angles_deg
         p = [self.smr_center_world(self.j6_turned(q, a)) for a in (0.0, a1, a2)]
         return ecs_from_points(*p)
 
-    def true_T_ecs_from_mcs(self) -> np.ndarray:
+    def true_T_ecs_from_mcs(self, j6_angles_deg: tuple[float, float] | None = None) -> np.ndarray:
         """The true hand-eye in the paper's sense (constant for given J6 turn angles)."""
         q = np.radians(np.asarray(self.cfg.home_deg, float))
-        return np.linalg.inv(self.true_T_world_from_ecs(q)) @ self.T_world_from_mcs(q)
+        return (np.linalg.inv(self.true_T_world_from_ecs(q, j6_angles_deg))
+                @ self.T_world_from_mcs(q))
 
     def surface_distance(self, points_world: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm) of world points to the true surface of the part."""

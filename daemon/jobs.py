@@ -1,0 +1,102 @@
+"""Daemon jobs: one at a time, a state machine with progress on ``job/<id>/event``.
+
+States: running -> done | failed | aborted. A job is an ``async def run(ctx)``; the context
+publishes events and measurement records and gives the job its devices.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from scancell.protocols import messages
+from scancell.protocols.commands import CommandError
+
+log = logging.getLogger(__name__)
+
+JobBody = Callable[["JobContext"], Awaitable[dict[str, Any]]]
+
+
+class JobContext:
+    def __init__(self, runner: JobRunner, job_id: str, kind: str, request: dict[str, Any]) -> None:
+        self.runner = runner
+        self.job_id = job_id
+        self.kind = kind
+        self.request = request
+        self.bus = runner.bus
+        self._confirm: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
+
+    def event(self, state: str, step: str, message: str = "", index: int | None = None,
+              total: int | None = None, **extra: Any) -> None:
+        body = {"job_id": self.job_id, "kind": self.kind, "state": state, "step": step,
+                "message": message, "index": index, "total": total, "stamp_ns": messages.now_ns(),
+                **extra}
+        self.bus.publish_json(self.bus.keys.job_event(self.job_id), body, "scancell.JobEvent")
+        if message:
+            log.info("job %s: %s", self.job_id, message)
+
+    async def wait_confirm(self, prompt: str) -> dict[str, Any]:
+        """Wait for an operator's ``cmd/job/confirm`` (real cells: place the ball, confirm)."""
+        self.event("running", "waiting_for_operator", prompt)
+        return await self._confirm.get()
+
+
+class JobRunner:
+    def __init__(self, bus: Any, jobs: dict[str, JobBody]) -> None:
+        self.bus = bus
+        self.jobs = jobs
+        self.current: tuple[JobContext, asyncio.Task] | None = None
+        self.last: dict[str, Any] | None = None
+
+    def busy(self) -> bool:
+        return self.current is not None and not self.current[1].done()
+
+    async def start(self, kind: str, request: dict[str, Any]) -> dict[str, Any]:
+        if self.busy():
+            ctx = self.current[0]  # type: ignore[index]
+            raise CommandError("busy", f"job {ctx.job_id} ({ctx.kind}) is running; one job at a time")
+        job_id = f"{kind}-{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:4]}"
+        ctx = JobContext(self, job_id, kind, request)
+        task = asyncio.create_task(self._run(ctx), name=f"job-{job_id}")
+        self.current = (ctx, task)
+        return {"job_id": job_id, "kind": kind, "events": self.bus.keys.job_event(job_id)}
+
+    async def _run(self, ctx: JobContext) -> None:
+        ctx.event("running", "start", f"{ctx.kind} started")
+        try:
+            result = await self.jobs[ctx.kind](ctx)
+            ctx.event("done", "end", f"{ctx.kind} done", result=result)
+            self.last = {"job_id": ctx.job_id, "state": "done", "result": result}
+        except asyncio.CancelledError:
+            ctx.event("aborted", "end", f"{ctx.kind} aborted")
+            self.last = {"job_id": ctx.job_id, "state": "aborted"}
+        except Exception as exc:
+            msg = exc.message if isinstance(exc, CommandError) else str(exc)
+            log.error("job %s failed: %s", ctx.job_id, msg)
+            ctx.event("failed", "end", f"{ctx.kind} failed: {msg}", error=msg)
+            self.last = {"job_id": ctx.job_id, "state": "failed", "error": msg}
+
+    async def abort(self, request: dict[str, Any]) -> dict[str, Any]:
+        if not self.busy():
+            return {"aborted": None}
+        ctx, task = self.current  # type: ignore[misc]
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        return {"aborted": ctx.job_id}
+
+    async def confirm(self, request: dict[str, Any]) -> dict[str, Any]:
+        if not self.busy():
+            raise CommandError("invalid", "no job is waiting for a confirmation")
+        ctx = self.current[0]  # type: ignore[index]
+        await ctx._confirm.put(request)
+        return {"job_id": ctx.job_id}
+
+    async def status(self, request: dict[str, Any]) -> dict[str, Any]:
+        if self.busy():
+            ctx = self.current[0]  # type: ignore[index]
+            return {"running": {"job_id": ctx.job_id, "kind": ctx.kind}, "last": self.last}
+        return {"running": None, "last": self.last}
