@@ -71,6 +71,7 @@ def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
     body = result.to_json()
     body["excluded"] = skipped + body["excluded"]
     body.update(job_id=job.job_id, T_world_from_ecs=T_world_from_ecs.tolist(),
+                j6_angles_deg=[float(a) for a in angles[1:]],
                 version=time.strftime("%Y-%m-%dT%H:%M:%S"), pairs=len(pairs))
     return body, pairs
 

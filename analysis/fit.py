@@ -99,11 +99,14 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
                   radius_range: tuple[float, float] = (5.0, 100.0), inlier_mm: float = 0.15,
                   iterations: int = 1500, sample: int = 30000, seed: int = 0,
                   known_radius: bool = False) -> SphereDetection:
-    """Find the dominant sphere in a cloud with background, a stand and a corner-cube opening:
-    RANSAC on 4-point samples drawn from one neighbourhood (a ball is a few percent of a scan;
-    four points drawn from the whole cloud would almost never all be on it), only spheres of
-    ``radius`` ± 2 mm (or inside ``radius_range``), then geometric least squares on the inliers
-    (``known_radius``: centre only, radius fixed).
+    """Find the sphere in a cloud with background, a stand and a corner-cube opening.
+
+    Hypotheses: with a known ``radius``, every point proposes the centre one radius behind it
+    along its normal and the proposals are voted; otherwise RANSAC on 4-point samples drawn
+    from one neighbourhood (a ball is a few percent of a scan: four points drawn from the whole
+    cloud would almost never all be on it). Hypotheses are scored by inliers whose normals point
+    at the centre; the best few are refined by geometric least squares (``known_radius``: centre
+    only) and, with a known radius, kept only if a free fit of their inliers agrees with it.
     """
     from scipy.spatial import cKDTree
 
@@ -121,7 +124,7 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
     normals = np.asarray(pcd.normals)
-    best, best_count = None, 0
+    hypotheses: list[tuple[int, np.ndarray, float]] = []
     if radius:
         # Known radius: every point with its normal (turned towards the scanner at the origin)
         # proposes a centre one radius behind it; the ball's points all propose the same one.
@@ -135,8 +138,7 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
             dist = np.linalg.norm(d, axis=1)
             near = np.abs(dist - radius) < 2 * inlier_mm
             radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
-            if radial.sum() > best_count:
-                best, best_count = (c, radius), int(radial.sum())
+            hypotheses.append((int(radial.sum()), c, float(radius)))
     seeds = rng.integers(0, len(sub), size=iterations)
     neighbourhoods = tree.query_ball_point(sub[seeds], r=1.6 * hi)
     for s0, near in zip(seeds, neighbourhoods, strict=True):
@@ -160,20 +162,28 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
         dist = np.linalg.norm(d, axis=1)
         near = np.abs(dist - r) < 2 * inlier_mm
         radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
-        count = int(radial.sum())
-        if count > best_count:
-            best, best_count = (c, r), count
-    if best is None or best_count < 20:
-        raise FitError(f"no sphere with radius in [{lo:.1f}, {hi:.1f}] mm found "
-                       f"({len(p)} points)")
-    c, r = best
-    inl = np.flatnonzero(np.abs(np.linalg.norm(p - c, axis=1) - r) < 3 * inlier_mm)
-    for _ in range(3):  # refine and re-select the inliers
-        f = fit_sphere(p[inl], radius if known_radius and radius else None)
-        new = np.flatnonzero(np.abs(np.linalg.norm(p - f.center, axis=1) - f.radius)
-                             < max(3 * f.rms, inlier_mm))
-        if np.array_equal(new, inl):
+        hypotheses.append((int(radial.sum()), c, float(r)))
+    hypotheses.sort(key=lambda h: -h[0])
+    problems = []
+    for count, c, r in hypotheses[:8]:  # the best few: refine, then check it is a ball
+        if count < 20:
             break
-        inl = new
-    f = fit_sphere(p[inl], radius if known_radius and radius else None)
-    return SphereDetection(f, inl, len(p))
+        inl = np.flatnonzero(np.abs(np.linalg.norm(p - c, axis=1) - r) < 3 * inlier_mm)
+        if len(inl) < 10:
+            continue
+        for _ in range(3):  # refine and re-select the inliers
+            f = fit_sphere(p[inl], radius if known_radius and radius else None)
+            new = np.flatnonzero(np.abs(np.linalg.norm(p - f.center, axis=1) - f.radius)
+                                 < max(3 * f.rms, inlier_mm))
+            if np.array_equal(new, inl) or len(new) < 10:
+                break
+            inl = new
+        if radius:  # a stand or a curved background fits a fixed radius; a free fit tells
+            free = fit_sphere(p[inl])
+            if abs(free.radius - radius) > max(0.5, 0.05 * radius):
+                problems.append(f"{len(inl)} points with a free-fit radius {free.radius:.2f} mm")
+                continue
+        f = fit_sphere(p[inl], radius if known_radius and radius else None)
+        return SphereDetection(f, inl, len(p))
+    raise FitError(f"no sphere with radius in [{lo:.1f}, {hi:.1f}] mm found ({len(p)} points"
+                   + (f"; rejected: {'; '.join(problems)}" if problems else "") + ")")

@@ -121,7 +121,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                              simulator: Any) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
-    turns = [float(a) for a in req.get("j6_angles_deg", [30.0, 60.0])]
+    turns = [float(a) for a in req.get("j6_angles_deg", [30.0, 60.0, 90.0, 120.0])]
     speed = float(req.get("speed", 0.2))
     robot_s = _pick(supervisors, req.get("robot"), Robot)
     tracker_s = _pick(supervisors, req.get("tracker"), Tracker)

@@ -1,0 +1,96 @@
+"""The hand-eye job through the daemon on the sim cell, with the scan worker and the calibrate
+worker (a separate process) producing the stored, published calibration."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from scancell.analysis.handeye import rotation_angle_arcsec
+from scancell.analysis.scan_worker import ScanWorker
+from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.devices.sim.world import get_world
+
+from .conftest import sim_cell_raw, wait_until
+
+
+def _all_connected(client) -> bool:
+    return all(s["state"] == "connected" for s in client.status()["devices"].values())
+
+
+def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell, endpoint,
+                                                      tmp_path):
+    d = make_daemon(sim_cell_raw(camera_scale=4))
+    wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
+    world = get_world(d.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
+    scan_worker.start()
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "calibrate", "--store",
+                               str(tmp_path / "calib")], env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    events: list[dict] = []
+    results: list[dict] = []
+    lock = threading.Lock()
+    subs = [client.bus.subscribe(client.bus.keys.job_event("*"),
+                                 lambda s: (lock.acquire(), events.append(s.decode()), lock.release())),
+            client.bus.subscribe(client.bus.keys.hand_eye,
+                                 lambda s: results.append(s.decode()))]
+    try:
+        assert "waiting for hand-eye jobs" in worker.stdout.readline()
+        started = client.call("job/calibrate_hand_eye", {"balls": 5})
+        with pytest.raises(Exception, match="busy"):
+            client.call("job/calibrate_hand_eye", {"balls": 5})
+        wait_until(lambda: results, 240, period_s=0.5, what="calib/hand_eye")
+        res = results[0]
+        assert res["job_id"] == started["job_id"] and res["T_ecs_from_mcs"], res
+        with lock:
+            states = [e["state"] for e in events if e["job_id"] == started["job_id"]]
+            steps = {e["step"] for e in events}
+        assert states[-1] == "done" and {"ball", "ecs"} <= steps
+        T = np.array(res["T_ecs_from_mcs"])
+        truth = world.cell.true_T_ecs_from_mcs(tuple(res["j6_angles_deg"][:2]))
+        # 1/4 resolution and 5 balls: the accuracy figures are in benchmarks/RESULTS.md
+        assert rotation_angle_arcsec(T[:3, :3] @ truth[:3, :3].T) < 600
+        assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 1.0
+        store = tmp_path / "calib" / "hand_eye"
+        active = json.loads((store / "active.json").read_text())
+        assert active["job_id"] == started["job_id"]
+        assert (store / f"{started['job_id']}.json").exists()
+        # the stored pairs reproduce the result through `scancell calibrate hand-eye`
+        out = subprocess.run([sys.executable, "-m", "scancell", "calibrate", "hand-eye", "--pairs",
+                              str(store / f"{started['job_id']}.pairs.csv"), "--json",
+                              str(tmp_path / "again.json")], capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 0, out.stderr
+        again = json.loads((tmp_path / "again.json").read_text())
+        assert np.allclose(again["T_ecs_from_mcs"], T, atol=1e-9)
+        with world.lock:
+            with pytest.raises(KeyError):
+                world.cell.ball_center_world()  # the world took the ball away again
+    finally:
+        for s in subs:
+            s.undeclare()
+        scan_worker.stop()
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(20) == 0, worker.stderr.read()
+
+
+def test_job_abort_keeps_the_daemon_serving(make_daemon, client):
+    make_daemon(sim_cell_raw(camera_scale=16))
+    wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
+    started = client.call("job/calibrate_hand_eye", {"balls": 20})
+    wait_until(lambda: client.call("job/status")["running"], 10, what="job running")
+    assert client.call("job/abort")["aborted"] == started["job_id"]
+    status = client.call("job/status")
+    assert status["running"] is None and status["last"]["state"] == "aborted"
+    assert client.call("device/robot/joints")["joints_deg"]
+    with pytest.raises(Exception, match="no job is waiting"):
+        client.call("job/confirm", {})
