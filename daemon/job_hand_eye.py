@@ -107,6 +107,14 @@ class OperatorPlacer:
         return None
 
 
+async def _averaged(tracker: Tracker, repeats: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``repeats`` measurements of the locked SMR and its 1-sigma (mm): the tracker's
+    noise averages down, the robot's repeatability (one pose) does not need to."""
+    ms = [await tracker.measure() for _ in range(repeats)]
+    return (np.mean([m.point_mm for m in ms], axis=0),
+            np.mean([m.sigma_mm for m in ms], axis=0) / np.sqrt(repeats))
+
+
 def _pick(supervisors: dict[str, DeviceSupervisor], name: str | None, kind: type) -> DeviceSupervisor:
     cands = [s for n, s in supervisors.items() if isinstance(s.device, kind) and (name in (None, n))]
     if not cands:
@@ -123,6 +131,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
     n = int(req.get("balls", 15))
     turns = [float(a) for a in req.get("j6_angles_deg", [30.0, 60.0, 90.0, 120.0])]
     speed = float(req.get("speed", 0.2))
+    repeats = int(req.get("tracker_repeats", 10))
     robot_s = _pick(supervisors, req.get("robot"), Robot)
     tracker_s = _pick(supervisors, req.get("tracker"), Tracker)
     proj_s = _pick(supervisors, req.get("projector"), Projector)
@@ -160,9 +169,9 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                                                  "cameras": [c.name for c in cam_s],
                                                  "_locked": True})
                 await tracker.find_reflector(approx)
-                m = await tracker.measure()
-                sample("ball", sid, m.point_mm, index=i, scan_id=reply["scan_id"],
-                       station=reply["station"], sigma_mm=[float(v) for v in m.sigma_mm])
+                point, sigma = await _averaged(tracker, repeats)
+                sample("ball", sid, point, index=i, scan_id=reply["scan_id"], repeats=repeats,
+                       station=reply["station"], sigma_mm=[float(v) for v in sigma])
         finally:
             with contextlib.suppress(Exception):
                 await tracker.find_reflector(home_smr)  # back on the scanner's SMR
@@ -177,8 +186,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                         q = q0.copy()
                         q[5] += np.radians(turn)
                         await robot.move_joints(q, speed)
-                    m = await tracker.measure()
-                    ecs_points.append((turn, m))
+                    ecs_points.append((turn, await _averaged(tracker, repeats)))
                 break
             except BeamBroken as exc:
                 await robot.move_joints(q0, speed)
@@ -187,9 +195,9 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                 ctx.event("running", "ecs", f"beam lost turning J6 that way ({exc}); turning "
                                             f"the other way")
                 await tracker.find_reflector(home_smr)
-        for k, (turn, m) in enumerate(ecs_points):
-            sample("ecs", f"P{k + 1}", m.point_mm, index=k, j6_deg=turn,
-                   sigma_mm=[float(v) for v in m.sigma_mm])
+        for k, (turn, (point, sigma)) in enumerate(ecs_points):
+            sample("ecs", f"P{k + 1}", point, index=k, j6_deg=turn, repeats=repeats,
+                   sigma_mm=[float(v) for v in sigma])
         await robot.move_joints(q0, speed)
     return {"balls": n, "ecs_points": len(ecs_points),
             "j6_angles_deg": [t for t, _ in ecs_points[1:]]}

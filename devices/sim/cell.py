@@ -189,17 +189,16 @@ class SimCell:
     # ------------------------------------------------------------------ actuators
     def move_joints(self, q_rad: np.ndarray) -> None:
         """Arrive at ``q_rad`` with the configured repeatability. A joint that does not travel
-        (less than 0.01 deg, e.g. commanded to its own reported position) keeps its servo
-        position: only the joints that move land with fresh repeatability noise."""
+        (less than 0.01 deg, e.g. commanded to its own reported position) holds where it is
+        (``self.q``): only the joints that move land with fresh repeatability noise."""
         q = np.asarray(q_rad, float).copy()
         if not self.robot.within_limits(q):
             raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
         noise = self._rng.normal(0, np.radians(self.cfg.joint_repeatability_deg), 6)
         noise[5] += self._rng.normal(0, np.radians(self.cfg.j6_repeatability_deg))
-        moved = np.abs(q - self.q_commanded) > np.radians(0.01)
-        held = self.q + (q - self.q_commanded)
+        moved = np.abs(q - self.q) > np.radians(0.01)
         self.q_commanded = q
-        self.q = np.where(moved, q + noise, held)
+        self.q = np.where(moved, q + noise, self.q)
         self._update_body()
 
     def move_rail(self, position_mm: float) -> None:
