@@ -94,3 +94,37 @@ def test_job_abort_keeps_the_daemon_serving(make_daemon, client):
     assert client.call("device/robot/joints")["joints_deg"]
     with pytest.raises(Exception, match="no job is waiting"):
         client.call("job/confirm", {})
+
+
+def test_real_cell_job_waits_for_the_operator_each_ball(make_daemon, client):
+    """No simulator: the job asks for each ball to be placed and confirmed (mock devices)."""
+    from .conftest import MOCK_CELL
+
+    cell = {**MOCK_CELL, "devices": {**MOCK_CELL["devices"],
+                                     "cam_right": {"driver": "mock_camera", "seed": 1}}}
+    make_daemon(cell)
+    wait_until(lambda: _all_connected(client), 10, what="mock devices connected")
+    events: list[dict] = []
+    sub = client.bus.subscribe(client.bus.keys.job_event("*"), lambda s: events.append(s.decode()))
+    try:
+        # a confirmation without the ball's rough position cannot aim the tracker: job fails
+        started = client.call("job/calibrate_hand_eye", {"balls": 3, "tracker_repeats": 2,
+                                                         "j6_angles_deg": [20, 40]})
+        wait_until(lambda: any(e["step"] == "waiting_for_operator" for e in events), 10,
+                   what="prompt for ball 1")
+        assert "position 1" in [e for e in events if e["step"] == "waiting_for_operator"][0]["message"]
+        client.call("job/confirm", {"note": "forgot the position"})
+        wait_until(lambda: any(e["state"] == "failed" for e in events), 10, what="job failed")
+        assert client.call("job/status")["last"]["job_id"] == started["job_id"]
+        assert "approx_world_mm" in client.call("job/status")["last"]["error"]
+        started = client.call("job/calibrate_hand_eye", {"balls": 3, "tracker_repeats": 2,
+                                                         "j6_angles_deg": [20, 40]})
+        for i in range(3):
+            wait_until(lambda i=i: sum(e["step"] == "waiting_for_operator"
+                                       and e["job_id"] == started["job_id"] for e in events) > i,
+                       10, what=f"prompt for ball {i + 1}")
+            client.call("job/confirm", {"approx_world_mm": [1000.0, 0.0, 0.0]})
+        wait_until(lambda: any(e["job_id"] == started["job_id"] and e["state"] == "done"
+                               for e in events), 30, what="job done")
+    finally:
+        sub.undeclare()
