@@ -112,7 +112,7 @@ def test_real_cell_job_waits_for_the_operator_each_ball(make_daemon, client):
                                                          "j6_angles_deg": [20, 40]})
         wait_until(lambda: any(e["step"] == "waiting_for_operator" for e in events), 10,
                    what="prompt for ball 1")
-        assert "position 1" in [e for e in events if e["step"] == "waiting_for_operator"][0]["message"]
+        assert "position 1" in next(e for e in events if e["step"] == "waiting_for_operator")["message"]
         client.call("job/confirm", {"note": "forgot the position"})
         wait_until(lambda: any(e["state"] == "failed" for e in events), 10, what="job failed")
         assert client.call("job/status")["last"]["job_id"] == started["job_id"]
