@@ -83,6 +83,14 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     add_calibrate_arguments(p)
 
 
+@subcommand("metrics", "the paper's overlap metric tool: translation and rotation errors",
+            "scancell.analysis.metrics_cli:main")
+def _metrics_args(p: argparse.ArgumentParser) -> None:
+    from scancell.analysis.metrics_cli import add_arguments
+
+    add_arguments(p)
+
+
 @subcommand("worker", "analysis workers on the bus: scan, calibrate", "scancell.cli:_worker_main")
 def _worker_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="worker", required=True)

@@ -1,0 +1,163 @@
+"""The seed paper's metric tool for overlapping clouds (Section 3.2).
+
+For clouds PC1, PC2 (same frame, mm): mean point spacing dm of PC1; neighbourhood radius
+r = k·dm (k = 6); at each point C1 of PC1 the least-squares plane of its r-neighbourhood gives
+the normal n1; C2 is the nearest point of PC2 and n2 its normal (same construction in PC2).
+Translation error d = |C1C2|·|cos∠(n1, C1C2)| (the distance from C2 to C1's tangent plane);
+rotation error = the angle between the two normals. Only points of PC1 whose nearest PC2 point
+lies within r count as overlap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+
+class MetricsError(ValueError):
+    """Empty, non-finite or non-overlapping clouds; the message says which."""
+
+
+def mean_spacing(points: np.ndarray, sample: int = 20000, seed: int = 0) -> float:
+    """Mean distance (mm) of a point to its nearest neighbour in the same cloud."""
+    p = np.asarray(points, float)
+    if len(p) < 2:
+        raise MetricsError(f"a cloud of {len(p)} point(s) has no spacing")
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(p), size=min(sample, len(p)), replace=False)
+    d, _ = cKDTree(p).query(p[idx], k=2, workers=-1)
+    return float(np.mean(d[:, 1]))
+
+
+def normals(points: np.ndarray, radius: float, max_nn: int = 64) -> np.ndarray:
+    """Unit normals of the least-squares plane of each point's ``radius`` neighbourhood."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    return np.asarray(pcd.normals)
+
+
+@dataclass
+class PairMetrics:
+    a: str
+    b: str
+    n: int  # points of A in overlap with B
+    translation_mm: np.ndarray = field(repr=False)
+    rotation_deg: np.ndarray = field(repr=False)
+
+    def summary(self) -> dict[str, float | int | str]:
+        return {"a": self.a, "b": self.b, "n": self.n,
+                "translation_mean_mm": float(self.translation_mm.mean()) if self.n else None,
+                "rotation_mean_deg": float(self.rotation_deg.mean()) if self.n else None}
+
+
+def _check(name: str, pts: np.ndarray) -> np.ndarray:
+    p = np.asarray(pts, float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise MetricsError(f"{name}: empty cloud or not (N, 3) points")
+    bad = ~np.all(np.isfinite(p), axis=1)
+    if bad.any():
+        raise MetricsError(f"{name}: {int(bad.sum())} points are NaN or infinite (first at index "
+                           f"{int(np.flatnonzero(bad)[0])})")
+    return p
+
+
+def pair_metrics(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str] = ("A", "B"),
+                 normals_a: np.ndarray | None = None, normals_b: np.ndarray | None = None
+                 ) -> PairMetrics:
+    """The paper's translation and rotation errors of cloud ``a`` against cloud ``b``."""
+    na = normals(a, radius) if normals_a is None else normals_a
+    nb = normals(b, radius) if normals_b is None else normals_b
+    dist, j = cKDTree(b).query(a, k=1, distance_upper_bound=radius, workers=-1)
+    overlap = np.isfinite(dist)
+    if not overlap.any():
+        return PairMetrics(*names, 0, np.zeros(0), np.zeros(0))
+    c1, n1 = a[overlap], na[overlap]
+    c2, n2 = b[j[overlap]], nb[j[overlap]]
+    v = c2 - c1
+    d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
+    cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign is arbitrary
+    return PairMetrics(*names, int(overlap.sum()), d, np.degrees(np.arccos(cos)))
+
+
+@dataclass
+class MetricsReport:
+    radius_mm: float
+    spacing_mm: float
+    pairs: list[PairMetrics]
+
+    def values(self) -> tuple[np.ndarray, np.ndarray]:
+        d = np.concatenate([p.translation_mm for p in self.pairs]) if self.pairs else np.zeros(0)
+        r = np.concatenate([p.rotation_deg for p in self.pairs]) if self.pairs else np.zeros(0)
+        return d, r
+
+    def to_json(self) -> dict:
+        d, r = self.values()
+        if len(d) == 0:
+            raise MetricsError("no overlap between any pair of clouds")
+        return {
+            "translation_mm": {"max": float(d.max()), "min": float(d.min()), "mean": float(d.mean()),
+                               "std": float(d.std()), "p_lt_0_6": float(np.mean(d < 0.6)),
+                               "p_lt_1_0": float(np.mean(d < 1.0))},
+            "rotation_deg": {"max": float(r.max()), "min": float(r.min()), "mean": float(r.mean()),
+                             "std": float(r.std()), "p_lt_10": float(np.mean(r < 10.0))},
+            "pairs": [p.summary() for p in self.pairs],
+            "radius_mm": self.radius_mm, "spacing_mm": self.spacing_mm,
+        }
+
+
+def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0) -> MetricsReport:
+    """Every ordered pair (A, B), A before B in the given order, that overlaps."""
+    if len(clouds) < 2:
+        raise MetricsError(f"need at least two clouds, got {len(clouds)}")
+    pts = {name: _check(name, p) for name, p in clouds.items()}
+    first = next(iter(pts))
+    dm = mean_spacing(pts[first])
+    r = radius_factor * dm
+    nrm = {name: normals(p, r) for name, p in pts.items()}
+    names = list(pts)
+    pairs = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            m = pair_metrics(pts[a], pts[b], r, (a, b), nrm[a], nrm[b])
+            pairs.append(m)
+    if not any(p.n for p in pairs):
+        raise MetricsError(f"no overlap: no point of one cloud is within r = {r:.3f} mm "
+                           f"({radius_factor:g} x the mean spacing {dm:.3f} mm) of another cloud "
+                           f"({', '.join(names)}); same frame and units?")
+    return MetricsReport(r, dm, pairs)
+
+
+def histograms(report: MetricsReport, folder: str) -> list[str]:
+    """PNG histograms of the translation and rotation errors, as the paper's Figure 11."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from pathlib import Path
+
+    import matplotlib.pyplot as plt
+
+    d, r = report.values()
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for values, name, unit, marks in ((d, "translation_error", "mm", (0.6, 1.0)),
+                                      (r, "rotation_error", "deg", (10.0,))):
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+        ax.hist(values, bins=60, color="#3b6ea8")
+        for m, style in zip(marks, ("--", ":"), strict=False):
+            ax.axvline(m, color="#c0392b", ls=style, lw=1,
+                       label=f"{np.mean(values < m):.2%} of points < {m:g} {unit}")
+        ax.legend(fontsize=8, loc="upper right")
+        ax.set_xlabel(f"{name.replace('_', ' ')} ({unit})")
+        ax.set_ylabel("points")
+        ax.set_title(f"{name.replace('_', ' ')}: mean {values.mean():.4f} {unit}, "
+                     f"std {values.std():.4f}, n = {len(values)}", fontsize=9)
+        fig.tight_layout()
+        path = out / f"{name}.png"
+        fig.savefig(path)
+        plt.close(fig)
+        files.append(str(path))
+    return files

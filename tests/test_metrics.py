@@ -1,0 +1,86 @@
+"""The paper's metric tool on synthetic clouds of known offset and tilt, and its CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scancell.analysis.cloud_io import write_ply
+from scancell.analysis.metrics import MetricsError, compare_clouds
+
+
+def plane(spacing: float = 0.5, size: float = 60.0, offset: float = 0.0, tilt_deg: float = 0.0,
+          shift_xy: float = 0.0, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    g = np.arange(-size / 2, size / 2, spacing) + shift_xy
+    x, y = np.meshgrid(g, g)
+    z = offset + y * np.tan(np.radians(tilt_deg))
+    rng = np.random.default_rng(seed)
+    return np.stack([x.ravel(), y.ravel(), z.ravel() + rng.normal(0, noise, x.size)], axis=1)
+
+
+def test_known_offset_gives_that_translation_and_no_rotation():
+    a = plane()
+    b = plane(offset=0.3, shift_xy=0.25)
+    out = compare_clouds({"a": a, "b": b}).to_json()
+    assert out["translation_mm"]["mean"] == pytest.approx(0.3, abs=1e-6)
+    assert out["translation_mm"]["p_lt_0_6"] == 1.0
+    assert out["rotation_deg"]["mean"] < 1e-3
+    assert out["radius_mm"] == pytest.approx(6 * 0.5, rel=1e-6)
+
+
+def test_known_tilt_gives_that_rotation():
+    a = plane()
+    b = plane(tilt_deg=2.0, shift_xy=0.25)
+    out = compare_clouds({"a": a, "b": b}).to_json()
+    assert out["rotation_deg"]["mean"] == pytest.approx(2.0, abs=0.01)
+    # the distance to the tilted plane grows with |y|: mean |y|·tan 2° over ±30 mm ≈ 0.52 mm
+    assert out["translation_mm"]["mean"] == pytest.approx(15 * np.tan(np.radians(2)), rel=0.05)
+    assert 0.3 < out["translation_mm"]["p_lt_0_6"] < 0.8
+
+
+def test_several_clouds_give_every_overlapping_pair():
+    clouds = {"a": plane(), "b": plane(offset=0.1, shift_xy=0.2), "c": plane(offset=200.0)}
+    out = compare_clouds(clouds).to_json()
+    pairs = {(p["a"], p["b"]): p for p in out["pairs"]}
+    assert pairs[("a", "b")]["n"] > 10000 and pairs[("a", "c")]["n"] == 0
+    assert pairs[("a", "b")]["translation_mean_mm"] == pytest.approx(0.1, abs=1e-6)
+
+
+def test_no_overlap_nan_and_empty_are_clear_errors():
+    with pytest.raises(MetricsError, match="no overlap"):
+        compare_clouds({"a": plane(), "b": plane(offset=50.0)})
+    bad = plane()
+    bad[7] = np.nan
+    with pytest.raises(MetricsError, match="b: 1 points are NaN"):
+        compare_clouds({"a": plane(), "b": bad})
+    with pytest.raises(MetricsError, match="empty"):
+        compare_clouds({"a": plane(), "b": np.zeros((0, 3))})
+    with pytest.raises(MetricsError, match="two clouds"):
+        compare_clouds({"a": plane()})
+
+
+def test_cli_json_plots_and_bad_input(tmp_path):
+    write_ply(tmp_path / "a.ply", plane(noise=0.005))
+    write_ply(tmp_path / "b.ply", plane(offset=0.2, shift_xy=0.25, noise=0.005, seed=1))
+    write_ply(tmp_path / "far.ply", plane(offset=500.0))
+    run = [sys.executable, "-m", "scancell", "metrics"]
+    r = subprocess.run([*run, str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--json",
+                        str(tmp_path / "m.json"), "--plots", str(tmp_path / "plots")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads((tmp_path / "m.json").read_text())
+    assert set(out["translation_mm"]) == {"max", "min", "mean", "std", "p_lt_0_6", "p_lt_1_0"}
+    assert set(out["rotation_deg"]) == {"max", "min", "mean", "std", "p_lt_10"}
+    assert out["pairs"][0]["a"] == "a.ply" and out["pairs"][0]["n"] > 0
+    assert out["translation_mm"]["mean"] == pytest.approx(0.2, abs=0.02)
+    assert (tmp_path / "plots" / "translation_error.png").stat().st_size > 1000
+    assert (tmp_path / "plots" / "rotation_error.png").stat().st_size > 1000
+    r = subprocess.run([*run, str(tmp_path / "a.ply"), str(tmp_path / "far.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "no overlap" in r.stderr
+    r = subprocess.run([*run, str(tmp_path / "a.ply"), str(tmp_path / "missing.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "missing.ply" in r.stderr
