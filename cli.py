@@ -91,6 +91,14 @@ def _metrics_args(p: argparse.ArgumentParser) -> None:
     add_arguments(p)
 
 
+@subcommand("fuse", "station clouds -> one model in the tracker frame (PLY)",
+            "scancell.analysis.fusion_cli:main")
+def _fuse_args(p: argparse.ArgumentParser) -> None:
+    from scancell.analysis.fusion_cli import add_arguments
+
+    add_arguments(p)
+
+
 @subcommand("worker", "analysis workers on the bus: scan, calibrate", "scancell.cli:_worker_main")
 def _worker_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="worker", required=True)

@@ -1,0 +1,103 @@
+"""Global fusion: station clouds (MCS) into the tracker frame and one resampled model.
+
+Per station i: ``T_world_from_mcs_i = T_world_from_ecs_i @ T_ecs_from_mcs``; every point goes
+to ``world``; the stations are merged and resampled on a voxel grid (Open3D) as the paper thins
+~20 M points to ~2 M. A station folder holds ``<name>.ply`` (MCS, mm) with ``<name>.json``
+``{"T_world_from_ecs": 4x4}`` next to it, and ``hand_eye.json`` with ``T_ecs_from_mcs`` (the
+calibrate worker's file or ``scancell calibrate hand-eye --json``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from scancell.analysis.cloud_io import CloudFileError, read_ply
+
+
+class FusionError(ValueError):
+    """Missing clouds or transforms, or transforms that are not rigid; names the file."""
+
+
+@dataclass
+class Station:
+    name: str
+    points_mcs: np.ndarray
+    T_world_from_ecs: np.ndarray
+
+
+def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
+    T = np.asarray(T, float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise FusionError(f"{where}: not a finite 4 x 4 matrix")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0.999:
+        raise FusionError(f"{where}: the rotation part is not a proper rotation (units or a "
+                          f"scaled transform?)")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise FusionError(f"{where}: last row must be 0 0 0 1")
+    return T
+
+
+def _matrix(path: Path, key: str) -> np.ndarray:
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise FusionError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except json.JSONDecodeError as exc:
+        raise FusionError(f"{path}: not JSON: {exc}") from None
+    if key not in data or data[key] is None:
+        raise FusionError(f"{path}: no {key!r}")
+    return check_rigid(np.array(data[key], float), f"{path} {key}")
+
+
+def load_station_folder(folder: str | Path) -> tuple[list[Station], np.ndarray]:
+    """Stations and ``T_ecs_from_mcs`` of a station folder (see the module doc)."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise FusionError(f"{root}: no such directory")
+    hand_eye = _matrix(root / "hand_eye.json", "T_ecs_from_mcs")
+    stations = []
+    for ply in sorted(root.glob("*.ply")):
+        meta = ply.with_suffix(".json")
+        if not meta.exists():
+            raise FusionError(f"{ply}: no transform file {meta.name} next to it")
+        try:
+            pts, _ = read_ply(ply)
+        except CloudFileError as exc:
+            raise FusionError(str(exc)) from None
+        bad = ~np.all(np.isfinite(pts), axis=1)
+        if bad.any():
+            raise FusionError(f"{ply}: {int(bad.sum())} points are NaN or infinite")
+        stations.append(Station(ply.stem, pts, _matrix(meta, "T_world_from_ecs")))
+    if not stations:
+        raise FusionError(f"{root}: no station clouds (*.ply)")
+    return stations, hand_eye
+
+
+def to_world(station: Station, T_ecs_from_mcs: np.ndarray) -> np.ndarray:
+    T = station.T_world_from_ecs @ T_ecs_from_mcs
+    return station.points_mcs @ T[:3, :3].T + T[:3, 3]
+
+
+@dataclass
+class FusedCloud:
+    points: np.ndarray  # (N, 3) world, mm, resampled
+    per_station: dict[str, np.ndarray]  # world points of each station (not resampled)
+    merged_count: int
+
+
+def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 0.5) -> FusedCloud:
+    """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling)."""
+    check_rigid(T_ecs_from_mcs, "T_ecs_from_mcs")
+    world = {s.name: to_world(s, T_ecs_from_mcs) for s in stations}
+    merged = np.concatenate(list(world.values()))
+    if voxel_mm > 0:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged))
+        pts = np.asarray(pcd.voxel_down_sample(voxel_mm).points)
+    else:
+        pts = merged
+    return FusedCloud(pts, world, len(merged))

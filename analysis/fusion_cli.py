@@ -1,0 +1,35 @@
+"""``scancell fuse SOURCE --out fused.ply``: station clouds into one model in the tracker frame."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from scancell.analysis.cloud_io import CloudFileError, write_ply
+from scancell.analysis.fusion import FusionError, fuse, load_station_folder
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="folder: <station>.ply + <station>.json {T_world_from_ecs} "
+                                  "and hand_eye.json {T_ecs_from_mcs}")
+    p.add_argument("--out", required=True, help="fused cloud PLY (world frame, mm)")
+    p.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm); 0: keep all")
+
+
+def main(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    try:
+        if Path(args.source).suffix == ".mcap":
+            raise FusionError(f"{args.source}: fusing from a recording needs the recorder "
+                              f"(issue 8); give a station folder")
+        stations, hand_eye = load_station_folder(args.source)
+        fused = fuse(stations, hand_eye, args.voxel)
+        write_ply(args.out, fused.points)
+    except (FusionError, CloudFileError) as exc:
+        print(f"scancell fuse: {exc}", file=sys.stderr)
+        return 2
+    print(f"{len(stations)} stations, {fused.merged_count} points merged -> {len(fused.points)} "
+          f"after {args.voxel:g} mm resampling -> {args.out} ({time.perf_counter() - t0:.1f} s)")
+    return 0

@@ -1,0 +1,82 @@
+"""Fusion into the tracker frame: true transforms give zero error against the part, an
+estimated hand-eye the expected error; the fuse CLI and its bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scancell.analysis.cloud_io import read_ply, write_ply
+from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
+from scancell.analysis.metrics import compare_clouds
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+
+
+@pytest.fixture(scope="module")
+def stations():
+    cell = SimCell(SimCellConfig(camera_scale=8))
+    centre = cell.cfg.T_world_from_part[:3, 3]
+    out = []
+    for name, dy in (("s1", -120.0), ("s2", 80.0)):
+        q = cell.ik_for_mcs(cell.mcs_pose_looking_at(centre + np.array([-250.0, dy, 0.0]), 620.0))
+        cell.move_joints(q)
+        out.append(Station(name, cell.true_points("left"), cell.true_T_world_from_ecs(cell.q)))
+    # with the actual (noisy) pose the ECS and MCS are what the tracker and scanner would see
+    return cell, out
+
+
+def test_true_transforms_put_every_point_on_the_part(stations):
+    cell, st = stations
+    T_true = cell.true_T_ecs_from_mcs()
+    fused = fuse(st, T_true, voxel_mm=0.0)
+    for name, pts in fused.per_station.items():
+        assert np.abs(cell.surface_distance(pts)).max() < 0.02, name  # joint noise only
+    out = compare_clouds(fused.per_station).to_json()
+    assert out["pairs"][0]["n"] > 100 and out["translation_mm"]["mean"] < 0.02
+
+
+def test_a_wrong_hand_eye_shows_as_the_expected_error(stations):
+    cell, st = stations
+    T = cell.true_T_ecs_from_mcs().copy()
+    T[:3, 3] += [0.3, 0.0, 0.0]
+    fused = fuse(st, T, voxel_mm=0.0)
+    d = np.concatenate([cell.surface_distance(p) for p in fused.per_station.values()])
+    assert 0.05 < d.mean() < 0.3  # a 0.3 mm shift, seen along each surface normal
+
+
+def test_resampling_thins_and_transforms_are_checked(stations):
+    cell, st = stations
+    fused = fuse(st, cell.true_T_ecs_from_mcs(), voxel_mm=2.0)
+    assert len(fused.points) < 0.8 * fused.merged_count
+    with pytest.raises(FusionError, match="proper rotation"):
+        check_rigid(np.diag([1000.0, 1000.0, 1000.0, 1.0]), "T")
+
+
+def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
+    cell, st = stations
+    for s in st:
+        write_ply(tmp_path / f"{s.name}.ply", s.points_mcs)
+        (tmp_path / f"{s.name}.json").write_text(json.dumps(
+            {"T_world_from_ecs": s.T_world_from_ecs.tolist()}))
+    (tmp_path / "hand_eye.json").write_text(json.dumps(
+        {"T_ecs_from_mcs": cell.true_T_ecs_from_mcs().tolist()}))
+    run = [sys.executable, "-m", "scancell", "fuse"]
+    r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "out" in r.stderr  # the output folder does not exist
+    (tmp_path / "out").mkdir()
+    r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    pts, _ = read_ply(tmp_path / "out" / "fused.ply")
+    assert np.percentile(cell.surface_distance(pts), 99) < 0.05
+    (tmp_path / "s2.json").unlink()
+    r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "x.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "s2.json" in r.stderr
+    r = subprocess.run([*run, str(tmp_path / "rec.mcap"), "--out", str(tmp_path / "x.ply")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "recording" in r.stderr
