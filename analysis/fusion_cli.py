@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from scancell.analysis.cloud_io import CloudFileError, write_ply
+from scancell.analysis.export import ExportError, poisson_mesh, write_e57, write_mesh
 from scancell.analysis.fusion import FusionError, fuse, load_station_folder
 
 
@@ -16,6 +17,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                   "and hand_eye.json {T_ecs_from_mcs}")
     p.add_argument("--out", required=True, help="fused cloud PLY (world frame, mm)")
     p.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm); 0: keep all")
+    p.add_argument("--e57", help="also write the fused cloud as E57")
+    p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -27,9 +30,15 @@ def main(args: argparse.Namespace) -> int:
         stations, hand_eye = load_station_folder(args.source)
         fused = fuse(stations, hand_eye, args.voxel)
         write_ply(args.out, fused.points)
-    except (FusionError, CloudFileError) as exc:
+        if args.e57:
+            write_e57(args.e57, fused.points)
+        if args.mesh:
+            write_mesh(args.mesh, poisson_mesh(fused.points))
+    except (FusionError, CloudFileError, ExportError) as exc:
         print(f"scancell fuse: {exc}", file=sys.stderr)
         return 2
+    extra = "".join(f", {f}" for f in (args.e57, args.mesh) if f)
     print(f"{len(stations)} stations, {fused.merged_count} points merged -> {len(fused.points)} "
-          f"after {args.voxel:g} mm resampling -> {args.out} ({time.perf_counter() - t0:.1f} s)")
+          f"after {args.voxel:g} mm resampling -> {args.out}{extra} "
+          f"({time.perf_counter() - t0:.1f} s)")
     return 0

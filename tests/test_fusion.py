@@ -68,11 +68,23 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "out" in r.stderr  # the output folder does not exist
     (tmp_path / "out").mkdir()
-    r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply"),
+                        "--e57", str(tmp_path / "out" / "fused.e57"), "--mesh",
+                        str(tmp_path / "out" / "mesh.ply")], capture_output=True, text=True,
+                       timeout=300)
     assert r.returncode == 0, r.stderr
     pts, _ = read_ply(tmp_path / "out" / "fused.ply")
     assert np.percentile(cell.surface_distance(pts), 99) < 0.05
+    import open3d as o3d
+    import pye57
+
+    e57 = pye57.E57(str(tmp_path / "out" / "fused.e57"))
+    raw = e57.read_scan_raw(0)
+    assert e57.scan_count == 1 and len(raw["cartesianX"]) == len(pts)
+    assert np.allclose(raw["cartesianX"] * 1000.0, pts[:, 0], atol=1e-3)  # E57 is in metres
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "out" / "mesh.ply"))
+    assert len(mesh.triangles) > 1000
+    assert np.median(cell.surface_distance(np.asarray(mesh.vertices))) < 0.5
     (tmp_path / "s2.json").unlink()
     r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "x.ply")],
                        capture_output=True, text=True, timeout=120)
