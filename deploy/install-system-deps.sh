@@ -1,8 +1,10 @@
 #!/bin/sh
-# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d).
+# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d);
+# with --bench also cloudcompare (the reference of benchmarks/bench_metrics.py).
 # As root it uses apt-get; otherwise sudo when available; otherwise it prints the exact command.
 set -eu
 PKGS="libusb-1.0-0"
+[ "${1:-}" = "--bench" ] && PKGS="cloudcompare"
 missing=""
 for p in $PKGS; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"
