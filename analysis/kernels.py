@@ -271,3 +271,45 @@ def triangulate_compact(x_right: np.ndarray, offsets: np.ndarray, cx1: float, cx
             pixels[k, 0] = x
             pixels[k, 1] = y
             k += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def plane_normals(points: np.ndarray, idx: np.ndarray, dist: np.ndarray, radius: float,
+                  out: np.ndarray) -> None:
+    """Normal of the least-squares plane through each point's neighbours (``idx`` from a k-d
+    tree query; neighbours farther than ``radius`` are ignored): the eigenvector of the smallest
+    eigenvalue of their covariance."""
+    n, k = idx.shape
+    for i in numba.prange(n):
+        m = 0
+        sx = sy = sz = 0.0
+        for j in range(k):
+            if dist[i, j] <= radius:
+                p = idx[i, j]
+                sx += points[p, 0]
+                sy += points[p, 1]
+                sz += points[p, 2]
+                m += 1
+        if m < 3:
+            out[i, 0] = out[i, 1] = 0.0
+            out[i, 2] = 1.0
+            continue
+        mx, my, mz = sx / m, sy / m, sz / m
+        cov = np.zeros((3, 3))
+        for j in range(k):
+            if dist[i, j] <= radius:
+                p = idx[i, j]
+                dx, dy, dz = points[p, 0] - mx, points[p, 1] - my, points[p, 2] - mz
+                cov[0, 0] += dx * dx
+                cov[0, 1] += dx * dy
+                cov[0, 2] += dx * dz
+                cov[1, 1] += dy * dy
+                cov[1, 2] += dy * dz
+                cov[2, 2] += dz * dz
+        cov[1, 0] = cov[0, 1]
+        cov[2, 0] = cov[0, 2]
+        cov[2, 1] = cov[1, 2]
+        _, vecs = np.linalg.eigh(cov)
+        out[i, 0] = vecs[0, 0]
+        out[i, 1] = vecs[1, 0]
+        out[i, 2] = vecs[2, 0]
