@@ -10,6 +10,7 @@ from pathlib import Path
 from scancell.analysis.cloud_io import CloudFileError, write_ply
 from scancell.analysis.export import ExportError, poisson_mesh, write_e57, write_mesh
 from scancell.analysis.fusion import FusionError, fuse, load_station_folder
+from scancell.analysis.metrics import MetricsError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,6 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm); 0: keep all")
     p.add_argument("--e57", help="also write the fused cloud as E57")
     p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
+    p.add_argument("--report", help="directory for report.md with the overlap metrics and plots")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -34,7 +36,13 @@ def main(args: argparse.Namespace) -> int:
             write_e57(args.e57, fused.points)
         if args.mesh:
             write_mesh(args.mesh, poisson_mesh(fused.points))
-    except (FusionError, CloudFileError, ExportError) as exc:
+        if args.report:
+            from scancell.analysis.metrics import compare_clouds
+            from scancell.analysis.report import write_report
+
+            report = write_report(args.report, fused, compare_clouds(fused.per_station))
+            print(f"report -> {report}")
+    except (FusionError, CloudFileError, ExportError, MetricsError) as exc:
         print(f"scancell fuse: {exc}", file=sys.stderr)
         return 2
     extra = "".join(f", {f}" for f in (args.e57, args.mesh) if f)

@@ -70,8 +70,8 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     (tmp_path / "out").mkdir()
     r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply"),
                         "--e57", str(tmp_path / "out" / "fused.e57"), "--mesh",
-                        str(tmp_path / "out" / "mesh.ply")], capture_output=True, text=True,
-                       timeout=300)
+                        str(tmp_path / "out" / "mesh.ply"), "--report", str(tmp_path / "rep")],
+                       capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     pts, _ = read_ply(tmp_path / "out" / "fused.ply")
     assert np.percentile(cell.surface_distance(pts), 99) < 0.05
@@ -85,6 +85,9 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "out" / "mesh.ply"))
     assert len(mesh.triangles) > 1000
     assert np.median(cell.surface_distance(np.asarray(mesh.vertices))) < 0.5
+    report = (tmp_path / "rep" / "report.md").read_text()
+    assert "Table 2" in report and "| s1 |" in report and "translation_error.png" in report
+    assert (tmp_path / "rep" / "translation_error.png").exists()
     (tmp_path / "s2.json").unlink()
     r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "x.ply")],
                        capture_output=True, text=True, timeout=120)
