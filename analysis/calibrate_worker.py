@@ -16,8 +16,6 @@ import json
 import logging
 import os
 import queue
-import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -187,22 +185,8 @@ class CalibrateWorker:
 
 
 def main(args: argparse.Namespace) -> int:
-    from scancell.bus import Bus, BusConfig, NoDaemon
+    from scancell.analysis.worker_cli import serve
 
-    try:
-        bus = Bus.open(BusConfig.client_default(args.connect),
-                       args.cell or os.environ.get("SCANCELL_CELL", "sim"), wait_s=30.0)
-    except NoDaemon as exc:
-        print(f"scancell worker calibrate: {exc}", file=sys.stderr)
-        return 3
-    worker = CalibrateWorker(bus, Path(args.store))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    worker.start()
-    print(f"calibrate worker on cell {bus.keys.cell!r}: waiting for hand-eye jobs "
-          f"(store {args.store})", flush=True)
-    stop.wait()
-    worker.stop()
-    bus.close()
-    return 0
+    return serve(args, "calibrate", lambda bus: CalibrateWorker(bus, Path(args.store)),
+                 lambda bus: f"calibrate worker on cell {bus.keys.cell!r}: waiting for hand-eye "
+                             f"jobs (store {args.store})")

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
-import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -179,29 +178,14 @@ class ScanWorker:
 def main(args: argparse.Namespace) -> int:
     import sys
 
-    from scancell.bus import Bus, BusConfig, NoDaemon
+    from scancell.analysis.worker_cli import serve
 
     try:
         calib = StereoCalibration.read(args.calib)
     except CalibrationError as exc:
         print(f"scancell worker scan: {exc}", file=sys.stderr)
         return 2
-    import os
-
-    try:
-        bus = Bus.open(BusConfig.client_default(args.connect),
-                       args.cell or os.environ.get("SCANCELL_CELL", "sim"), wait_s=30.0)
-    except NoDaemon as exc:
-        print(f"scancell worker scan: {exc}", file=sys.stderr)
-        return 3
-    worker = ScanWorker(bus, calib, args.projector_width)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    worker.start()
-    print(f"scan worker on cell {bus.keys.cell!r}: waiting for scans "
-          f"(calibration {args.calib}, {calib.image_size[0]} x {calib.image_size[1]})", flush=True)
-    stop.wait()
-    worker.stop()
-    bus.close()
-    return 0
+    return serve(args, "scan", lambda bus: ScanWorker(bus, calib, args.projector_width),
+                 lambda bus: f"scan worker on cell {bus.keys.cell!r}: waiting for scans "
+                             f"(calibration {args.calib}, {calib.image_size[0]} x "
+                             f"{calib.image_size[1]})")
