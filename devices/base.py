@@ -328,7 +328,20 @@ class Camera(Device):
     """An area camera. ``settings`` holds what the camera was last configured to."""
 
     kind = "camera"
-    settings: CameraSettings = CameraSettings(10000.0, 0.0, "software")
+
+    def __init__(self, name: str, options: Mapping[str, Any] | None = None) -> None:
+        super().__init__(name, options)
+        o = self.options
+        self.settings = CameraSettings(float(o.get("exposure_us", 10000.0)),
+                                       float(o.get("gain_db", 0.0)), str(o.get("trigger", "software")))
+
+    def updated_settings(self, exposure_us: float | None = None, gain_db: float | None = None,
+                         trigger: str | None = None) -> CameraSettings:
+        """The current settings with the given fields replaced (None: unchanged)."""
+        s = self.settings
+        return CameraSettings(s.exposure_us if exposure_us is None else float(exposure_us),
+                              s.gain_db if gain_db is None else float(gain_db),
+                              s.trigger if trigger is None else str(trigger))
 
     @abstractmethod
     async def configure(

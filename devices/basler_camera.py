@@ -37,9 +37,6 @@ class BaslerCamera(Camera):
 
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
-        self.settings = CameraSettings(float(self.options.get("exposure_us", 10000.0)),
-                                       float(self.options.get("gain_db", 0.0)),
-                                       str(self.options.get("trigger", "software")))
         self._cam: Any = None
         self._pylon: Any = None
         self._lock = asyncio.Lock()
@@ -137,10 +134,7 @@ class BaslerCamera(Camera):
 
     async def configure(self, exposure_us: float | None = None, gain_db: float | None = None,
                         trigger: str | None = None) -> CameraSettings:
-        s = self.settings
-        new = CameraSettings(s.exposure_us if exposure_us is None else float(exposure_us),
-                             s.gain_db if gain_db is None else float(gain_db),
-                             s.trigger if trigger is None else str(trigger))
+        new = self.updated_settings(exposure_us, gain_db, trigger)
         await self._run(self._apply, new)
         self.settings = new
         return new

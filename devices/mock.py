@@ -149,12 +149,7 @@ class MockCamera(MockLink, Camera):
     async def configure(self, exposure_us: float | None = None, gain_db: float | None = None,
                         trigger: str | None = None) -> CameraSettings:
         self._check()
-        s = self.settings
-        self.settings = CameraSettings(
-            s.exposure_us if exposure_us is None else float(exposure_us),
-            s.gain_db if gain_db is None else float(gain_db),
-            s.trigger if trigger is None else trigger,
-        )
+        self.settings = self.updated_settings(exposure_us, gain_db, trigger)
         return self.settings
 
     async def trigger(self) -> None:

@@ -40,9 +40,6 @@ class OpenCVCamera(Camera):
 
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
-        self.settings = CameraSettings(float(self.options.get("exposure_us", 10000.0)),
-                                       float(self.options.get("gain_db", 0.0)),
-                                       str(self.options.get("trigger", "software")))
         self._cap: cv2.VideoCapture | None = None
         self._lock = asyncio.Lock()
         self._ready: collections.deque[Frame] = collections.deque()
@@ -100,10 +97,7 @@ class OpenCVCamera(Camera):
             if not cap.set(prop, raw):
                 raise CommandError("invalid", f"{self.name}: source {self._source!r} does not "
                                               f"support setting {what}")
-        s = self.settings
-        self.settings = CameraSettings(s.exposure_us if exposure_us is None else float(exposure_us),
-                                       s.gain_db if gain_db is None else float(gain_db),
-                                       s.trigger if trigger is None else str(trigger))
+        self.settings = self.updated_settings(exposure_us, gain_db, trigger)
         return self.settings
 
     def _c(self) -> cv2.VideoCapture:

@@ -66,9 +66,6 @@ class SimCamera(SimLink, Camera):
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
         self.camera = str(self.options["camera"])
-        self.settings = CameraSettings(float(self.options.get("exposure_us", NOMINAL_EXPOSURE_US)),
-                                       float(self.options.get("gain_db", 0.0)),
-                                       str(self.options.get("trigger", "software")))
         self._pool: ThreadPoolExecutor | None = None
         self._queue: collections.deque[Future[Frame]] = collections.deque()
         self._qlock = threading.Lock()
@@ -96,11 +93,7 @@ class SimCamera(SimLink, Camera):
     async def configure(self, exposure_us: float | None = None, gain_db: float | None = None,
                         trigger: str | None = None) -> CameraSettings:
         self._w()
-        s = self.settings
-        self.settings = CameraSettings(
-            s.exposure_us if exposure_us is None else float(exposure_us),
-            s.gain_db if gain_db is None else float(gain_db),
-            s.trigger if trigger is None else str(trigger))
+        self.settings = self.updated_settings(exposure_us, gain_db, trigger)
         return self.settings
 
     # ---------------------------------------------------------------- exposure
