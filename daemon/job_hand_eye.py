@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 from scancell.daemon.jobs import JobContext
-from scancell.daemon.scan import scan
+from scancell.daemon.scan import scan, serving_device
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import Camera, Projector, Robot, Tracker
 from scancell.devices.errors import BeamBroken
@@ -115,16 +115,6 @@ async def _averaged(tracker: Tracker, repeats: int) -> tuple[np.ndarray, np.ndar
             np.mean([m.sigma_mm for m in ms], axis=0) / np.sqrt(repeats))
 
 
-def _pick(supervisors: dict[str, DeviceSupervisor], name: str | None, kind: type) -> DeviceSupervisor:
-    cands = [s for n, s in supervisors.items() if isinstance(s.device, kind) and (name in (None, n))]
-    if not cands:
-        raise CommandError("unknown_device", f"calibrate_hand_eye: no {kind.__name__.lower()}"
-                                             f"{f' named {name!r}' if name else ''} in this cell")
-    if not cands[0].serving:
-        raise CommandError("device_unavailable", f"{cands[0].name} is {cands[0].status.state}")
-    return cands[0]
-
-
 async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              simulator: Any) -> dict[str, Any]:
     req = ctx.request
@@ -132,12 +122,13 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
     turns = [float(a) for a in req.get("j6_angles_deg", [30.0, 60.0, 90.0, 120.0])]
     speed = float(req.get("speed", 0.2))
     repeats = int(req.get("tracker_repeats", 10))
-    robot_s = _pick(supervisors, req.get("robot"), Robot)
-    tracker_s = _pick(supervisors, req.get("tracker"), Tracker)
-    proj_s = _pick(supervisors, req.get("projector"), Projector)
+    verb = "calibrate_hand_eye"
+    robot_s = serving_device(supervisors, req.get("robot"), Robot, verb)
+    tracker_s = serving_device(supervisors, req.get("tracker"), Tracker, verb)
+    proj_s = serving_device(supervisors, req.get("projector"), Projector, verb)
     cams = req.get("cameras") or [s.name for s in supervisors.values()
                                   if isinstance(s.device, Camera)][:2]
-    cam_s = [_pick(supervisors, c, Camera) for c in cams]
+    cam_s = [serving_device(supervisors, c, Camera, verb) for c in cams]
     robot: Robot = robot_s.device
     tracker: Tracker = tracker_s.device
     placer = (SimBallPlacer(simulator.world) if simulator is not None and simulator.world
@@ -166,8 +157,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                 approx = await placer.place(ctx, i, target)
                 reply = await scan(supervisors, {"station": f"he{i:02d}", "scan_id":
                                                  f"{ctx.job_id}-{sid}", "projector": proj_s.name,
-                                                 "cameras": [c.name for c in cam_s],
-                                                 "_locked": True})
+                                                 "cameras": [c.name for c in cam_s]},
+                             hold_locks=False)
                 await tracker.find_reflector(approx)
                 point, sigma = await _averaged(tracker, repeats)
                 sample("ball", sid, point, index=i, scan_id=reply["scan_id"], repeats=repeats,

@@ -18,29 +18,36 @@ from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
 
 
-def _device(supervisors: dict[str, DeviceSupervisor], name: str, kind: type, what: str):
-    sup = supervisors.get(name)
-    if sup is None or not isinstance(sup.device, kind):
-        have = [n for n, s in supervisors.items() if isinstance(s.device, kind)]
-        raise CommandError("unknown_device", f"scan: no {what} named {name!r} (have: {have})")
+def serving_device(supervisors: dict[str, DeviceSupervisor], name: str | None, kind: type,
+                   verb: str) -> DeviceSupervisor:
+    """The connected device ``name`` of ``kind`` (``None``: the cell's first of that kind)."""
+    what = kind.__name__.lower()
+    have = [n for n, s in supervisors.items() if isinstance(s.device, kind)]
+    if not have or (name is not None and name not in have):
+        raise CommandError("unknown_device", f"{verb}: no {what}"
+                                             f"{f' named {name!r}' if name else ''} (have: {have})")
+    sup = supervisors[name if name is not None else have[0]]
     if not sup.serving:
-        raise CommandError("device_unavailable", f"scan: {name} is {sup.status.state}")
+        raise CommandError("device_unavailable", f"{verb}: {sup.name} is {sup.status.state}")
     return sup
 
 
-async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]) -> dict[str, Any]:
+async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],
+               hold_locks: bool = True) -> dict[str, Any]:
+    """``hold_locks=False``: the caller (a job) already holds the scanner's devices."""
     station = str(request.get("station", "0"))
     scan_id = str(request.get("scan_id") or f"{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:6]}")
     cam_names = list(request.get("cameras", ["cam_left", "cam_right"]))
     if len(set(cam_names)) != 2:
         raise CommandError("invalid", f"scan: two different cameras needed, got {cam_names}")
-    proj_sup = _device(supervisors, str(request.get("projector", "projector")), Projector, "projector")
-    cam_sups = [_device(supervisors, n, Camera, "camera") for n in cam_names]
+    proj_sup = serving_device(supervisors, str(request.get("projector", "projector")), Projector,
+                              "scan")
+    cam_sups = [serving_device(supervisors, n, Camera, "scan") for n in cam_names]
     spec = {"kind": "fringe", "steps": int(request.get("steps", 3)),
             "periods": [float(p) for p in request.get("periods", [70, 64, 59])]}
     sups = [proj_sup, *cam_sups]
     async with contextlib.AsyncExitStack() as stack:
-        if not request.get("_locked"):  # a job holding the scanner's devices passes _locked
+        if hold_locks:
             for sup in sups:  # hold every device of the scanner: no other command interleaves
                 await sup.lock.acquire()
                 stack.callback(sup.lock.release)
