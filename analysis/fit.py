@@ -95,6 +95,15 @@ class SphereDetection:
         return self.fit.center
 
 
+def _facing_inliers(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, radius: float,
+                    inlier_mm: float) -> int:
+    """Points within 2 x ``inlier_mm`` of the sphere whose normals point at its centre."""
+    d = points - centre
+    dist = np.linalg.norm(d, axis=1)
+    near = np.abs(dist - radius) < 2 * inlier_mm
+    return int((np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9).sum())
+
+
 def detect_sphere(points: np.ndarray, radius: float | None = None,
                   radius_range: tuple[float, float] = (5.0, 100.0), inlier_mm: float = 0.15,
                   iterations: int = 1500, sample: int = 30000, seed: int = 0,
@@ -116,7 +125,6 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
     rng = np.random.default_rng(seed)
     sub = p[rng.choice(len(p), size=min(sample, len(p)), replace=False)]
     lo, hi = (radius - 2.0, radius + 2.0) if radius else radius_range
-    tree = cKDTree(sub)
     # surface normals of the sample: a sphere's inliers must face its centre, which a cylinder
     # (the ball's stand) or a flat patch with a few points at the right distance do not
     import open3d as o3d
@@ -134,15 +142,11 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
                                                     return_length=True)
         for i in np.argsort(votes)[::-1][:20]:
             c = proposals[i]
-            d = sub - c
-            dist = np.linalg.norm(d, axis=1)
-            near = np.abs(dist - radius) < 2 * inlier_mm
-            radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
-            hypotheses.append((int(radial.sum()), c, float(radius)))
-    seeds = rng.integers(0, len(sub), size=iterations)
-    neighbourhoods = tree.query_ball_point(sub[seeds], r=1.6 * hi)
+            hypotheses.append((_facing_inliers(sub, normals, c, radius, inlier_mm), c, radius))
+    seeds = rng.integers(0, len(sub), size=0 if radius else iterations)
+    neighbourhoods = cKDTree(sub).query_ball_point(sub[seeds], r=1.6 * hi) if len(seeds) else []
     for s0, near in zip(seeds, neighbourhoods, strict=True):
-        if radius or len(near) < 20:
+        if len(near) < 20:
             continue
         i4 = np.r_[s0, rng.choice(near, size=3, replace=False)]
         q = sub[i4]
@@ -158,11 +162,7 @@ def detect_sphere(points: np.ndarray, radius: float | None = None,
         r = np.sqrt(r2)
         if not lo <= r <= hi:
             continue
-        d = sub - c
-        dist = np.linalg.norm(d, axis=1)
-        near = np.abs(dist - r) < 2 * inlier_mm
-        radial = np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9
-        hypotheses.append((int(radial.sum()), c, float(r)))
+        hypotheses.append((_facing_inliers(sub, normals, c, float(r), inlier_mm), c, float(r)))
     hypotheses.sort(key=lambda h: -h[0])
     problems = []
     for count, c, r in hypotheses[:8]:  # the best few: refine, then check it is a ball
