@@ -113,7 +113,7 @@ class SimHost:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._main, daemon=True, name="sim-host")
-        self._servers: list[Any] = []
+        self._servers: dict[str, Any] = {}  # "robot" | "tracker" | "axis" -> running server
         self._drive: Any = None
 
     # ---------------------------------------------------------------- control
@@ -134,12 +134,10 @@ class SimHost:
 
     def server(self, kind: str) -> Any:
         """The running server object of ``kind`` ("robot", "tracker" or "axis")."""
-        names = {"robot": "KarelRobotServer", "tracker": "TcpTrackerServer",
-                 "axis": "SocketcandServer"}
-        for s in self._servers:
-            if type(s).__name__ == names[kind]:
-                return s
-        raise KeyError(f"no {kind} simulator in this cell")
+        try:
+            return self._servers[kind]
+        except KeyError:
+            raise KeyError(f"no {kind} simulator in this cell") from None
 
     def stop(self) -> None:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():
@@ -194,7 +192,7 @@ class SimHost:
                                      int(r.get("state_port", 11002)),
                                      r.get("byte_order", "big"), float(r.get("state_hz", 30.0)))
             await robot.start()
-            self._servers.append(robot)
+            self._servers["robot"] = robot
             self.endpoints["robot"] = {"motion_port": robot.motion_port,
                                        "state_port": robot.state_port}
         if "tracker" in o:
@@ -203,7 +201,7 @@ class SimHost:
             t = o["tracker"]
             tracker = TcpTrackerServer(world.cell, t.get("host", "127.0.0.1"), int(t.get("port", 7000)))
             await tracker.start()
-            self._servers.append(tracker)
+            self._servers["tracker"] = tracker
             self.endpoints["tracker"] = {"port": tracker.port}
         if "axis" in o:
             from scancell.devices.sim.axis_server import SimulatedDrive, SocketcandServer
@@ -215,11 +213,11 @@ class SimHost:
             self._drive.connect("virtual", channel)
             server = SocketcandServer(channel, a.get("host", "127.0.0.1"), int(a.get("port", 29536)))
             await server.start()
-            self._servers.append(server)
+            self._servers["axis"] = server
             self.endpoints["axis"] = {"port": server.port, "node_id": self._drive.node.id}
 
     async def _close_servers(self) -> None:
-        for server in reversed(self._servers):
+        for server in reversed(list(self._servers.values())):
             try:
                 await server.close()
             except Exception as exc:
