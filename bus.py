@@ -197,6 +197,22 @@ class Bus:
     def publish_json(self, key: str, obj: Any, schema: str) -> None:
         self.publish(key, messages.encode_json(obj, schema))
 
+    def latched(self, key: str) -> LatchedPublisher:
+        """A publisher on ``key`` whose last sample a late subscriber can still fetch (``get``)."""
+        return LatchedPublisher(self, key)
+
+    def fetch_latched(self, key_expr: str, timeout_s: float = 2.0) -> list[BusSample]:
+        """The last samples of every latched publisher matching ``key_expr``."""
+        out = []
+        for reply in self.session.get(key_expr, timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            try:
+                out.append(BusSample.from_zenoh(reply.ok))
+            except EncodingError as exc:
+                log.warning("ignoring latched sample on %s: %s", reply.ok.key_expr, exc)
+        return out
+
     # ---- subscribe
     def subscribe(
         self,
@@ -281,8 +297,40 @@ class Bus:
             self.session.close()
 
 
+class LatchedPublisher:
+    """Publishes on one key and answers queries on it with the last sample (calibrations: a
+    recorder started after the worker still gets the calibration in force)."""
+
+    def __init__(self, bus: Bus, key: str) -> None:
+        self.bus = bus
+        self.key = key
+        self._last: tuple[Encoded, Attachment] | None = None
+        self._lock = threading.Lock()
+        self._queryable = bus.session.declare_queryable(key, self._on_query)
+
+    def publish(self, encoded: Encoded) -> None:
+        att = Attachment(messages.now_ns())
+        with self._lock:
+            self._last = (encoded, att)
+        self.bus.publish(self.key, encoded, att)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            last = self._last
+        try:
+            if last is not None:
+                query.reply(self.key, last[0].payload, encoding=zenoh.Encoding(last[0].encoding),
+                            attachment=last[1].to_bytes())
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+
+
 class NoDaemon(ConnectionError):
     """Nobody answered a command: the daemon is not running or not reachable."""
 
 
-__all__ = ["REPLY_SCHEMA", "Bus", "BusConfig", "BusSample", "NoDaemon", "open_session"]
+__all__ = ["REPLY_SCHEMA", "Bus", "BusConfig", "BusSample", "LatchedPublisher", "NoDaemon",
+           "open_session"]

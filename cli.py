@@ -120,6 +120,30 @@ def _worker_main(args: argparse.Namespace) -> int:
     return int(importlib.import_module(f"scancell.analysis.{args.worker}_worker").main(args))
 
 
+@subcommand("record", "record the cell's bus to MCAP, one file per session; recover, info",
+            "scancell.recorder.cli:record_main")
+def _record_args(p: argparse.ArgumentParser) -> None:
+    from scancell.recorder.cli import add_record_arguments
+
+    add_record_arguments(p, _bus_args)
+
+
+@subcommand("replay", "publish a recording again, as the live cell did",
+            "scancell.recorder.cli:replay_main")
+def _replay_args(p: argparse.ArgumentParser) -> None:
+    from scancell.recorder.cli import add_replay_arguments
+
+    add_replay_arguments(p, _bus_args)
+
+
+@subcommand("reprocess", "run the analysis workers on a recording, without a bus",
+            "scancell.recorder.cli:reprocess_main")
+def _reprocess_args(p: argparse.ArgumentParser) -> None:
+    from scancell.recorder.cli import add_reprocess_arguments
+
+    add_reprocess_arguments(p)
+
+
 @subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")

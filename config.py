@@ -49,9 +49,22 @@ class CellConfig:
     raw: dict[str, Any]
     #: The embedded simulated cell's ``[simulator]`` table (None: no simulator).
     simulator: dict[str, Any] | None = None
+    #: The embedded recorder's ``[recorder]`` table (None: no recorder in the daemon).
+    recorder: Any = None
+
+    def redacted(self) -> dict[str, Any]:
+        """The config as loaded, without passwords and private keys (for recordings, replies)."""
+        def scrub(obj: Any) -> Any:
+            if isinstance(obj, dict):
+                return {k: "***" if any(w in k for w in ("password", "private_key")) else scrub(v)
+                        for k, v in obj.items()}
+            if isinstance(obj, list):
+                return [scrub(v) for v in obj]
+            return obj
+        return scrub(self.raw)
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator"}
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator", "recorder"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:
@@ -164,8 +177,17 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         problem = check_options(simulator)
         if problem:
             raise err("[simulator]", problem)
+    recorder = None
+    rec_t = _table(raw, "recorder", err)
+    if rec_t.get("enabled", bool(rec_t)):
+        from scancell.recorder.recorder import RecorderSettings
+
+        try:
+            recorder = RecorderSettings.from_mapping(rec_t)
+        except (ValueError, TypeError) as exc:
+            raise err("[recorder]", str(exc)) from None
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
-                      simulator)
+                      simulator, recorder)
 
 
 def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:

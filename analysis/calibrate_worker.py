@@ -96,11 +96,19 @@ class CalibrateWorker:
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._subs: list[Any] = []
+        self._latched: Any = None
         self._thread = threading.Thread(target=self._run, daemon=True, name="calibrate-worker")
 
     def start(self) -> None:
         self._thread.start()
         k = self.bus.keys
+        self._latched = self.bus.latched(k.hand_eye)
+        active = self.store_dir / "hand_eye" / "active.json" if self.store_dir else None
+        if active is not None and active.is_file():
+            try:  # the calibration in force, for whoever joins the bus later (the recorder)
+                self._publish(json.loads(active.read_text()))
+            except ValueError as exc:
+                log.error("%s: not JSON (%s); no active hand-eye published", active, exc)
         self._subs = [self.bus.subscribe(k.hand_eye + "/sample", self._on_sample),
                       self.bus.subscribe(k.scan_cloud("*"), self._on_cloud),
                       self.bus.subscribe(k.job_event("*"), self._on_event)]
@@ -108,6 +116,8 @@ class CalibrateWorker:
     def stop(self) -> None:
         for s in self._subs:
             s.undeclare()
+        if self._latched is not None:
+            self._latched.close()
         self._queue.put(None)
         self._thread.join(30)
 
@@ -155,33 +165,51 @@ class CalibrateWorker:
             job_id = self._queue.get()
             if job_id is None:
                 return
-            deadline = time.monotonic() + self.cloud_wait_s
-            while True:  # the scan worker may still be decoding the last balls
-                with self._lock:
-                    job = self._job(job_id)
-                    missing = [s["scan_id"] for s in job.balls.values()
-                               if s["scan_id"] not in job.clouds]
-                if not missing or time.monotonic() > deadline:
-                    break
-                time.sleep(0.2)
-            self.process(job)
+            try:
+                self._process_when_complete(job_id)
+            finally:
+                self._queue.task_done()
+
+    def pending(self) -> int:
+        """Jobs queued or being computed."""
+        return self._queue.unfinished_tasks
+
+    def _process_when_complete(self, job_id: str) -> None:
+        deadline = time.monotonic() + self.cloud_wait_s
+        while True:  # the scan worker may still be decoding the last balls
+            with self._lock:
+                job = self._job(job_id)
+                missing = [s["scan_id"] for s in job.balls.values()
+                           if s["scan_id"] not in job.clouds]
+            if not missing or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        self.process(job)
 
     def process(self, job: JobData) -> dict[str, Any] | None:
         try:
             body, pairs = compute(job)
         except (HandEyeError, DegenerateGeometry) as exc:
             log.error("hand-eye of job %s failed: %s", job.job_id, exc)
-            self.bus.publish_json(self.bus.keys.hand_eye, {
-                "T_ecs_from_mcs": None, "rms_mm": None, "job_id": job.job_id, "error": str(exc)},
-                "scancell.HandEye")
+            self._publish({"T_ecs_from_mcs": None, "rms_mm": None, "job_id": job.job_id,
+                           "error": str(exc)}, latch=False)
             return None
         if self.store_dir is not None:
             body["file"] = str(store(self.store_dir, body, pairs))
-        self.bus.publish_json(self.bus.keys.hand_eye, body, "scancell.HandEye")
+        self._publish(body)
         self.results.append(body)
         log.info("hand-eye of job %s: %d pairs, RMS %.4f mm", job.job_id, body["pairs"],
                  body["rms_mm"])
         return body
+
+
+    def _publish(self, body: dict[str, Any], latch: bool = True) -> None:
+        """A failure is published but not latched: the calibration in force stays."""
+        encoded = messages.encode_json(body, "scancell.HandEye")
+        if latch and self._latched is not None:
+            self._latched.publish(encoded)
+        else:
+            self.bus.publish(self.bus.keys.hand_eye, encoded)
 
 
 def main(args: argparse.Namespace) -> int:

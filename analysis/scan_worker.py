@@ -102,18 +102,29 @@ class ScanWorker:
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, daemon=True, name="scan-worker")
         self._sub: Any = None
+        self._calib_pub: Any = None
         self.done = 0
 
     def start(self) -> None:
         self._thread.start()
+        self._calib_pub = self.bus.latched(self.bus.keys.stereo)
+        self._calib_pub.publish(messages.encode_json(
+            {**self.calib.to_json(), "projector_width": self.projector_width},
+            "scancell.StereoCalibration"))
         self._sub = self.bus.subscribe(self.bus.keys.dev("*", "image"), self._on_frame,
                                        lambda key, exc: log.warning("%s: %s", key, exc))
 
     def stop(self) -> None:
         if self._sub is not None:
             self._sub.undeclare()
+        if self._calib_pub is not None:
+            self._calib_pub.close()
         self._queue.put(None)
         self._thread.join(30)
+
+    def pending(self) -> int:
+        """Scans queued or being decoded."""
+        return self._queue.unfinished_tasks
 
     def _on_frame(self, sample: Any) -> None:
         meta = sample.attachment.meta
@@ -173,6 +184,7 @@ class ScanWorker:
             except Exception:
                 log.exception("scan %s: unexpected error", scan.scan_id)
             self.done += 1
+            self._queue.task_done()
 
 
 def main(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -94,17 +95,46 @@ class StereoCalibration:
                     rms[key] = float(node.real())
         finally:
             fs.release()
+        return cls._checked(values, rms, str(p))
+
+    @classmethod
+    def _checked(cls, values: dict[str, Any], rms: dict[str, float],
+                 where: str) -> StereoCalibration:
         shapes = {"K1": (3, 3), "K2": (3, 3), "R": (3, 3)}
         for key, shape in shapes.items():
             if values[key].shape != shape:
-                raise CalibrationError(f"{p}: {key} must be 3 x 3, got {values[key].shape}")
+                raise CalibrationError(f"{where}: {key} must be 3 x 3, got {values[key].shape}")
         if values["T"].size != 3:
-            raise CalibrationError(f"{p}: T must have 3 values, got {values['T'].size}")
+            raise CalibrationError(f"{where}: T must have 3 values, got {values['T'].size}")
         if values["image_width"] <= 0 or values["image_height"] <= 0:
-            raise CalibrationError(f"{p}: image_width and image_height must be positive")
+            raise CalibrationError(f"{where}: image_width and image_height must be positive")
         return cls((values["image_width"], values["image_height"]), values["K1"],
                    values["D1"].reshape(-1), values["K2"], values["D2"].reshape(-1), values["R"],
                    values["T"].reshape(3), rms)
+
+    def to_json(self) -> dict[str, Any]:
+        """As ``scancell.StereoCalibration`` (what ``calib/stereo`` carries): exact float64."""
+        out: dict[str, Any] = {"image_width": int(self.image_size[0]),
+                               "image_height": int(self.image_size[1])}
+        for key in ("K1", "D1", "K2", "D2", "R", "T"):
+            out[key] = np.asarray(getattr(self, key), float).tolist()
+        out["rms"] = dict(self.rms)
+        return out
+
+    @classmethod
+    def from_json(cls, obj: Any, where: str = "calib/stereo") -> StereoCalibration:
+        if not isinstance(obj, dict):
+            raise CalibrationError(f"{where}: expected a JSON object")
+        missing = [k for k in REQUIRED_KEYS if k not in obj]
+        if missing:
+            raise CalibrationError(f"{where}: missing key {missing[0]!r}")
+        try:
+            values: dict[str, Any] = {k: int(obj[k]) if k.startswith("image_")
+                                      else np.asarray(obj[k], float) for k in REQUIRED_KEYS}
+            rms = {str(k): float(v) for k, v in (obj.get("rms") or {}).items()}
+        except (TypeError, ValueError) as exc:
+            raise CalibrationError(f"{where}: {exc}") from None
+        return cls._checked(values, rms, where)
 
 
 # ---------------------------------------------------------------------------- calibration

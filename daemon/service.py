@@ -51,6 +51,7 @@ class Daemon:
         self._started = time.monotonic()
         self.ready = False
         self.simulator: Any = None
+        self.recorder: Any = None
 
     # ---------------------------------------------------------------- lifecycle
     def request_stop(self) -> None:
@@ -68,11 +69,25 @@ class Daemon:
         self.bus = Bus.open(self.bus_config, self.cfg.cell)
         handler = BusLogHandler(self.bus)
         logging.getLogger("scancell").addHandler(handler)
+        self._start_recorder()
         try:
             return await self._serve()
         finally:
             logging.getLogger("scancell").removeHandler(handler)
+            if self.recorder is not None:
+                await asyncio.to_thread(self.recorder.stop)
             self.bus.close()
+
+    def _start_recorder(self) -> None:
+        """The embedded recorder (``[recorder]``) runs on its own threads: a full disk or a
+        slow file system never stalls the daemon."""
+        if self.cfg.recorder is None:
+            return
+        from scancell.recorder.recorder import Recorder
+
+        assert self.bus is not None
+        self.recorder = Recorder(self.bus, self.cfg.recorder, self.cfg.redacted())
+        self.recorder.start()
 
     async def _start_simulator(self) -> None:
         if self.cfg.simulator is None:
@@ -115,6 +130,7 @@ class Daemon:
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
+             "config": CellVerb(self._cmd_config),
              "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0),
              "job/calibrate_hand_eye": CellVerb(
                  lambda r: self.jobs.start("calibrate_hand_eye", r)),
@@ -226,6 +242,10 @@ class Daemon:
             "uptime_s": round(time.monotonic() - self._started, 3),
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
         }
+
+    async def _cmd_config(self, request: dict[str, Any]) -> dict[str, Any]:
+        return {"config": self.cfg.redacted(),
+                "path": str(self.cfg.path) if self.cfg.path else None}
 
     async def _cmd_devices(self, request: dict[str, Any]) -> dict[str, Any]:
         out = []

@@ -66,6 +66,16 @@ class CellKeys:
     def fusion_report(self) -> str:
         return f"{self.prefix}/fusion/report"
 
+    def recorder_status(self, name: str) -> str:
+        return f"{self.prefix}/recorder/{name}/status"
+
+    def recorder_event(self, name: str) -> str:
+        return f"{self.prefix}/recorder/{name}/event"
+
+    @property
+    def stereo(self) -> str:
+        return f"{self.prefix}/calib/stereo"
+
     @property
     def daemon_log(self) -> str:
         return f"{self.prefix}/daemon/log"

@@ -1,0 +1,394 @@
+"""The recorder: every sample on ``scancell/<cell>/**`` into one MCAP file per session.
+
+A session is a job (``<job_id>.mcap``, from its ``running`` event until ``job_linger_s`` after
+its end, so the workers' outputs of the last station still land in it), or, between jobs, an
+``idle-<time>.mcap`` file split every ``split_s`` seconds or ``split_bytes`` bytes.
+
+Nothing is lost silently. Samples go through a bounded queue (``queue_bytes``) to one writer
+thread; if it ever overflows, the sample is dropped, counted per key expression, named in a log
+line, published as a ``dropped`` event on ``recorder/<name>/event`` and counted in the status on
+``recorder/<name>/status`` (which is recorded too, and summed up in the file's ``scancell.recorder``
+metadata). A chunk is closed and handed to the OS at least every ``flush_interval_s`` (0.5 s), so
+after a crash ``scancell record recover`` gets everything but the last half second. A write error
+(disk full, unwritable path) closes the file, is published as an ``error`` event and logged, and
+the recorder tries again with a new file at the next session; whoever embeds it keeps running.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from scancell.bus import Bus, BusSample
+from scancell.protocols import messages
+from scancell.protocols.encoding import EncodingError
+from scancell.recorder.reading import topic_matches
+from scancell.recorder.session_file import FileSettings, SessionFile
+
+log = logging.getLogger(__name__)
+
+#: Keys whose last sample is written again at the start of every session file (and attached as a
+#: file), so a session alone holds the calibrations in force.
+LATCHED = ("calib/stereo", "calib/hand_eye")
+TERMINAL_STATES = ("done", "failed", "aborted")
+
+
+@dataclass(frozen=True)
+class RecorderSettings:
+    """The ``[recorder]`` table of a cell config, and the options of ``scancell record``."""
+
+    directory: str = "recordings"
+    name: str = "recorder"
+    #: Key expressions relative to ``scancell/<cell>/`` to record, and to leave out.
+    topics: tuple[str, ...] = ("**",)
+    exclude: tuple[str, ...] = ()
+    queue_bytes: int = 1 << 30
+    split_s: float = 600.0
+    split_bytes: int = 4 << 30
+    job_linger_s: float = 10.0
+    status_period_s: float = 1.0
+    retry_s: float = 5.0
+    file: FileSettings = field(default_factory=FileSettings)
+
+    @classmethod
+    def from_mapping(cls, m: dict[str, Any]) -> RecorderSettings:
+        """From a config table; raises ValueError naming the offending key."""
+        file_keys = {f.name for f in fields(FileSettings)}
+        own = {f.name for f in fields(cls)} - {"file", "enabled"}
+        kw: dict[str, Any] = {}
+        fkw: dict[str, Any] = {}
+        for key, value in m.items():
+            if key == "enabled":
+                continue
+            if key in file_keys:
+                fkw[key] = value
+            elif key in own:
+                kw[key] = tuple(value) if key in ("topics", "exclude") else value
+            else:
+                raise ValueError(f"unknown key {key!r}; expected one of "
+                                 f"{sorted(own | file_keys | {'enabled'})}")
+        for key in ("queue_bytes", "split_bytes"):
+            if key in kw and (not isinstance(kw[key], int) or kw[key] <= 0):
+                raise ValueError(f"{key} must be a positive integer, got {kw[key]!r}")
+        for key in ("split_s", "job_linger_s", "status_period_s", "retry_s"):
+            if key in kw and (not isinstance(kw[key], int | float) or kw[key] <= 0):
+                raise ValueError(f"{key} must be a positive number of seconds, got {kw[key]!r}")
+        return cls(**kw, file=FileSettings(**fkw))
+
+
+@dataclass
+class _Session:
+    name: str
+    file: SessionFile
+    job_id: str | None
+    opened: float
+    ended: float | None = None  # monotonic time the job ended
+
+
+class Recorder:
+    """Records one cell's bus. ``start()`` and ``stop()`` from any thread."""
+
+    def __init__(self, bus: Bus, settings: RecorderSettings = RecorderSettings(),
+                 cell_config: dict[str, Any] | None = None) -> None:
+        self.bus = bus
+        self.settings = settings
+        self.cell_config = cell_config
+        self.directory = Path(settings.directory)
+        self._cond = threading.Condition()
+        self._queue: deque[tuple[int, BusSample]] = deque()
+        self._queued_bytes = 0
+        self._stopping = False
+        self._subs: list[Any] = []
+        self._thread = threading.Thread(target=self._run, daemon=True, name="recorder")
+        self.session: _Session | None = None
+        self.latched: dict[str, BusSample] = {}
+        self.dropped: dict[str, int] = {}
+        self._drop_events: dict[str, int] = {}  # key -> drops not yet announced
+        self.unrecordable: dict[str, str] = {}
+        self.files: list[Path] = []
+        self.total_messages = 0
+        self.total_bytes = 0
+        self.lost = 0
+        self.error: str | None = None
+        self._error_at = 0.0
+        self._last_status = 0.0
+        self.state = "idle"
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        if self.cell_config is None:
+            self.cell_config = self._fetch_config()
+        prefix = self.bus.keys.prefix
+        for s in self.bus.fetch_latched(f"{prefix}/calib/**", timeout_s=1.0):
+            rel = self.bus.keys.relative(s.key)
+            if rel in LATCHED:
+                self.latched[rel] = s
+        for pattern in self.settings.topics:
+            self._subs.append(self.bus.subscribe(f"{prefix}/{pattern}", self._on_sample,
+                                                 self._on_bad_sample))
+        self._thread.start()
+        log.info("recorder %r: recording %s of cell %r into %s", self.settings.name,
+                 ", ".join(self.settings.topics), self.bus.keys.cell, self.directory)
+
+    def stop(self) -> None:
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()
+        self._subs.clear()
+        with self._cond:
+            self._stopping = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(60)
+        self.state = "stopped"
+        with contextlib.suppress(Exception):
+            self._publish_status(time.monotonic())
+
+    def _fetch_config(self) -> dict[str, Any] | None:
+        try:
+            return self.bus.call("config", timeout_s=2.0, connect_wait_s=0.5)["config"]
+        except Exception as exc:  # no daemon (yet): the file says so
+            log.info("recorder: no cell config from the daemon (%s)", exc)
+            return None
+
+    # ---------------------------------------------------------------- zenoh threads
+    def _on_sample(self, sample: BusSample) -> None:
+        rel = sample.key[len(self.bus.keys.prefix) + 1:]
+        if self.settings.exclude and topic_matches(rel, list(self.settings.exclude)):
+            return
+        size = len(sample.payload)
+        with self._cond:
+            if self._queued_bytes + size > self.settings.queue_bytes:
+                n = self.dropped.get(sample.key, 0)
+                self.dropped[sample.key] = n + 1
+                self._drop_events[sample.key] = self._drop_events.get(sample.key, 0) + 1
+                first = n == 0
+            else:
+                self._queue.append((time.time_ns(), sample))
+                self._queued_bytes += size
+                self._cond.notify()
+                return
+        if first:
+            log.error("recorder %r: queue full (%d MB), dropping messages on %s",
+                      self.settings.name, self.settings.queue_bytes >> 20, sample.key)
+
+    def _on_bad_sample(self, key: str, exc: Exception) -> None:
+        if key not in self.unrecordable:
+            self.unrecordable[key] = str(exc)
+            log.warning("recorder: cannot record %s: %s", key, exc)
+
+    # ---------------------------------------------------------------- writer thread
+    def _run(self) -> None:
+        tick = min(self.settings.file.flush_interval_s / 2, self.settings.status_period_s)
+        while True:
+            with self._cond:
+                if not self._queue and not self._stopping:
+                    self._cond.wait(tick)
+                batch = list(self._queue)
+                self._queue.clear()
+                self._queued_bytes = 0
+                stopping = self._stopping
+            for recv_ns, sample in batch:
+                self._handle(recv_ns, sample)
+            self._housekeeping(time.monotonic())
+            if stopping and not batch:
+                break
+        self._close_session("recorder stopped")
+
+    def _handle(self, recv_ns: int, sample: BusSample) -> None:
+        rel = self.bus.keys.relative(sample.key)
+        if rel in LATCHED:
+            self.latched[rel] = sample
+        event = self._job_event(rel, sample)
+        if event is not None and event.get("state") == "running":
+            job_id = str(event.get("job_id"))
+            if self.session is None or self.session.job_id != job_id:
+                self._close_session(f"job {job_id} started")
+                self._open_session(job_id, job_id)
+        if self.session is None:
+            self._open_session(f"idle-{time.strftime('%Y%m%dT%H%M%S')}", None)
+        self._write(recv_ns, sample)
+        if (event is not None and event.get("state") in TERMINAL_STATES and self.session is not None
+                and self.session.job_id == event.get("job_id")):
+            self.session.ended = time.monotonic()
+
+    @staticmethod
+    def _job_event(rel: str, sample: BusSample) -> dict[str, Any] | None:
+        if not (rel.startswith("job/") and rel.endswith("/event")
+                and sample.schema == "scancell.JobEvent"):
+            return None
+        try:
+            e = json.loads(sample.payload)
+        except ValueError:
+            return None
+        return e if isinstance(e, dict) else None
+
+    def _write(self, recv_ns: int, sample: BusSample) -> None:
+        if self.session is None:
+            self.lost += 1  # after a write error, until the retry: counted in the status
+            return
+        try:
+            self.session.file.write(sample.key, sample.mime, sample.schema, sample.payload,
+                                    sample.attachment, recv_ns)
+        except EncodingError as exc:
+            if sample.key not in self.unrecordable:
+                self.unrecordable[sample.key] = str(exc)
+                log.warning("recorder: cannot record %s: %s", sample.key, exc)
+            return
+        except OSError as exc:
+            self._fail(exc)
+            return
+        self.total_messages += 1
+        self.total_bytes += len(sample.payload)
+
+    def _housekeeping(self, now: float) -> None:
+        s = self.session
+        if s is not None:
+            try:
+                s.file.maybe_flush(now)
+            except OSError as exc:
+                self._fail(exc)
+            s = self.session
+        if s is not None:
+            if s.ended is not None and now - s.ended >= self.settings.job_linger_s:
+                self._close_session(f"job {s.job_id} ended")
+            elif s.job_id is None and (now - s.opened >= self.settings.split_s
+                                       or s.file.bytes >= self.settings.split_bytes):
+                self._close_session("split")
+        with self._cond:
+            drops, self._drop_events = self._drop_events, {}
+        for key, n in drops.items():
+            self._event("dropped", key=key, messages=n,
+                        message=f"{n} messages on {key} dropped: recorder queue full")
+        if drops or now - self._last_status >= self.settings.status_period_s:
+            self._publish_status(now)
+
+    # ---------------------------------------------------------------- sessions
+    def _open_session(self, name: str, job_id: str | None) -> None:
+        if (job_id is None and self.error is not None
+                and time.monotonic() - self._error_at < self.settings.retry_s):
+            return
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            path = self._free_path(name)
+            f = SessionFile(path, self.settings.file)
+        except OSError as exc:
+            self._fail(exc, f"cannot open a session file in {self.directory}")
+            return
+        self.session = _Session(name, f, job_id, time.monotonic())
+        self.error = None
+        self.state = "recording"
+        self.files.append(path)
+        try:
+            self._write_header(f, name, job_id)
+        except OSError as exc:
+            self._fail(exc)
+            return
+        self._event("opened", message=f"recording session {name} to {path}")
+        log.info("recorder: session %s -> %s", name, path)
+
+    def _free_path(self, name: str) -> Path:
+        path = self.directory / f"{name}.mcap"
+        n = 1
+        while path.exists():
+            path = self.directory / f"{name}-{n}.mcap"
+            n += 1
+        return path
+
+    def _write_header(self, f: SessionFile, name: str, job_id: str | None) -> None:
+        import scancell
+
+        f.metadata("scancell.session", {
+            "cell": self.bus.keys.cell, "session": name, "job_id": job_id or "",
+            "recorder": self.settings.name, "version": scancell.__version__,
+            "host": socket.gethostname(), "pid": str(os.getpid()),
+            "started_ns": str(time.time_ns())})
+        f.metadata("scancell.config", {"config": self.cell_config} if self.cell_config
+                   else {"config": "unknown: no daemon answered cmd/config"})
+        for rel, s in sorted(self.latched.items()):
+            f.write(s.key, s.mime, s.schema, s.payload, s.attachment, time.time_ns())
+            f.attach(f"{rel}.json", "application/json", s.payload)
+
+    def _close_session(self, why: str) -> None:
+        s, self.session = self.session, None
+        if s is None:
+            return
+        with self._cond:
+            dropped = dict(self.dropped)
+        try:
+            s.file.metadata("scancell.recorder", {
+                "closed": why, "messages": str(s.file.messages), "bytes": str(s.file.bytes),
+                "dropped_total": str(sum(dropped.values())), "dropped": dropped,
+                "unrecordable": self.unrecordable})
+            s.file.close()
+        except OSError as exc:
+            s.file.abandon()
+            self._fail(exc)
+            return
+        self.state = "idle" if self.error is None else "error"
+        self._event("closed", file=str(s.file.path), session=s.name, messages=s.file.messages,
+                    bytes=s.file.bytes, message=f"session {s.name} closed ({why})")
+        log.info("recorder: session %s closed (%s): %d messages, %.1f MB", s.name, why,
+                 s.file.messages, s.file.bytes / 1e6)
+
+    def _fail(self, exc: OSError, what: str = "write failed") -> None:
+        s, self.session = self.session, None
+        where = s.file.path if s is not None else self.directory
+        self.error = f"{what}: {where}: {exc.strerror or exc}"
+        self._error_at = time.monotonic()
+        self.state = "error"
+        if s is not None:
+            try:  # a summary needs disk space too; the chunks already written stay readable
+                s.file.close()
+            except OSError:
+                s.file.abandon()
+        log.error("recorder %r: %s; data up to the last chunk is kept, retrying in %.0f s",
+                  self.settings.name, self.error, self.settings.retry_s)
+        self._event("error", file=str(where), message=self.error)
+        self._publish_status(time.monotonic())
+
+    # ---------------------------------------------------------------- bus outputs
+    def _event(self, event: str, **body: Any) -> None:
+        s = self.session
+        msg = {"recorder": self.settings.name, "event": event,
+               "file": str(s.file.path) if s else None, "session": s.name if s else None,
+               "stamp_ns": messages.now_ns(), **body}
+        with contextlib.suppress(Exception):
+            self.bus.publish_json(self.bus.keys.recorder_event(self.settings.name), msg,
+                                  "scancell.RecorderEvent")
+
+    def status(self) -> dict[str, Any]:
+        s = self.session
+        with self._cond:
+            dropped = dict(self.dropped)
+            queued = self._queued_bytes
+        return {"recorder": self.settings.name, "state": self.state,
+                "file": str(s.file.path) if s else None, "session": s.name if s else None,
+                "messages": s.file.messages if s else 0, "bytes": s.file.bytes if s else 0,
+                "total_messages": self.total_messages, "total_bytes": self.total_bytes,
+                "queue_bytes": queued, "queue_limit_bytes": self.settings.queue_bytes,
+                "dropped": dropped, "dropped_total": sum(dropped.values()),
+                "lost_after_error": self.lost, "error": self.error,
+                "stamp_ns": messages.now_ns()}
+
+    def _publish_status(self, now: float) -> None:
+        self._last_status = now
+        with contextlib.suppress(Exception):
+            self.bus.publish_json(self.bus.keys.recorder_status(self.settings.name),
+                                  self.status(), "scancell.RecorderStatus")
+
+
+def settings_with(settings: RecorderSettings, **changes: Any) -> RecorderSettings:
+    """``settings`` with some fields (and FileSettings fields) changed."""
+    file_keys = {f.name for f in fields(FileSettings)}
+    fchanges = {k: changes.pop(k) for k in list(changes) if k in file_keys}
+    return replace(settings, file=replace(settings.file, **fchanges), **changes)

@@ -1,0 +1,180 @@
+"""The recorder on a real zenoh bus: sessions per job, latched calibrations, drops that are
+never silent, write errors that leave the host process serving."""
+
+from __future__ import annotations
+
+import errno
+import json
+import threading
+import time
+
+import numpy as np
+from mcap.reader import make_reader
+from scancell.protocols import messages
+from scancell.recorder.reading import info, samples
+from scancell.recorder.recorder import Recorder, RecorderSettings, settings_with
+from scancell.recorder.session_file import SessionFile
+
+from .conftest import wait_until
+
+
+def _event(bus, job_id: str, state: str) -> None:
+    bus.publish_json(bus.keys.job_event(job_id), {
+        "job_id": job_id, "kind": "test", "state": state, "step": "x", "message": "",
+        "index": None, "total": None, "stamp_ns": messages.now_ns()}, "scancell.JobEvent")
+
+
+def _point(bus, k: float) -> None:
+    bus.publish_json(bus.keys.dev("tracker", "point"), {
+        "frame": "world", "point_mm": [k, 0.0, 0.0], "sigma_mm": [0.01] * 3,
+        "stamp_ns": messages.now_ns()}, "scancell.TrackerPoint")
+
+
+def _collect(bus, key: str) -> list:
+    got: list = []
+    bus.subscribe(key, lambda s: got.append(s.decode()))
+    return got
+
+
+def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
+    a, b = bus_pair
+    stereo = b.latched(b.keys.stereo)  # a worker's calibration, published before the recorder
+    stereo.publish(messages.encode_json({"image_width": 4}, "scancell.StereoCalibration"))
+    time.sleep(0.2)
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=0.3,
+                                       status_period_s=0.2), {"cell": {"name": "x"}})
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _point(b, 1)  # -> idle session
+        wait_until(lambda: rec.session is not None, 5, what="idle session")
+        _event(b, "job-1", "running")
+        for k in range(5):
+            _point(b, 10 + k)
+        _event(b, "job-1", "done")
+        wait_until(lambda: any(e["event"] == "closed" and e["session"] == "job-1"
+                               for e in events), 5, what="job session closed")
+        _point(b, 2)
+        wait_until(lambda: len(rec.files) >= 3, 5, what="a new idle session")
+    finally:
+        rec.stop()
+        stereo.close()
+    names = [f.name for f in rec.files]
+    assert names[0].startswith("idle-") and names[1] == "job-1.mcap" and names[2].startswith("idle-")
+    job = list(samples(tmp_path / "job-1.mcap"))
+    keys = [a.keys.relative(s.key) for s in job]
+    # the calibration in force opens the file, then the job from its first event to its last
+    assert keys[0] == "calib/stereo" and json.loads(job[0].payload) == {"image_width": 4}
+    body = [k for k in keys if not k.startswith("recorder/")]
+    assert body == ["calib/stereo", "job/job-1/event"] + ["dev/tracker/point"] * 5 + \
+        ["job/job-1/event"]
+    i = info(tmp_path / "job-1.mcap")
+    assert "calib/stereo.json" in i.attachments
+    assert i.metadata["scancell.session"]["job_id"] == "job-1"
+    assert json.loads(i.metadata["scancell.config"]["config"]) == {"cell": {"name": "x"}}
+    assert i.metadata["scancell.recorder"]["dropped_total"] == "0"
+    assert {e["event"] for e in events} >= {"opened", "closed"}
+
+
+def test_a_full_queue_drops_loudly_and_is_counted_in_the_file(bus_pair, tmp_path, caplog):
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), queue_bytes=3_000_000,
+                                       status_period_s=0.2))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    gate = threading.Event()
+    original = rec._handle
+
+    def slow_handle(recv_ns, sample):  # a stalled disk: the writer thread waits
+        gate.wait(10)
+        original(recv_ns, sample)
+
+    rec._handle = slow_handle
+    rec.start()
+    time.sleep(0.3)
+    img = messages.encode_proto(messages.raw_image(np.zeros((1000, 1000), np.uint8), 1, "c"))
+    key = b.keys.dev("cam_left", "image")
+    try:
+        for _ in range(10):
+            b.publish(key, img)
+        wait_until(lambda: rec.dropped.get(key, 0) > 0, 10, what="drops counted")
+        gate.set()
+        wait_until(lambda: any(e["event"] == "dropped" for e in events), 10, what="drop event")
+    finally:
+        gate.set()
+        rec.stop()
+    dropped = rec.dropped[key]
+    assert 0 < dropped < 10
+    assert any(key in r.getMessage() and "dropping" in r.getMessage() for r in caplog.records)
+    drop_events = [e for e in events if e["event"] == "dropped"]
+    assert drop_events[0]["key"] == key and sum(e["messages"] for e in drop_events) == dropped
+    f = rec.files[0]
+    i = info(f)
+    assert i.topics[key] == 10 - dropped
+    assert json.loads(i.metadata["scancell.recorder"]["dropped"]) == {key: dropped}
+    statuses = [s.decode() for s in samples(f, ["recorder/*/status"])]
+    assert statuses and statuses[-1]["dropped"] == {key: dropped}
+
+
+def test_a_write_error_is_published_and_the_next_session_retries(bus_pair, tmp_path, monkeypatch):
+    a, b = bus_pair
+    rec = Recorder(a, settings_with(RecorderSettings(directory=str(tmp_path), retry_s=0.2,
+                                                     status_period_s=0.2), flush_interval_s=0.1))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    statuses = _collect(b, b.keys.recorder_status("recorder"))
+    real_write = SessionFile.write
+    full = {"on": False}
+    written: list[str] = []
+
+    def write(self, topic, *args, **kw):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(topic)
+        return real_write(self, topic, *args, **kw)
+
+    monkeypatch.setattr(SessionFile, "write", write)
+    rec.start()
+    time.sleep(0.3)
+    try:
+        for k in range(3):
+            _point(b, k)
+        wait_until(lambda: rec.total_messages >= 3, 5, what="first points written")
+        time.sleep(0.3)  # flushed
+        full["on"] = True
+        _point(b, 99)
+        wait_until(lambda: any(e["event"] == "error" for e in events), 5, what="error event")
+        err = next(e for e in events if e["event"] == "error")
+        assert "No space left on device" in err["message"] and err["file"].endswith(".mcap")
+        wait_until(lambda: any(s["state"] == "error" for s in statuses), 5, what="error status")
+        full["on"] = False
+        time.sleep(0.3)
+        _point(b, 100)
+        wait_until(lambda: written.count(b.keys.dev("tracker", "point")) == 4, 5, what="retry")
+    finally:
+        rec.stop()
+    first = [json.loads(s.payload)["point_mm"][0] for s in samples(rec.files[0], ["dev/**"])]
+    assert first == [0, 1, 2]  # the data before the error is intact and the file closed
+    # while the disk was full the recorder retried (status messages) and failed again; once
+    # there was room, the next file took the new data
+    assert [json.loads(s.payload)["point_mm"][0] for s in samples(rec.files[-1], ["dev/**"])] \
+        == [100]
+    with open(rec.files[0], "rb") as fh:
+        assert make_reader(fh).get_summary() is not None
+
+
+def test_an_unwritable_directory_is_an_error_not_a_crash(bus_pair, tmp_path):
+    a, b = bus_pair
+    (tmp_path / "file").write_text("x")
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path / "file" / "sub"),
+                                       status_period_s=0.2))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _point(b, 1)
+        wait_until(lambda: any(e["event"] == "error" for e in events), 5, what="error event")
+    finally:
+        rec.stop()
+    err = next(e for e in events if e["event"] == "error")
+    assert "cannot open a session file" in err["message"] and "sub" in err["message"]
+    assert rec.lost >= 1 and rec.status()["state"] == "stopped"

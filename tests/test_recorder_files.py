@@ -1,0 +1,153 @@
+"""Session files without a bus: schemas, attachments, mixed chunk compression, crash recovery."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
+from mcap_protobuf.decoder import DecoderFactory
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment
+from scancell.recorder.reading import RecordingError, info, samples, topic_matches
+from scancell.recorder.recover import recover
+from scancell.recorder.session_file import FileSettings, SessionFile
+
+P = "scancell/c1"
+
+
+def _image(k: int) -> bytes:
+    img = np.full((48, 64), k, np.uint8)
+    return messages.encode_proto(messages.raw_image(img, 1000 + k, "cam_left")).payload
+
+
+def _point(k: float) -> bytes:
+    return json.dumps({"frame": "world", "point_mm": [k, 0, 0], "sigma_mm": [0.01] * 3,
+                       "stamp_ns": 3000}).encode()
+
+
+def _write_session(path, n_images: int = 3, settings: FileSettings | None = None) -> SessionFile:
+    f = SessionFile(path, settings or FileSettings())
+    f.metadata("scancell.session", {"cell": "c1", "session": "test"})
+    f.attach("calib/stereo.json", "application/json", b'{"K1": []}')
+    for k in range(n_images):
+        meta = {"scan_id": "s-1", "station": "3", "role": "left", "pattern": k}
+        f.write(f"{P}/dev/cam_left/image", "application/protobuf", "foxglove.RawImage",
+                _image(k), Attachment(1000 + k, k, 5000 + k, meta), 2000 + k)
+        f.write(f"{P}/dev/tracker/point", "application/json", "scancell.TrackerPoint",
+                _point(k), Attachment(3000 + k, k), 2000 + k)
+    return f
+
+
+def test_a_session_reads_back_sample_for_sample_with_attachments(tmp_path):
+    f = _write_session(tmp_path / "a.mcap")
+    f.close()
+    got = list(samples(tmp_path / "a.mcap"))
+    assert [s.key for s in got] == [f"{P}/dev/cam_left/image", f"{P}/dev/tracker/point"] * 3
+    img = got[2]
+    assert img.schema == "foxglove.RawImage" and img.mime == "application/protobuf"
+    assert img.attachment == Attachment(1001, 1, 5001, {"scan_id": "s-1", "station": "3",
+                                                        "role": "left", "pattern": 1})
+    assert messages.image_array(img.decode())[0, 0] == 1
+    assert got[3].attachment == Attachment(3001, 1) and got[3].log_time_ns == 2001
+    i = info(tmp_path / "a.mcap")
+    assert i.cell == "c1" and i.messages == 6 and i.attachments == ["calib/stereo.json"]
+    assert i.topics == {f"{P}/dev/cam_left/image": 3, f"{P}/dev/tracker/point": 3}
+    assert [s.key for s in samples(tmp_path / "a.mcap", ["dev/tracker/*"])] == \
+        [f"{P}/dev/tracker/point"] * 3
+
+
+def test_every_message_decodes_with_its_recorded_schema(tmp_path):
+    """What Foxglove does: protobuf from the file's FileDescriptorSet, JSON against its schema."""
+    import jsonschema
+
+    _write_session(tmp_path / "a.mcap").close()
+    with open(tmp_path / "a.mcap", "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        n = 0
+        for schema, channel, message in reader.iter_messages():
+            if channel.message_encoding == "protobuf":
+                decoded = DecoderFactory().decoder_for("protobuf", schema)(message.data)
+                assert decoded.width == 64
+            else:
+                assert schema.encoding == "jsonschema"
+                jsonschema.validate(json.loads(message.data), json.loads(schema.data))
+            n += 1
+    assert n == 9  # 3 images, 3 companions, 3 tracker points
+
+
+def test_image_chunks_are_uncompressed_and_the_rest_compressed(tmp_path):
+    f = _write_session(tmp_path / "a.mcap", settings=FileSettings(compression="zstd",
+                                                                  chunk_bytes=1024))
+    f.close()
+    with open(tmp_path / "a.mcap", "rb") as fh:
+        chunks = [r for r in StreamReader(fh, emit_chunks=True).records if isinstance(r, Chunk)]
+    kinds = {c.compression for c in chunks}
+    assert kinds == {"", "zstd"}, kinds
+    f2 = _write_session(tmp_path / "b.mcap", settings=FileSettings(compress_images=True))
+    f2.close()
+    with open(tmp_path / "b.mcap", "rb") as fh:
+        assert {r.compression for r in StreamReader(fh, emit_chunks=True).records
+                if isinstance(r, Chunk)} == {"zstd"}
+
+
+def test_bad_settings_and_bad_files_are_named(tmp_path):
+    with pytest.raises(ValueError, match="compression"):
+        FileSettings(compression="gzip")
+    with pytest.raises(ValueError, match="flush_interval_s"):
+        FileSettings(flush_interval_s=5)
+    with pytest.raises(RecordingError, match="no such recording"):
+        info(tmp_path / "missing.mcap")
+    (tmp_path / "x.mcap").write_bytes(b"hello world")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        list(samples(tmp_path / "x.mcap"))
+    with pytest.raises(ValueError, match="not a key expression"):
+        topic_matches(f"{P}/a", ["a//b"])
+
+
+def test_a_cut_file_is_recovered_up_to_its_last_whole_chunk(tmp_path):
+    f = _write_session(tmp_path / "a.mcap", n_images=0)
+    for k in range(10):
+        f.write(f"{P}/dev/tracker/point", "application/json", "scancell.TrackerPoint",
+                _point(0), Attachment(k, k), k)
+        f.flush()  # what the recorder does every 0.5 s
+    f.write(f"{P}/dev/tracker/point", "application/json", "scancell.TrackerPoint",
+            _point(0), Attachment(99, 99), 99)  # in an open chunk: lost
+    f.abandon()  # no summary: as after kill -9
+    with pytest.raises(RecordingError, match="recover"):
+        info(tmp_path / "a.mcap")
+    size = os.path.getsize(tmp_path / "a.mcap")
+    cut = tmp_path / "cut.mcap"
+    # cut in the last chunk's message index (31 bytes): all 10 flushed messages are whole;
+    # cut 40 bytes: the last chunk is half written and lost, 9 remain
+    for trim, kept in ((7, 10), (40, 9)):
+        cut.write_bytes((tmp_path / "a.mcap").read_bytes()[: size - trim])
+        r = recover(cut)
+        assert not r.complete and r.problem and r.stopped_at_byte < size - trim
+        assert r.messages == kept and r.attachments == 1 and r.metadata == 1, r
+        got = list(samples(r.output))
+        assert [s.attachment.seq for s in got] == list(range(kept))
+        assert info(r.output).cell == "c1"
+    # a complete file comes through whole, the original is never touched
+    _write_session(tmp_path / "b.mcap").close()
+    before = (tmp_path / "b.mcap").read_bytes()
+    r2 = recover(tmp_path / "b.mcap", tmp_path / "b2.mcap")
+    assert r2.complete and r2.messages == 9
+    assert (tmp_path / "b.mcap").read_bytes() == before
+    assert [s.attachment for s in samples(tmp_path / "b2.mcap")] == \
+        [s.attachment for s in samples(tmp_path / "b.mcap")]
+    with pytest.raises(RecordingError, match="must not be"):
+        recover(tmp_path / "b.mcap", tmp_path / "b.mcap")
+
+
+def test_flush_is_time_driven(tmp_path):
+    f = SessionFile(tmp_path / "a.mcap", FileSettings(flush_interval_s=0.2))
+    t = time.monotonic()
+    assert not f.maybe_flush(t)
+    assert f.maybe_flush(t + 0.25)
+    f.close()
