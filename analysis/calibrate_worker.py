@@ -197,11 +197,24 @@ class CalibrateWorker:
         if self.store_dir is not None:
             body["file"] = str(store(self.store_dir, body, pairs))
         self._publish(body)
+        self._publish_frames(job, body)
         self.results.append(body)
         log.info("hand-eye of job %s: %d pairs, RMS %.4f mm", job.job_id, body["pairs"],
                  body["rms_mm"])
         return body
 
+
+    def _publish_frames(self, job: JobData, body: dict[str, Any]) -> None:
+        """``world <- ecs_<station> <- mcs_<station>`` for every ball scan, so a viewer shows the
+        ball clouds in the tracker frame beside the tracker's ball points."""
+        k, now = self.bus.keys, messages.now_ns()
+        T_world_from_ecs = np.asarray(body["T_world_from_ecs"])
+        T_ecs_from_mcs = np.asarray(body["T_ecs_from_mcs"])
+        for station in sorted({str(s.get("station", "")) for s in job.balls.values()} - {""}):
+            for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
+                                     (T_ecs_from_mcs, f"ecs_{station}", f"mcs_{station}")):
+                self.bus.publish(k.transform(child), messages.encode_proto(
+                    messages.frame_transform(T, now, parent, child)))
 
     def _publish(self, body: dict[str, Any], latch: bool = True) -> None:
         """A failure is published but not latched: the calibration in force stays."""

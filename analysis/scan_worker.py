@@ -1,7 +1,8 @@
 """``scancell worker scan``: reassembles scans from the bus, decodes them, publishes the clouds.
 
 Input: ``dev/*/image`` frames whose attachment meta is a ``scancell.ScanFrameMeta`` (``cmd/scan``
-publishes them). Output per scan: ``scan/<station>/cloud`` (foxglove.PointCloud, frame ``mcs``,
+publishes them). Output per scan: ``scan/<station>/cloud`` (foxglove.PointCloud, frame
+``mcs_<station>``: the scanner frame at that station,
 mm, fields x, y, z, quality, intensity) and ``scan/<station>/result`` (``scancell.ScanResult``).
 The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
 """
@@ -160,7 +161,8 @@ class ScanWorker:
             self._publish_result(scan, None, str(exc))
             return None
         c = result.cloud
-        msg = messages.point_cloud(c.points, scan.stamp_ns or messages.now_ns(), "mcs",
+        msg = messages.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
+                                   f"mcs_{scan.station}",
                                    {"quality": c.quality, "intensity": c.intensity})
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c)}
         self.bus.publish(self.bus.keys.scan_cloud(scan.station), messages.encode_proto(msg),

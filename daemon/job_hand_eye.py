@@ -107,10 +107,11 @@ class OperatorPlacer:
         return None
 
 
-async def _averaged(tracker: Tracker, repeats: int) -> tuple[np.ndarray, np.ndarray]:
+async def _averaged(tracker: Tracker, repeats: int,
+                    meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Mean of ``repeats`` measurements of the locked SMR and its 1-sigma (mm): the tracker's
     noise averages down, the robot's repeatability (one pose) does not need to."""
-    ms = [await tracker.measure() for _ in range(repeats)]
+    ms = [await tracker.measure_published(meta) for _ in range(repeats)]
     return (np.mean([m.point_mm for m in ms], axis=0),
             np.mean([m.sigma_mm for m in ms], axis=0) / np.sqrt(repeats))
 
@@ -160,7 +161,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                                                  "cameras": [c.name for c in cam_s]},
                              hold_locks=False)
                 await tracker.find_reflector(approx)
-                point, sigma = await _averaged(tracker, repeats)
+                point, sigma = await _averaged(tracker, repeats,
+                                               {"job_id": ctx.job_id, "ball": sid})
                 sample("ball", sid, point, index=i, scan_id=reply["scan_id"], repeats=repeats,
                        station=reply["station"], sigma_mm=[float(v) for v in sigma])
         finally:
@@ -177,7 +179,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                         q = q0.copy()
                         q[5] += np.radians(turn)
                         await robot.move_joints(q, speed)
-                    ecs_points.append((turn, await _averaged(tracker, repeats)))
+                    ecs_points.append((turn, await _averaged(
+                        tracker, repeats, {"job_id": ctx.job_id, "ecs": k, "j6_deg": turn})))
                 break
             except BeamBroken as exc:
                 await robot.move_joints(q0, speed)

@@ -288,13 +288,17 @@ class Tracker(Device):
         """Search and lock on the reflector near ``approx_mm`` (world, mm)."""
         raise CommandError("invalid", f"{self.name}: this tracker driver cannot search a reflector")
 
+    async def measure_published(self, meta: dict[str, Any] | None = None) -> TrackerMeasurement:
+        """:meth:`measure`, and the measurement on ``dev/<tracker>/point`` (every shot a
+        command or a job takes is on the bus, hence in the recording)."""
+        m = await self.measure()
+        self.emit("point", messages.encode_json(m.to_json(), "scancell.TrackerPoint"), m.stamp_ns,
+                  m.device_stamp_ns, meta)
+        return m
+
     @operation("tracker.measure", timeout_s=10.0)
     async def op_measure(self, request: dict[str, Any]) -> dict[str, Any]:
-        m = await self.measure()
-        body = m.to_json()
-        self.emit("point", messages.encode_json(body, "scancell.TrackerPoint"), m.stamp_ns,
-                  m.device_stamp_ns, request.get("meta"))
-        return body
+        return (await self.measure_published(request.get("meta"))).to_json()
 
     @operation("tracker.status")
     async def op_status(self, request: dict[str, Any]) -> dict[str, Any]:

@@ -76,6 +76,11 @@ class CellKeys:
     def stereo(self) -> str:
         return f"{self.prefix}/calib/stereo"
 
+    def transform(self, child_frame: str) -> str:
+        """foxglove.FrameTransform of ``child_frame`` in its parent (``world`` <- ``ecs_i`` <-
+        ``mcs_i``), for Foxglove's 3D panel."""
+        return f"{self.prefix}/tf/{check_name('frame', child_frame)}"
+
     @property
     def daemon_log(self) -> str:
         return f"{self.prefix}/daemon/log"

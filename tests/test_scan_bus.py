@@ -64,7 +64,7 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
         result = results[0].decode()
         assert result["ok"] and result["scan_id"] == reply["scan_id"], result
         msg = clouds[0].decode()
-        assert msg.frame_id == "mcs" and clouds[0].schema == "foxglove.PointCloud"
+        assert msg.frame_id == "mcs_s1" and clouds[0].schema == "foxglove.PointCloud"
         bus_points = messages.cloud_points(msg)
         assert len(bus_points) == result["points"] > 1000
 
