@@ -314,6 +314,9 @@ class Recorder:
             "started_ns": str(time.time_ns())})
         f.metadata("scancell.config", {"config": self.cell_config} if self.cell_config
                    else {"config": "unknown: no daemon answered cmd/config"})
+        f.metadata("scancell.calibration", {rel: s.payload.decode(errors="replace")
+                                            for rel, s in sorted(self.latched.items())}
+                   or {"none": "no calibration was on the bus when the session opened"})
         for rel, s in sorted(self.latched.items()):
             f.write(s.key, s.mime, s.schema, s.payload, s.attachment, time.time_ns())
             f.attach(f"{rel}.json", "application/json", s.payload)

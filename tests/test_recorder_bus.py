@@ -71,6 +71,8 @@ def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
         ["job/job-1/event"]
     i = info(tmp_path / "job-1.mcap")
     assert "calib/stereo.json" in i.attachments
+    assert json.loads(i.metadata["scancell.calibration"]["calib/stereo"]) == {"image_width": 4}
+    assert i.metadata["scancell.session"]["version"]
     assert i.metadata["scancell.session"]["job_id"] == "job-1"
     assert json.loads(i.metadata["scancell.config"]["config"]) == {"cell": {"name": "x"}}
     assert i.metadata["scancell.recorder"]["dropped_total"] == "0"
