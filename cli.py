@@ -99,7 +99,8 @@ def _fuse_args(p: argparse.ArgumentParser) -> None:
     add_arguments(p)
 
 
-@subcommand("worker", "analysis workers on the bus: scan, calibrate", "scancell.cli:_worker_main")
+@subcommand("worker", "analysis workers on the bus: scan, calibrate, fuse",
+            "scancell.cli:_worker_main")
 def _worker_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="worker", required=True)
     scan = sub.add_parser("scan", help="reassemble scans from dev/*/image, decode, publish "
@@ -112,6 +113,12 @@ def _worker_args(p: argparse.ArgumentParser) -> None:
     _bus_args(cal)
     cal.add_argument("--store", default="calibration",
                      help="directory of the cell's calibrations (hand_eye/active.json ...)")
+    fz = sub.add_parser("fuse", help="stations of scan_part jobs -> tf/*, fusion/cloud, and at "
+                                     "the end of a job fusion/report and the fused files")
+    _bus_args(fz)
+    fz.add_argument("--out", default=None, help="folder for <job>/fused.ply, .e57, mesh, report")
+    fz.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm)")
+    fz.add_argument("--no-mesh", action="store_true", help="skip the Poisson mesh")
 
 
 def _worker_main(args: argparse.Namespace) -> int:

@@ -36,6 +36,8 @@ class DaemonConfig:
     shutdown_timeout_s: float = 3.0
     #: Per-operation timeout overrides, ``"<kind>.<op>" -> seconds``.
     timeouts: dict[str, float] = field(default_factory=dict)
+    #: The robot's home pose for ``cmd/home`` (degrees); None: cmd/home needs joints_deg.
+    home_joints_deg: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -143,6 +145,11 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
     for key, value in d.items():
         if key not in known_d:
             raise err(f"[daemon] {key}", f"unknown key; expected one of {sorted(known_d)}")
+        if key == "home_joints_deg":
+            if not isinstance(value, list) or len(value) != 6 or not all(
+                    isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+                raise err("[daemon] home_joints_deg", "must be 6 joint angles in degrees")
+            continue
         if key == "timeouts":
             if not isinstance(value, dict) or not all(
                 isinstance(v, int | float) and v > 0 for v in value.values()
@@ -150,7 +157,8 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
                 raise err("[daemon] timeouts", "must map '<kind>.<op>' to positive seconds")
         elif not isinstance(value, int | float) or value <= 0:
             raise err(f"[daemon] {key}", f"must be a positive number of seconds, got {value!r}")
-    daemon = DaemonConfig(**d)
+    daemon = DaemonConfig(**{k: tuple(float(x) for x in v) if k == "home_joints_deg" else v
+                             for k, v in d.items()})
 
     devs = _table(raw, "devices", err)
     devices: dict[str, DeviceConfig] = {}

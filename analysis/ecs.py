@@ -60,12 +60,16 @@ def fit_rotation_circle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
     return centre, n, radius, resid
 
 
-def ecs_from_circle(points: np.ndarray, angles_deg: np.ndarray | None = None) -> np.ndarray:
+def ecs_from_circle(points: np.ndarray, angles_deg: np.ndarray | None = None,
+                    frame_angles_deg: np.ndarray | None = None) -> np.ndarray:
     """``T_world_from_ecs`` from n >= 3 SMR positions under J6 rotation, less noise-sensitive
     than the three-point construction and the same frame: the points are fitted by one
     circle, P1, P2, P3 are replaced by the circle's points at the first three positions (at
     the commanded J6 ``angles_deg`` relative to the first one if given, which lets every point
-    inform every parameter) and then :func:`ecs_from_points` applies."""
+    inform every parameter) and then :func:`ecs_from_points` applies. ``frame_angles_deg``
+    (relative J6 of P1, P2, P3; default the first three ``angles_deg``) builds the frame a
+    calibration was made with from points measured at other angles (e.g. turned the other way
+    because the beam broke)."""
     p = np.asarray(points, float)
     centre, n, radius, _ = fit_rotation_circle(p)
     rel = p - centre
@@ -82,6 +86,21 @@ def ecs_from_circle(points: np.ndarray, angles_deg: np.ndarray | None = None) ->
         a = a - a[0]
         direction = 1.0 if np.sum(np.sin(theta) * np.sin(a)) >= 0 else -1.0
         offset = np.angle(np.mean(np.exp(1j * (theta - direction * a))))
-        ideal = offset + direction * a[:3]
+        fa = a[:3] if frame_angles_deg is None else np.radians(
+            np.asarray(frame_angles_deg, float)) - np.radians(float(angles_deg[0]))
+        if fa.shape != (3,):
+            raise DegenerateGeometry(f"frame_angles_deg must be 3 angles, got {fa.size}")
+        ideal = offset + direction * fa
     q = [centre + radius * (np.cos(t) * u + np.sin(t) * w) for t in ideal]
     return ecs_from_points(*q)
+
+
+def ecs_for_frame(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.ndarray) -> np.ndarray:
+    """``T_world_from_ecs`` of the frame whose P1, P2, P3 sit at J6 = ``frame_j6_deg`` (those of
+    the hand-eye calibration), from SMR ``points`` measured at J6 = ``j6_deg`` (relative)."""
+    pts = np.asarray(points, float)
+    j6 = np.asarray(j6_deg, float)
+    frame = np.asarray(frame_j6_deg, float)
+    if len(pts) == 3 and np.allclose(j6 - j6[0], frame - frame[0], atol=1e-6):
+        return ecs_from_points(*pts)
+    return ecs_from_circle(pts, j6, frame)

@@ -15,8 +15,43 @@ PAPER = {"translation_mean_mm": 0.2965, "translation_std_mm": 0.2465,
          "translation_max_mm": 1.5081, "p_lt_0_6": 0.8853, "rotation_mean_deg": 2.8333}
 
 
+def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray,
+                   max_points: int = 400_000) -> Path:
+    """The fused model seen from above (world x-y) and from the side (x-z), each point coloured
+    by its true distance to the part's surface, plus the distribution of that distance."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    step = max(1, len(points) // max_points)
+    p, e = points[::step], np.abs(error_mm[::step])
+    vmax = float(np.percentile(e, 99)) or 1e-3
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.5), gridspec_kw={"width_ratios": [1, 1, 0.8]})
+    for ax, (i, j, name) in zip(axes[:2], ((0, 1, "top view (x-y)"), (0, 2, "side view (x-z)")),
+                                strict=True):
+        order = np.argsort(e)
+        sc = ax.scatter(p[order, i], p[order, j], c=e[order], s=0.3, cmap="turbo", vmin=0,
+                        vmax=vmax, rasterized=True)
+        ax.set_aspect("equal")
+        ax.set_title(f"true error, {name}")
+        ax.set_xlabel("world x (mm)")
+        ax.set_ylabel(f"world {'xyz'[j]} (mm)")
+    fig.colorbar(sc, ax=axes[:2], label="|distance to the part| (mm)", shrink=0.8)
+    axes[2].hist(np.abs(error_mm), bins=100, range=(0, max(vmax, 1e-3)), color="tab:blue")
+    axes[2].set_xlabel("|distance to the part| (mm)")
+    axes[2].set_ylabel("points")
+    axes[2].set_title(f"mean {np.abs(error_mm).mean():.4f} mm, max {np.abs(error_mm).max():.4f} mm")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
-                 title: str = "scancell fusion report", extra: dict[str, Any] | None = None) -> Path:
+                 title: str = "scancell fusion report", extra: dict[str, Any] | None = None,
+                 truth: np.ndarray | None = None) -> Path:
+    """``truth``: per fused point, the true distance to the part (simulation): adds the
+    ground-truth error map."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     pictures = histograms(metrics, str(out))
@@ -43,8 +78,18 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
         pairs = [p for p in m["pairs"] if name in (p["a"], p["b"]) and p["n"]]
         mean = np.mean([p["translation_mean_mm"] for p in pairs]) if pairs else float("nan")
         lines.append(f"| {name} | {len(pts)} | {len(pairs)} | {mean:.4f} |")
+    if truth is not None:
+        d = np.abs(truth)
+        true_error_map(out / "true_error_map.png", fused.points, truth)
+        lines += ["", "## True error against the part (simulation only)", "",
+                  "Every fused point's distance to the simulated part's surface: what the "
+                  "overlap metric cannot see (an error common to all stations).", "",
+                  f"mean {d.mean():.4f} mm, std {d.std():.4f} mm, max {d.max():.4f} mm, "
+                  f"95 % below {np.percentile(d, 95):.4f} mm", "",
+                  "![true error map](true_error_map.png)"]
     for key, value in (extra or {}).items():
-        lines += ["", f"## {key}", "", str(value)]
+        if value is not None:
+            lines += ["", f"## {key}", "", str(value)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -15,11 +15,11 @@ import contextlib
 from typing import Any
 
 import numpy as np
+from scancell.daemon.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs import JobContext
 from scancell.daemon.scan import scan, serving_device
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import Camera, Projector, Robot, Tracker
-from scancell.devices.errors import BeamBroken
 from scancell.protocols.commands import CommandError
 
 
@@ -104,15 +104,6 @@ class OperatorPlacer:
         return None
 
 
-async def _averaged(tracker: Tracker, repeats: int,
-                    meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``repeats`` measurements of the locked SMR and its 1-sigma (mm): the tracker's
-    noise averages down, the robot's repeatability (one pose) does not need to."""
-    ms = [await tracker.measure_published(meta) for _ in range(repeats)]
-    return (np.mean([m.point_mm for m in ms], axis=0),
-            np.mean([m.sigma_mm for m in ms], axis=0) / np.sqrt(repeats))
-
-
 async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              simulator: Any) -> dict[str, Any]:
     req = ctx.request
@@ -158,37 +149,19 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                                                  "cameras": [c.name for c in cam_s]},
                              hold_locks=False)
                 await tracker.find_reflector(approx)
-                point, sigma = await _averaged(tracker, repeats,
-                                               {"job_id": ctx.job_id, "ball": sid})
+                point, sigma = await averaged(tracker, repeats,
+                                              {"job_id": ctx.job_id, "ball": sid})
                 sample("ball", sid, point, index=i, scan_id=reply["scan_id"], repeats=repeats,
                        station=reply["station"], sigma_mm=[float(v) for v in sigma])
         finally:
             with contextlib.suppress(Exception):
                 await tracker.find_reflector(home_smr)  # back on the scanner's SMR
             await placer.remove()
-        ecs_points: list[tuple[float, Any]] = []
-        for attempt, sign in enumerate((1.0, -1.0)):
-            try:
-                ecs_points = []
-                for k, turn in enumerate([0.0, *(sign * t for t in turns)]):
-                    ctx.event("running", "ecs", f"ECS: J6 {turn:+.1f} deg", k, len(turns) + 1)
-                    if k:
-                        q = q0.copy()
-                        q[5] += np.radians(turn)
-                        await robot.move_joints(q, speed)
-                    ecs_points.append((turn, await _averaged(
-                        tracker, repeats, {"job_id": ctx.job_id, "ecs": k, "j6_deg": turn})))
-                break
-            except BeamBroken as exc:
-                await robot.move_joints(q0, speed)
-                if attempt:
-                    raise
-                ctx.event("running", "ecs", f"beam lost turning J6 that way ({exc}); turning "
-                                            f"the other way")
-                await tracker.find_reflector(home_smr)
-        for k, (turn, (point, sigma)) in enumerate(ecs_points):
-            sample("ecs", f"P{k + 1}", point, index=k, j6_deg=turn, repeats=repeats,
-                   sigma_mm=[float(v) for v in sigma])
-        await robot.move_joints(q0, speed)
-    return {"balls": n, "ecs_points": len(ecs_points),
-            "j6_angles_deg": [t for t, _ in ecs_points[1:]]}
+        ecs = await measure_ecs(
+            robot, tracker, q0, turns, speed, repeats, {"job_id": ctx.job_id},
+            lambda k, turn, note: ctx.event("running", "ecs", note or f"ECS: J6 {turn:+.1f} deg",
+                                            k, len(turns) + 1))
+        for k, e in enumerate(ecs):
+            sample("ecs", f"P{k + 1}", e.point_mm, index=k, j6_deg=e.j6_deg, repeats=repeats,
+                   sigma_mm=[float(v) for v in e.sigma_mm])
+    return {"balls": n, "ecs_points": len(ecs), "j6_angles_deg": [e.j6_deg for e in ecs[1:]]}

@@ -21,6 +21,15 @@ log = logging.getLogger(__name__)
 JobBody = Callable[["JobContext"], Awaitable[dict[str, Any]]]
 
 
+class StepFailed(Exception):
+    """A job step failed: says which station and step, and why."""
+
+    def __init__(self, station: str, step: str, why: str) -> None:
+        self.message = f"station {station}, step {step}: {why}"
+        super().__init__(self.message)
+        self.where = {"station": station, "failed_step": step}
+
+
 class JobContext:
     def __init__(self, runner: JobRunner, job_id: str, kind: str, request: dict[str, Any]) -> None:
         self.runner = runner
@@ -28,6 +37,8 @@ class JobContext:
         self.kind = kind
         self.request = request
         self.bus = runner.bus
+        #: What the job measured so far: reported with a failure or an abort (nothing is lost).
+        self.kept: dict[str, Any] = {}
         self._confirm: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
 
     def event(self, state: str, step: str, message: str = "", index: int | None = None,
@@ -72,13 +83,16 @@ class JobRunner:
             ctx.event("done", "end", f"{ctx.kind} done", result=result)
             self.last = {"job_id": ctx.job_id, "state": "done", "result": result}
         except asyncio.CancelledError:
-            ctx.event("aborted", "end", f"{ctx.kind} aborted")
-            self.last = {"job_id": ctx.job_id, "state": "aborted"}
+            ctx.event("aborted", "end", f"{ctx.kind} aborted", result=ctx.kept)
+            self.last = {"job_id": ctx.job_id, "state": "aborted", "kept": ctx.kept}
         except Exception as exc:
             msg = exc.message if isinstance(exc, CommandError) else str(exc)
+            where = exc.where if isinstance(exc, StepFailed) else {}
             log.error("job %s failed: %s", ctx.job_id, msg)
-            ctx.event("failed", "end", f"{ctx.kind} failed: {msg}", error=msg)
-            self.last = {"job_id": ctx.job_id, "state": "failed", "error": msg}
+            ctx.event("failed", "end", f"{ctx.kind} failed: {msg}", error=msg, result=ctx.kept,
+                      **where)
+            self.last = {"job_id": ctx.job_id, "state": "failed", "error": msg, "kept": ctx.kept,
+                         **where}
 
     async def abort(self, request: dict[str, Any]) -> dict[str, Any]:
         if not self.busy():
@@ -87,6 +101,14 @@ class JobRunner:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
         return {"aborted": ctx.job_id}
+
+    def cancel_now(self) -> str | None:
+        """Cancel the running job without waiting for it (estop); returns its id."""
+        if not self.busy():
+            return None
+        ctx, task = self.current  # type: ignore[misc]
+        task.cancel()
+        return ctx.job_id
 
     async def confirm(self, request: dict[str, Any]) -> dict[str, Any]:
         if not self.busy():

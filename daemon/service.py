@@ -20,6 +20,9 @@ from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
 from scancell.daemon.job_hand_eye import calibrate_hand_eye
+from scancell.daemon.job_home import home
+from scancell.daemon.job_scan_part import precheck as scan_part_precheck
+from scancell.daemon.job_scan_part import scan_part
 from scancell.daemon.jobs import JobRunner
 from scancell.daemon.router import CellVerb, CommandRouter
 from scancell.daemon.scan import scan
@@ -126,7 +129,9 @@ class Daemon:
                 dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
-                                                                 self.simulator)})
+                                                                 self.simulator),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors),
+            "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
@@ -134,6 +139,9 @@ class Daemon:
              "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0),
              "job/calibrate_hand_eye": CellVerb(
                  lambda r: self.jobs.start("calibrate_hand_eye", r)),
+             "job/scan_part": CellVerb(self._cmd_scan_part),
+             "home": CellVerb(lambda r: self.jobs.start("home", r)),
+             "estop": CellVerb(self._cmd_estop, timeout_s=5.0),
              "job/abort": CellVerb(self.jobs.abort, timeout_s=10.0),
              "job/confirm": CellVerb(self.jobs.confirm),
              "job/status": CellVerb(self.jobs.status)},
@@ -242,6 +250,25 @@ class Daemon:
             "uptime_s": round(time.monotonic() - self._started, 3),
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
         }
+
+    async def _cmd_scan_part(self, request: dict[str, Any]) -> dict[str, Any]:
+        scan_part_precheck(request, self.supervisors)
+        return await self.jobs.start("scan_part", request)
+
+    async def _cmd_estop(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Never waits for a lock or a job: stop() goes straight to every robot and axis, and
+        the running job is cancelled (its task stops the devices again on its way out)."""
+        movers = [d for d in self.devices.values() if d.kind in ("robot", "axis")]
+        job = self.jobs.cancel_now()
+        results = await asyncio.gather(*(asyncio.wait_for(d.stop(), 2.0) for d in movers),
+                                       return_exceptions=True)
+        failed = {d.name: f"{type(r).__name__}: {r}" for d, r in zip(movers, results, strict=True)
+                  if isinstance(r, BaseException)}
+        log.warning("ESTOP (%s): stopped %s, aborted job %s%s", request.get("reason", "no reason"),
+                    [d.name for d in movers if d.name not in failed], job,
+                    f", could not reach {failed}" if failed else "")
+        return {"stopped": [d.name for d in movers if d.name not in failed],
+                "not_reached": failed, "aborted_job": job}
 
     async def _cmd_config(self, request: dict[str, Any]) -> dict[str, Any]:
         return {"config": self.cfg.redacted(),

@@ -68,6 +68,7 @@ class SimpleMessageRobot(Robot):
         self._state_port: serial.SerialBase | None = None
         self._state = _State()
         self._state_lock = threading.Lock()
+        self._exchange_lock = threading.Lock()
         self._reader: threading.Thread | None = None
         self._closing = threading.Event()
         self._motion_lock = asyncio.Lock()
@@ -147,6 +148,13 @@ class SimpleMessageRobot(Robot):
 
     # ------------------------------------------------------------ motion requests
     def _exchange(self, packet: bytes, msg_type: int) -> sm.Header:
+        # A thread lock, not only the asyncio one: a caller cancelled while its exchange runs
+        # in a worker thread releases the asyncio lock, and the next request (a stop) must not
+        # share the socket with the one still in flight.
+        with self._exchange_lock:
+            return self._exchange_locked(packet, msg_type)
+
+    def _exchange_locked(self, packet: bytes, msg_type: int) -> sm.Header:
         port = self._motion
         if port is None:
             raise ConnectionLost(f"{self.name}: not connected")

@@ -51,6 +51,9 @@ class CellKeys:
     def scan_cloud(self, station: str | int) -> str:
         return f"{self.prefix}/scan/{station}/cloud"
 
+    def station_ecs(self, station: str | int) -> str:
+        return f"{self.prefix}/scan/{station}/ecs"
+
     def scan_result(self, station: str | int) -> str:
         return f"{self.prefix}/scan/{station}/result"
 
@@ -79,7 +82,7 @@ class CellKeys:
     def transform(self, child_frame: str) -> str:
         """foxglove.FrameTransform of ``child_frame`` in its parent (``world`` <- ``ecs_i`` <-
         ``mcs_i``), for Foxglove's 3D panel."""
-        return f"{self.prefix}/tf/{check_name('frame', child_frame)}"
+        return f"{self.prefix}/tf/{child_frame if child_frame == '*' else check_name('frame', child_frame)}"
 
     @property
     def daemon_log(self) -> str:

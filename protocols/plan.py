@@ -1,0 +1,136 @@
+"""A measurement plan: the stations of a ``scan_part`` job. Pure: parsing and formatting, no I/O.
+
+TOML (or the same structure as JSON)::
+
+    [plan]
+    name = "car_rear"
+    speed = 0.2                  # fraction of the robot's maximum joint speed
+    j6_angles_deg = [30.0, 60.0] # the J6 turns for P2, P3 (those of the hand-eye calibration)
+    tracker_repeats = 5          # tracker shots averaged per point
+
+    [[station]]
+    name = "s01"
+    joints_deg = [0.0, 10.0, -5.0, 0.0, -60.0, 0.0]
+    axis_mm = 0.0                # optional: external axis position
+
+Stations are in joint space (degrees); ``scancell plan`` writes them from the robot model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from scancell.protocols.keys import check_name
+
+
+class PlanError(ValueError):
+    """A plan that cannot be run; the message names the station and the key."""
+
+
+@dataclass(frozen=True)
+class PlanStation:
+    name: str
+    joints_deg: tuple[float, ...]
+    axis_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    stations: tuple[PlanStation, ...]
+    speed: float = 0.2
+    j6_angles_deg: tuple[float, float] = (30.0, 60.0)
+    tracker_repeats: int = 5
+    extra: dict[str, Any] = field(default_factory=dict)  # planner's report: coverage, overlaps
+
+    def to_json(self) -> dict[str, Any]:
+        head: dict[str, Any] = {"name": self.name, "speed": self.speed,
+                                "j6_angles_deg": list(self.j6_angles_deg),
+                                "tracker_repeats": self.tracker_repeats}
+        if self.extra:
+            head["report"] = self.extra
+        stations = []
+        for s in self.stations:
+            d: dict[str, Any] = {"name": s.name, "joints_deg": list(s.joints_deg)}
+            if s.axis_mm is not None:
+                d["axis_mm"] = s.axis_mm
+            stations.append(d)
+        return {"plan": head, "station": stations}
+
+    def to_toml(self) -> str:
+        d = self.to_json()
+        lines = ["[plan]"]
+        lines += [f"{k} = {_toml(v)}" for k, v in d["plan"].items() if k != "report"]
+        for k, v in d["plan"].get("report", {}).items():
+            lines.append(f"# {k}: {v}")
+        for s in d["station"]:
+            lines += ["", "[[station]]"] + [f"{k} = {_toml(v)}" for k, v in s.items()]
+        return "\n".join(lines) + "\n"
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    if isinstance(v, float):
+        return repr(round(v, 6))
+    return str(v)
+
+
+def _number(v: Any, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise PlanError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def parse_plan(obj: Any, where: str = "plan") -> Plan:
+    """A plan from its TOML/JSON structure; raises PlanError naming what is wrong and where."""
+    if not isinstance(obj, dict):
+        raise PlanError(f"{where}: expected a table with [plan] and [[station]]")
+    head = obj.get("plan", {})
+    if not isinstance(head, dict):
+        raise PlanError(f"{where}: [plan] must be a table")
+    stations = obj.get("station")
+    if not isinstance(stations, list) or not stations:
+        raise PlanError(f"{where}: no [[station]] entries")
+    speed = _number(head.get("speed", 0.2), f"{where}: [plan] speed")
+    if not 0 < speed <= 1:
+        raise PlanError(f"{where}: [plan] speed must be in (0, 1], got {speed}")
+    angles = head.get("j6_angles_deg", [30.0, 60.0])
+    if not isinstance(angles, list) or len(angles) != 2:
+        raise PlanError(f"{where}: [plan] j6_angles_deg must be two angles (P2, P3)")
+    a = tuple(_number(x, f"{where}: [plan] j6_angles_deg") for x in angles)
+    if abs(a[0]) < 5 or abs(a[1] - a[0]) < 5 or abs(a[1]) < 5:
+        raise PlanError(f"{where}: [plan] j6_angles_deg {list(a)}: the turns must differ from 0 "
+                        f"and from each other by at least 5 deg, or the ECS is degenerate")
+    repeats = head.get("tracker_repeats", 5)
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:
+        raise PlanError(f"{where}: [plan] tracker_repeats must be an integer 1..100")
+    out: list[PlanStation] = []
+    seen: set[str] = set()
+    for i, s in enumerate(stations):
+        at = f"{where}: station {i + 1}"
+        if not isinstance(s, dict):
+            raise PlanError(f"{at}: must be a table")
+        name = s.get("name", f"s{i + 1:02d}")
+        try:
+            check_name("station", name)
+        except ValueError as exc:
+            raise PlanError(f"{at}: {exc}") from None
+        if name in seen:
+            raise PlanError(f"{at}: duplicate station name {name!r}")
+        seen.add(name)
+        q = s.get("joints_deg")
+        if not isinstance(q, list) or len(q) != 6:
+            raise PlanError(f"{at} ({name}): joints_deg must be 6 angles in degrees")
+        joints = tuple(_number(x, f"{at} ({name}) joints_deg") for x in q)
+        axis = s.get("axis_mm")
+        out.append(PlanStation(name, joints, None if axis is None
+                               else _number(axis, f"{at} ({name}) axis_mm")))
+    return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
+                dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {})

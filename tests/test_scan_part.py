@@ -1,0 +1,173 @@
+"""The measurement job on the simulated cell, fused by the fuse worker from the bus: stations,
+frame tree, report with the true error; abort mid-station keeps what was measured; estop."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from scancell.analysis.fuse_worker import FuseSettings, FuseWorker
+from scancell.analysis.scan_worker import ScanWorker
+from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.devices.sim.world import get_world
+from scancell.protocols import messages
+from scancell.protocols.commands import CommandError
+
+from .conftest import sim_cell_raw, wait_until
+
+pytestmark = pytest.mark.timeout(300)
+
+TARGETS = ([3300.0, -110.0, 1100.0], [3300.0, 0.0, 1100.0], [3300.0, 110.0, 1100.0])
+
+
+def _all_connected(client) -> bool:
+    return all(s["state"] == "connected" for s in client.status()["devices"].values())
+
+
+def plan_for(cell, targets=TARGETS, name: str = "test") -> dict:
+    """Stations looking at ``targets`` (world, mm), from the simulator's robot model."""
+    stations = []
+    for i, t in enumerate(targets):
+        q = cell.ik_for_mcs(cell.mcs_pose_looking_at(np.asarray(t)))
+        stations.append({"name": f"s{i + 1:02d}", "joints_deg": np.degrees(q).tolist()})
+    return {"plan": {"name": name, "speed": 0.5, "tracker_repeats": 2}, "station": stations}
+
+
+class Events:
+    def __init__(self, bus) -> None:
+        self.items: list[dict] = []
+        self.lock = threading.Lock()
+        self.sub = bus.subscribe(bus.keys.job_event("*"), self._add)
+
+    def _add(self, s) -> None:
+        with self.lock:
+            self.items.append(s.decode())
+
+    def of(self, job_id: str) -> list[dict]:
+        with self.lock:
+            return [e for e in self.items if e["job_id"] == job_id]
+
+    def final(self, job_id: str) -> dict | None:
+        ends = [e for e in self.of(job_id) if e["state"] != "running"]
+        return ends[-1] if ends else None
+
+
+@pytest.fixture
+def sim(make_daemon, client, tmp_path):
+    raw = sim_cell_raw(camera_scale=8)
+    d = make_daemon(raw)
+    wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
+    world = get_world(d.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
+    scan_worker.start()
+    # the true mounting as the calibration in force (the calibration job has its own tests)
+    he = client.bus.latched(client.bus.keys.hand_eye)
+    he.publish(messages.encode_json({
+        "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((30.0, 60.0)).tolist(),
+        "j6_angles_deg": [30.0, 60.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
+    fuse = FuseWorker(client.bus, FuseSettings(tmp_path / "fused", voxel_mm=1.0, mesh=False,
+                                               truth=world.cell.surface_distance))
+    fuse.start()
+    yield world
+    fuse.stop()
+    scan_worker.stop()
+    he.close()
+
+
+def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_path):
+    world = sim
+    events = Events(client.bus)
+    reports: list = []
+    client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
+    tfs: list = []
+    client.bus.subscribe(client.bus.keys.transform("*"), lambda s: tfs.append(s.decode()))
+    with world.lock:
+        plan = plan_for(world.cell)
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    with pytest.raises(CommandError, match="busy"):
+        client.call("home", {"joints_deg": [0, 0, 0, 0, 0, 0]})
+    wait_until(lambda: reports, 240, period_s=0.5, what="fusion report")
+    final = events.final(job)
+    assert final["state"] == "done", final
+    steps = [(e.get("station"), e["step"]) for e in events.of(job) if e["state"] == "running"]
+    for s in ("s01", "s02", "s03"):
+        assert [st for name, st in steps if name == s][:3] == ["move", "p1", "scan"]
+        assert (s, "station_done") in steps
+    assert any(e.get("eta_s") for e in events.of(job))
+    r = reports[0]
+    assert r["job_id"] == job and r["stations"] == 3 and r["state"] == "done"
+    # true hand-eye: what is left is the tracker, the robot's repeatability and the scanner
+    assert r["true_error_mm"]["mean"] < 0.1, r["true_error_mm"]
+    assert r["translation_mm"]["mean"] < 0.1 and r["translation_mm"]["p_lt_0_6"] > 0.98, r
+    assert {(t.parent_frame_id, t.child_frame_id) for t in tfs} >= {
+        ("world", "ecs_s01"), ("ecs_s01", "mcs_s01"), ("world", "ecs_s03")}
+    files = r["files"]
+    assert (tmp_path / "fused" / job / "report" / "true_error_map.png").stat().st_size > 10_000
+    assert "True error against the part" in open(files["report"]).read()
+    from scancell.analysis.cloud_io import read_ply
+
+    pts, fields = read_ply(files["ply"])
+    assert len(pts) == r["points"] and "true_error_mm" in fields
+
+
+def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(sim, client):
+    world = sim
+    events = Events(client.bus)
+    with world.lock:
+        plan = plan_for(world.cell, name="again")
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    wait_until(lambda: any(e["step"] == "station_done" for e in events.of(job)), 120,
+               period_s=0.1, what="first station measured")
+    wait_until(lambda: any(e["step"] == "move" and e.get("station") == "s02"
+                           for e in events.of(job)), 30, period_s=0.05, what="moving to s02")
+    assert client.call("job/abort")["aborted"] == job
+    final = events.final(job)
+    assert final["state"] == "aborted"
+    assert [s["station"] for s in final["result"]["stations_done"]] == ["s01"]
+    q1 = client.call("device/robot/joints")["joints_deg"]
+    wait_until(lambda: True, 0.5)
+    assert np.allclose(client.call("device/robot/joints")["joints_deg"], q1, atol=0.01)  # stopped
+    job2 = client.call("job/scan_part", {"plan": plan, "stations": ["s02", "s03"]})["job_id"]
+    wait_until(lambda: events.final(job2), 180, period_s=0.3, what="second run")
+    assert events.final(job2)["state"] == "done"
+
+
+def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
+    world = sim
+    with world.lock:
+        plan = plan_for(world.cell)
+    q0 = client.call("device/robot/joints")["joints_deg"]
+    plan["station"][1]["joints_deg"][1] = 175.0  # J2 beyond +160
+    with pytest.raises(CommandError, match=r"out_of_range.*station s02.*J2"):
+        client.call("job/scan_part", {"plan": plan})
+    assert client.call("job/status")["running"] is None
+    assert np.allclose(client.call("device/robot/joints")["joints_deg"], q0, atol=0.01)
+    for bad, match in (({"plan": {"station": []}}, "invalid"),
+                       ({"plan": {"station": [{"joints_deg": [0, 0]}]}}, "invalid"),
+                       ({"plan": {"plan": {"j6_angles_deg": [30, 31]}, "station": plan["station"]}},
+                        "j6_angles_deg"),
+                       ({"plan": plan, "stations": ["nope"]}, "not in plan"),
+                       ({"plan": plan, "speed": 7}, "invalid")):
+        with pytest.raises(CommandError, match=match):
+            client.call("job/scan_part", bad)
+
+
+def test_estop_stops_at_once_and_aborts_the_job(sim, client):
+    world = sim
+    events = Events(client.bus)
+    with world.lock:
+        plan = plan_for(world.cell)
+    plan["plan"]["speed"] = 0.05
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    wait_until(lambda: any(e["step"] == "move" for e in events.of(job)), 30, period_s=0.05,
+               what="moving")
+    reply = client.call("estop", {"reason": "test"}, )
+    assert reply["aborted_job"] == job and "robot" in reply["stopped"]
+    wait_until(lambda: events.final(job), 10, what="job end")
+    assert events.final(job)["state"] == "aborted"
+    q1 = client.call("device/robot/joints")["joints_deg"]
+    wait_until(lambda: True, 0.5)
+    assert np.allclose(client.call("device/robot/joints")["joints_deg"], q1, atol=0.01)
+    assert client.status()["devices"]["robot"]["state"] == "connected"
