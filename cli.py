@@ -49,6 +49,13 @@ def _ctl_args(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", required=True)
     sub.add_parser("status", help="every device and its state")
     sub.add_parser("devices", help="devices, drivers and their operations")
+    sp = sub.add_parser("scan-part", help="run a plan file as a scan_part job and follow it")
+    sp.add_argument("--plan", required=True, help="plan TOML/JSON (scancell plan writes one)")
+    sp.add_argument("--stations", nargs="+", help="only these stations")
+    sp.add_argument("--no-wait", action="store_true", help="start the job and return")
+    sub.add_parser("abort", help="abort the running job")
+    es = sub.add_parser("estop", help="stop robot and axis at once, abort the job")
+    es.add_argument("--reason", default="scancell ctl estop")
     call = sub.add_parser("call", help="call any command, e.g. device/robot/joints")
     call.add_argument("verb")
     call.add_argument("--json", default="{}", help="request as a JSON object")
@@ -119,6 +126,9 @@ def _worker_args(p: argparse.ArgumentParser) -> None:
     fz.add_argument("--out", default=None, help="folder for <job>/fused.ply, .e57, mesh, report")
     fz.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm)")
     fz.add_argument("--no-mesh", action="store_true", help="skip the Poisson mesh")
+    fz.add_argument("--truth-cell", default=None, metavar="CELL.toml",
+                    help="simulated cell config: report every fused point's true error "
+                         "against the simulated part")
 
 
 def _worker_main(args: argparse.Namespace) -> int:

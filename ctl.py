@@ -50,7 +50,63 @@ def format_devices(result: dict[str, Any]) -> str:
     return table(rows, ["DEVICE", "KIND", "DRIVER", "URL", "STATE", "OPERATIONS"])
 
 
+def _follow(client: CellClient, job_id: str) -> int:
+    """Print the job's events until it ends; exit 0 if done, 1 otherwise."""
+    import queue
+
+    q: queue.Queue[dict[str, Any]] = queue.Queue()
+    sub = client.bus.subscribe(client.bus.keys.job_event(job_id), lambda s: q.put(s.decode()))
+    try:
+        while True:
+            try:
+                e = q.get(timeout=5.0)
+            except queue.Empty:
+                if not (client.call("job/status").get("running") or {}).get("job_id") == job_id:
+                    last = client.call("job/status").get("last") or {}
+                    print(f"job {job_id}: {last.get('state', 'gone')}")
+                    return 0 if last.get("state") == "done" else 1
+                continue
+            where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
+            eta = f" (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
+            print(f"{e['state']:8s} {where}{e['message'] or e['step']}{eta}", flush=True)
+            if e["state"] != "running":
+                return 0 if e["state"] == "done" else 1
+    finally:
+        sub.undeclare()
+
+
+def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from scancell.protocols.plan import PlanError, plan_from_text
+
+    try:
+        plan = plan_from_text(Path(args.plan).read_text(), args.plan)
+    except OSError as exc:
+        print(f"scancell ctl: {args.plan}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except PlanError as exc:
+        print(f"scancell ctl: {exc}", file=sys.stderr)
+        return 2
+    request: dict[str, Any] = {"plan": plan}
+    if args.stations:
+        request["stations"] = args.stations
+    started = client.call("job/scan_part", request)
+    print(f"job {started['job_id']} started; events on {started['events']}", flush=True)
+    return 0 if args.no_wait else _follow(client, started["job_id"])
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.action == "scan-part":
+        try:
+            with CellClient(_cell(args), args.connect, timeout_s=args.timeout) as client:
+                return _scan_part(client, args)
+        except CommandError as exc:
+            print(f"error {exc.code}: {exc.message}", file=sys.stderr)
+            return 1
+        except ConnectionError as exc:
+            print(f"scancell ctl: {exc}", file=sys.stderr)
+            return 3
     if args.action == "call":
         try:
             request = json.loads(args.json)
@@ -58,6 +114,10 @@ def main(args: argparse.Namespace) -> int:
             print(f"scancell ctl: --json is not valid JSON: {exc}", file=sys.stderr)
             return 2
         verb = args.verb.strip("/")
+    elif args.action == "estop":
+        request, verb = {"reason": args.reason}, "estop"
+    elif args.action == "abort":
+        request, verb = {}, "job/abort"
     else:
         request, verb = {}, args.action
     try:
@@ -72,7 +132,7 @@ def main(args: argparse.Namespace) -> int:
     except ConnectionError as exc:
         print(f"scancell ctl: {exc}", file=sys.stderr)
         return 3
-    if args.json_out or args.action == "call":
+    if args.json_out or args.action in ("call", "estop", "abort"):
         print(json.dumps(result, indent=2))
     elif args.action == "status":
         print(format_status(result))

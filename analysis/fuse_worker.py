@@ -271,10 +271,28 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
 
 
 def main(args: argparse.Namespace) -> int:
+    import sys
+
     from scancell.analysis.worker_cli import serve
 
+    truth = None
+    if args.truth_cell:
+        from scancell.config import ConfigError, load_cell_config
+
+        try:
+            cfg = load_cell_config(args.truth_cell)
+        except ConfigError as exc:
+            print(f"scancell worker fuse: {exc}", file=sys.stderr)
+            return 2
+        if cfg.simulator is None:
+            print(f"scancell worker fuse: {args.truth_cell} has no [simulator]: no ground truth",
+                  file=sys.stderr)
+            return 2
+        from scancell.devices.sim.host import sim_cell
+
+        truth = sim_cell(cfg.simulator).surface_distance
     settings = FuseSettings(Path(args.out) if args.out else None, args.voxel,
-                            mesh=not args.no_mesh)
+                            mesh=not args.no_mesh, truth=truth)
     return serve(args, "fuse", lambda bus: FuseWorker(bus, settings),
                  lambda bus: f"fuse worker on cell {bus.keys.cell!r}: waiting for stations "
                              f"(out {args.out or '-'})")

@@ -14,8 +14,9 @@ from scancell.analysis.metrics import MetricsError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="folder: <station>.ply + <station>.json {T_world_from_ecs} "
-                                  "and hand_eye.json {T_ecs_from_mcs}")
+    p.add_argument("source", help="a scan_part recording (.mcap), or a folder: <station>.ply + "
+                                  "<station>.json {T_world_from_ecs} and hand_eye.json "
+                                  "{T_ecs_from_mcs}")
     p.add_argument("--out", required=True, help="fused cloud PLY (world frame, mm)")
     p.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm); 0: keep all")
     p.add_argument("--e57", help="also write the fused cloud as E57")
@@ -27,9 +28,15 @@ def main(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         if Path(args.source).suffix == ".mcap":
-            raise FusionError(f"{args.source}: fusing from a recording needs the recorder "
-                              f"(issue 8); give a station folder")
-        stations, hand_eye = load_station_folder(args.source)
+            from scancell.recorder.fusion_source import recorded_stations
+            from scancell.recorder.reading import RecordingError
+
+            try:
+                stations, hand_eye, _ = recorded_stations(args.source)
+            except RecordingError as exc:
+                raise FusionError(str(exc)) from None
+        else:
+            stations, hand_eye = load_station_folder(args.source)
         fused = fuse(stations, hand_eye, args.voxel)
         write_ply(args.out, fused.points)
         if args.e57:

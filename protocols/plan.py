@@ -70,6 +70,20 @@ class Plan:
         return "\n".join(lines) + "\n"
 
 
+def plan_from_text(text: str, name: str) -> dict[str, Any]:
+    """The plan structure of a TOML (or, by ``.json`` name, JSON) document, checked."""
+    import json
+    import tomllib
+
+    try:
+        obj = json.loads(text) if name.endswith(".json") else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise PlanError(f"{name}: not valid {'JSON' if name.endswith('.json') else 'TOML'}: "
+                        f"{exc}") from None
+    parse_plan(obj, name)
+    return obj
+
+
 def _toml(v: Any) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'

@@ -7,10 +7,13 @@ worker classes that run live: the scan worker (stereo calibration from the recor
 
 - ``clouds/<station>_<scan_id>.ply``: every decoded scan (mm, MCS, fields quality, intensity);
 - ``calibration/hand_eye/<job>.json`` (+ pairs CSV, ``active.json``): every hand-eye job;
+- ``fusion/<job>/``: every scan_part job fused (PLY, E57, mesh, report), with the hand-eye
+  calibration in force when the recording started (or one the recording itself computed);
 - ``reprocess.json``: what came out of which scan and job, and any errors.
 
-What the live workers published and the recorder kept (``scan/**``, ``calib/hand_eye``,
-``fusion/**``) is not fed back in: it is what a reprocess is compared against.
+What the live workers published and the recorder kept (``scan/*/cloud``, ``calib/hand_eye``,
+``fusion/**``, ``tf/**``) is not fed back in: it is what a reprocess is compared against. The one exception
+is the hand-eye calibration in force at the start of the session, an input of fusion.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from scancell.recorder.reading import RecordingError, info, samples, topic_match
 log = logging.getLogger(__name__)
 
 #: Worker outputs: recorded from the live run, recomputed here, never fed back in.
-OUTPUTS = ["scan/**", "calib/hand_eye", "calib/stereo", "fusion/**", "recorder/**"]
+OUTPUTS = ["scan/*/cloud", "scan/*/result", "calib/hand_eye", "calib/stereo", "fusion/**",
+           "tf/**", "recorder/**"]
 MAX_QUEUED_SCANS = 2
 
 
@@ -44,12 +48,13 @@ class ReprocessResult:
     scans: list[dict[str, Any]] = field(default_factory=list)
     clouds: dict[str, Path] = field(default_factory=dict)  # scan_id -> PLY
     hand_eye: list[dict[str, Any]] = field(default_factory=list)
+    fusion: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"out_dir": str(self.out_dir), "messages": self.messages,
                 "seconds": round(self.seconds, 3), "scans": self.scans,
                 "clouds": {k: str(v) for k, v in self.clouds.items()},
-                "hand_eye": self.hand_eye}
+                "hand_eye": self.hand_eye, "fusion": self.fusion}
 
 
 def recorded_stereo(path: str | Path) -> tuple[Any, int]:
@@ -79,7 +84,8 @@ class _Outputs:
         k = bus.keys
         self.subs = [bus.subscribe(k.scan_cloud("*"), self._cloud),
                      bus.subscribe(k.scan_result("*"), self._scan_result),
-                     bus.subscribe(k.hand_eye, self._hand_eye)]
+                     bus.subscribe(k.hand_eye, self._hand_eye),
+                     bus.subscribe(k.fusion_report, lambda s: result.fusion.append(s.decode()))]
 
     def _cloud(self, s: BusSample) -> None:
         meta = s.attachment.meta
@@ -105,6 +111,7 @@ class _Outputs:
 def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | None = None,
               progress: bool = True) -> ReprocessResult:
     from scancell.analysis.calibrate_worker import CalibrateWorker
+    from scancell.analysis.fuse_worker import FuseSettings, FuseWorker
     from scancell.analysis.scan_worker import ScanWorker
     from scancell.analysis.stereo_calibration import StereoCalibration
     from tqdm import tqdm
@@ -123,16 +130,21 @@ def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | No
     outputs = _Outputs(bus, out, result)
     scan_worker = ScanWorker(bus, calib, width)
     cal_worker = CalibrateWorker(bus, out / "calibration")
-    workers = (scan_worker, cal_worker)
+    fuse_worker = FuseWorker(bus, FuseSettings(out / "fusion"))
+    workers = (scan_worker, cal_worker, fuse_worker)
     for w in workers:
         w.start()
     t0 = time.monotonic()
     bar = tqdm(total=rec.messages, unit="msg", desc=f"reprocess {Path(path).name}",
                disable=not progress, file=sys.stderr)
     try:
+        jobs_seen = False
         for s in samples(path):
             bar.update(1)
-            if topic_matches(s.key, OUTPUTS):
+            rel = bus.keys.relative(s.key)
+            jobs_seen = jobs_seen or rel.startswith("job/")
+            in_force = rel == "calib/hand_eye" and not jobs_seen
+            if topic_matches(s.key, OUTPUTS) and not in_force:
                 continue
             while scan_worker.pending() >= MAX_QUEUED_SCANS:  # bound the frames held in memory
                 time.sleep(0.01)

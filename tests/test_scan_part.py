@@ -3,6 +3,9 @@ frame tree, report with the true error; abort mid-station keeps what was measure
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -13,6 +16,7 @@ from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.devices.sim.world import get_world
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
+from scancell.recorder.recorder import Recorder, RecorderSettings
 
 from .conftest import sim_cell_raw, wait_until
 
@@ -83,6 +87,8 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
     tfs: list = []
     client.bus.subscribe(client.bus.keys.transform("*"), lambda s: tfs.append(s.decode()))
+    rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=2.0))
+    rec.start()
     with world.lock:
         plan = plan_for(world.cell)
     job = client.call("job/scan_part", {"plan": plan})["job_id"]
@@ -110,6 +116,26 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
 
     pts, fields = read_ply(files["ply"])
     assert len(pts) == r["points"] and "true_error_mm" in fields
+
+    # the recorded session fuses to the same model offline, from its recorded clouds ...
+    wait_until(lambda: rec.session is None or rec.session.job_id != job, 30, what="file closed")
+    rec.stop()
+    mcap = tmp_path / "rec" / f"{job}.mcap"
+    out = subprocess.run([sys.executable, "-m", "scancell", "fuse", str(mcap), "--out",
+                          str(tmp_path / "offline.ply"), "--voxel", "1.0"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    offline, _ = read_ply(tmp_path / "offline.ply")
+    np.testing.assert_array_equal(offline, pts)
+    # ... and from its raw frames and tracker points, decoded again
+    out = subprocess.run([sys.executable, "-m", "scancell", "reprocess", str(mcap), "--out",
+                          str(tmp_path / "re"), "--no-progress"], capture_output=True, text=True,
+                         timeout=240)
+    assert out.returncode == 0, out.stderr
+    again = json.loads((tmp_path / "re" / "reprocess.json").read_text())["fusion"][0]
+    assert again["job_id"] == job and again["stations"] == 3
+    assert again["translation_mm"] == r["translation_mm"]
+    assert again["rotation_deg"] == r["rotation_deg"]
 
 
 def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(sim, client):

@@ -65,6 +65,14 @@ def check_options(options: dict[str, Any]) -> str | None:
 _SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "axis": ("port",)}
 
 
+def sim_cell(options: dict[str, Any]) -> SimCell:
+    """The simulated cell a ``[simulator]`` table describes (its geometry is the ground truth a
+    worker compares against)."""
+    return SimCell(SimCellConfig(seed=int(options.get("seed", 0)),
+                                 camera_scale=float(options.get("camera_scale", 1.0)),
+                                 part=options.get("part", "car_rear") or None))
+
+
 def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:
     """Overrides moving every simulator server of a raw cell config to ``port_for(old)`` and
     every device option that pointed at the old port (an integer option equal to it, or a URL
@@ -154,9 +162,7 @@ class SimHost:
 
     def _build_world(self) -> SimWorld:
         o = self.options
-        cell = SimCell(SimCellConfig(seed=int(o.get("seed", 0)),
-                                     camera_scale=float(o.get("camera_scale", 1.0)),
-                                     part=o.get("part", "car_rear") or None))
+        cell = sim_cell(o)
         if o.get("look_at_part", True) and cell.cfg.part:
             target = cell.cfg.T_world_from_part[:3, 3]
             cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target)))
