@@ -112,7 +112,8 @@ def main(args: argparse.Namespace) -> int:
     counts: Counter[str] = Counter()
     ok = False
     try:
-        with CellClient(cfg.cell, bus_config=BusConfig.client_default(endpoint)) as client:
+        with CellClient(cfg.cell, bus_config=BusConfig.client_default(endpoint),
+                        connect_wait_s=60.0) as client:
             prefix = client.bus.keys.prefix + "/"
             sub = client.bus.subscribe(client.bus.keys.dev("*", "*"),
                                        lambda s: counts.update([s.key.removeprefix(prefix)]))

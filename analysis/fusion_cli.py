@@ -22,6 +22,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--e57", help="also write the fused cloud as E57")
     p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
     p.add_argument("--report", help="directory for report.md with the overlap metrics and plots")
+    p.add_argument("--refine", action="store_true",
+                   help="also refine by multi-view ICP held to the tracker poses: written as "
+                        "<out>_icp.ply and reported apart, never replacing the tracker result")
+
+
+def _refine(fused, out: str, voxel: float) -> str:
+    """Refine, write ``<out>_icp.ply``, and say what moved and what the overlap metric gained."""
+    import numpy as np
+    from scancell.analysis.metrics import compare_clouds
+    from scancell.analysis.refine import refine
+
+    r = refine(fused.per_station)
+    path = Path(out).with_name(Path(out).stem + "_icp.ply")
+    pts = np.concatenate(list(r.per_station.values()))
+    if voxel > 0:
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        pts = np.asarray(pcd.voxel_down_sample(voxel).points)
+    write_ply(path, pts)
+    before = compare_clouds(fused.per_station).to_json()["translation_mm"]
+    after = compare_clouds(r.per_station).to_json()["translation_mm"]
+    lines = [f"{r.pairs} overlapping pairs; refined model: {path}", "",
+             f"overlap translation error mean {before['mean']:.4f} -> {after['mean']:.4f} mm, "
+             f"share < 0.6 mm {before['p_lt_0_6']:.2%} -> {after['p_lt_0_6']:.2%}", "",
+             "| station | correction (mm) | correction (deg) |", "|---|---|---|"]
+    lines += [f"| {n} | {r.translation_mm[n]:.4f} | {r.rotation_deg[n]:.5f} |"
+              for n in r.corrections]
+    print(f"ICP refinement: mean overlap error {before['mean']:.4f} -> {after['mean']:.4f} mm, "
+          f"largest correction {max(r.translation_mm.values()):.4f} mm -> {path}")
+    return "\n".join(lines)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -43,11 +74,16 @@ def main(args: argparse.Namespace) -> int:
             write_e57(args.e57, fused.points)
         if args.mesh:
             write_mesh(args.mesh, poisson_mesh(fused.points))
+        extra = {}
+        if args.refine:
+            extra["Multi-view ICP refinement (an extra: not the tracker-based result)"] = \
+                _refine(fused, args.out, args.voxel)
         if args.report:
             from scancell.analysis.metrics import compare_clouds
             from scancell.analysis.report import write_report
 
-            report = write_report(args.report, fused, compare_clouds(fused.per_station))
+            report = write_report(args.report, fused, compare_clouds(fused.per_station),
+                                  extra=extra)
             print(f"report -> {report}")
     except (FusionError, CloudFileError, ExportError, MetricsError) as exc:
         print(f"scancell fuse: {exc}", file=sys.stderr)

@@ -70,9 +70,10 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     (tmp_path / "out").mkdir()
     r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "out" / "fused.ply"),
                         "--e57", str(tmp_path / "out" / "fused.e57"), "--mesh",
-                        str(tmp_path / "out" / "mesh.ply"), "--report", str(tmp_path / "rep")],
-                       capture_output=True, text=True, timeout=300)
+                        str(tmp_path / "out" / "mesh.ply"), "--report", str(tmp_path / "rep"),
+                        "--refine"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+    assert "ICP refinement" in r.stdout and (tmp_path / "out" / "fused_icp.ply").exists()
     pts, _ = read_ply(tmp_path / "out" / "fused.ply")
     assert np.percentile(cell.surface_distance(pts), 99) < 0.05
     import open3d as o3d
@@ -87,6 +88,7 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     assert np.median(cell.surface_distance(np.asarray(mesh.vertices))) < 0.5
     report = (tmp_path / "rep" / "report.md").read_text()
     assert "Table 2" in report and "| s1 |" in report and "translation_error.png" in report
+    assert "Multi-view ICP refinement (an extra" in report
     assert (tmp_path / "rep" / "translation_error.png").exists()
     (tmp_path / "s2.json").unlink()
     r = subprocess.run([*run, str(tmp_path), "--out", str(tmp_path / "x.ply")],
@@ -95,3 +97,25 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     r = subprocess.run([*run, str(tmp_path / "rec.mcap"), "--out", str(tmp_path / "x.ply")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "recording" in r.stderr
+
+
+def test_multi_view_icp_undoes_a_station_error_and_reports_it_apart(stations):
+    """One station 0.4 mm off (a bad tracker shot): ICP held to the tracker prior pulls it back
+    toward the part; the correction is reported, the tracker result stays as it was."""
+    from scancell.analysis.refine import refine
+
+    cell, st = stations
+    fused = fuse(st, cell.true_T_ecs_from_mcs(), voxel_mm=0.0)
+    moved = dict(fused.per_station)
+    moved["s2"] = moved["s2"] + np.array([0.0, 0.0, 0.4])
+    before = compare_clouds(moved).to_json()["translation_mm"]["mean"]
+    r = refine(moved, voxel_mm=1.0, prior_weight=1e-3)
+    after = compare_clouds(r.per_station).to_json()["translation_mm"]["mean"]
+    assert after < 0.5 * before, (before, after)
+    assert r.pairs == 1 and 0.1 < r.translation_mm["s2"] + r.translation_mm["s1"] < 0.6
+    assert np.array_equal(moved["s2"], fused.per_station["s2"] + [0.0, 0.0, 0.4])  # untouched
+    # a strong prior keeps the tracker poses
+    held = refine(moved, voxel_mm=1.0, prior_weight=1e3)
+    assert max(held.translation_mm.values()) < 0.05
+    with pytest.raises(FusionError, match="at least two"):
+        refine({"a": moved["s1"]})
