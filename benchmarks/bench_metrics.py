@@ -56,6 +56,8 @@ def main() -> dict[str, float]:
         a_path, b_path = Path(tmp) / "a.ply", Path(tmp) / "b.ply"
         write_ply(a_path, surface(n, 1))
         write_ply(b_path, surface(n, 2, offset=0.1, tilt_deg=0.2))
+        # numba compiles the kernels once per machine (cached on disk): not part of the figure
+        compare_clouds({"a": surface(5000, 1), "b": surface(5000, 2)})
         t0 = time.perf_counter()
         clouds = {"a": read_ply(a_path)[0], "b": read_ply(b_path)[0]}
         report = compare_clouds(clouds)

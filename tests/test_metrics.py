@@ -84,3 +84,31 @@ def test_cli_json_plots_and_bad_input(tmp_path):
     r = subprocess.run([*run, str(tmp_path / "a.ply"), str(tmp_path / "missing.ply")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "missing.ply" in r.stderr
+
+
+def test_grid_neighbourhoods_agree_with_a_kd_tree():
+    """The grid kernels against scipy's k-d tree: the same nearest points, the same normals."""
+    from scancell.analysis.grid_kernels import CellGrid
+    from scancell.analysis.metrics import nearest_within, normals
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-40, 40, (30000, 2))
+    a = np.column_stack([xy, 3 * np.sin(xy[:, 0] / 9) + rng.normal(0, 0.01, len(xy))])
+    b = a[:15000] + rng.normal(0, 0.3, (15000, 3))
+    q = np.vstack([a, rng.uniform(-200, 200, (500, 3))])  # some far outside b
+    r = 1.5
+    grid = CellGrid(b, r)
+    dist, idx = nearest_within(grid, q, r)
+    d_ref, i_ref = cKDTree(b).query(q, distance_upper_bound=r)
+    assert np.array_equal(np.isfinite(dist), np.isfinite(d_ref))
+    ok = np.isfinite(d_ref)
+    assert np.allclose(dist[ok], d_ref[ok]) and np.array_equal(idx[ok], i_ref[ok])
+    assert np.all(idx[~ok] == -1)
+    n = normals(a, r)
+    d, i = cKDTree(a).query(a, k=80, distance_upper_bound=r)
+    ref = np.empty_like(a)
+    for k in range(0, len(a), 997):  # least-squares plane by SVD, point by point
+        p = a[i[k][np.isfinite(d[k])]]
+        ref[k] = np.linalg.svd(p - p.mean(axis=0))[2][2]
+        assert abs(ref[k] @ n[k]) > 0.9999, k
