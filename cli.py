@@ -161,6 +161,14 @@ def _reprocess_args(p: argparse.ArgumentParser) -> None:
     add_reprocess_arguments(p)
 
 
+@subcommand("router", "a zenoh router with TLS, users and the cell's ACL (deploy/zenoh)",
+            "scancell.deploy.router:main")
+def _router_args(p: argparse.ArgumentParser) -> None:
+    from scancell.deploy.router import add_arguments
+
+    add_arguments(p)
+
+
 @subcommand("demo", "run the main job on the embedded simulated cell", "scancell.demo:main")
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")

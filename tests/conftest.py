@@ -92,10 +92,11 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[st
 class DaemonThread:
     """A daemon running in-process on its own event loop thread."""
 
-    def __init__(self, raw: dict[str, Any], cell: str, endpoint: str) -> None:
+    def __init__(self, raw: dict[str, Any], cell: str, endpoint: str,
+                 bus: dict[str, Any] | None = None) -> None:
         raw = copy.deepcopy(raw)
         raw["cell"]["name"] = cell
-        raw["bus"] = {"listen": [endpoint]}
+        raw["bus"] = bus or {"listen": [endpoint]}
         self.cfg = parse_cell_config(raw)
         self.daemon = Daemon(self.cfg)
         self.rc: int | None = None

@@ -1,0 +1,150 @@
+"""The deployment's router (deploy/zenoh/router.json5) on loopback, in zenoh's own router mode:
+TLS, user/password and the ACL's roles. A monitor cannot move the robot, a client without
+credentials cannot connect, a controller can; the daemon sits behind the router as a client."""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import threading
+
+import numpy as np
+import pytest
+from scancell.bus import Bus, BusConfig, NoDaemon
+from scancell.deploy.router import load_router_config, open_router, router_config_path
+from scancell.protocols.commands import CommandError
+
+from .conftest import MOCK_CELL, DaemonThread, free_port, wait_until
+
+pytestmark = pytest.mark.timeout(120)
+
+PASSWORDS = {"cell": "cell-pw", "controller": "ctl-pw", "engineer": "eng-pw", "monitor": "mon-pw"}
+
+
+def _certs(folder):
+    """A CA and a router certificate for localhost / 127.0.0.1, as PEM files."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    now = datetime.datetime.now(datetime.UTC)
+
+    def cert(name, key, issuer, issuer_key, ca: bool, san=None):
+        b = (x509.CertificateBuilder()
+             .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
+             .issuer_name(issuer).public_key(key.public_key())
+             .serial_number(x509.random_serial_number())
+             .not_valid_before(now - datetime.timedelta(minutes=5))
+             .not_valid_after(now + datetime.timedelta(days=1))
+             .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True))
+        if san:
+            b = b.add_extension(x509.SubjectAlternativeName(san), critical=False)
+        return b.sign(issuer_key, hashes.SHA256())
+
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "scancell test CA")])
+    ca = cert("scancell test CA", ca_key, ca_name, ca_key, True)
+    key = ec.generate_private_key(ec.SECP256R1())
+    router = cert("localhost", key, ca_name, ca_key, False,
+                  [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))])
+    pem = serialization.Encoding.PEM
+    files = {"ca": folder / "ca.pem", "cert": folder / "router.pem", "key": folder / "router.key"}
+    files["ca"].write_bytes(ca.public_bytes(pem))
+    files["cert"].write_bytes(router.public_bytes(pem))
+    files["key"].write_bytes(key.private_bytes(pem, serialization.PrivateFormat.PKCS8,
+                                               serialization.NoEncryption()))
+    return files
+
+
+@pytest.fixture
+def secured_cell(tmp_path, cell, request):
+    files = _certs(tmp_path)
+    creds = tmp_path / "credentials.txt"
+    creds.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
+    port = free_port()
+    router = open_router(load_router_config(router_config_path(), {
+        "listen/endpoints": [f"tls/127.0.0.1:{port}"],
+        "transport/link/tls/root_ca_certificate": str(files["ca"]),
+        "transport/link/tls/listen_certificate": str(files["cert"]),
+        "transport/link/tls/listen_private_key": str(files["key"]),
+        "transport/auth/usrpwd/dictionary_file": str(creds),
+        **getattr(request, "param", {})}))
+    endpoint = f"tls/localhost:{port}"
+    tls = {"root_ca_certificate": str(files["ca"])}
+
+    def bus_cfg(user: str | None, password: str | None = None) -> BusConfig:
+        return BusConfig(mode="client", connect=(endpoint,), tls=tls, user=user,
+                         password=password if password is not None else PASSWORDS.get(user or ""))
+
+    daemon = DaemonThread(MOCK_CELL, cell, endpoint, bus={
+        "mode": "client", "connect": [endpoint], "tls": tls, "user": "cell",
+        "password": PASSWORDS["cell"]})
+    opened: list[Bus] = []
+
+    def connect(user: str | None, password: str | None = None, wait_s: float = 5.0) -> Bus:
+        b = Bus.open(bus_cfg(user, password), cell, wait_s=wait_s)
+        opened.append(b)
+        return b
+
+    yield connect
+    for b in opened:
+        b.close()
+    daemon.stop()
+    router.close()
+
+
+def _move(bus: Bus, j1: float):
+    return bus.call("device/robot/move_joints", {"joints_deg": [j1, 0, 0, 0, 0, 0]},
+                    timeout_s=10.0, connect_wait_s=2.0)
+
+
+def test_a_controller_moves_the_robot_a_monitor_cannot(secured_cell):
+    controller = secured_cell("controller")
+    wait_until(lambda: controller.call("status", timeout_s=5.0)["devices"]["robot"]["state"]
+               == "connected", 20, what="daemon behind the router")
+    _move(controller, 10.0)
+    assert np.isclose(controller.call("device/robot/joints")["joints_deg"][0], 10.0, atol=0.01)
+
+    monitor = secured_cell("monitor")
+    assert monitor.call("status", timeout_s=5.0)["cell"]  # read-only commands work
+    seen = threading.Event()
+    monitor.subscribe(monitor.keys.dev("robot", "joints"), lambda s: seen.set())
+    assert seen.wait(10), "a monitor receives the measurements"
+    with pytest.raises(NoDaemon):  # the router drops the query: nobody answers
+        _move(monitor, 40.0)
+    with pytest.raises(NoDaemon):
+        monitor.call("estop", {}, timeout_s=5.0, connect_wait_s=1.0)
+    assert np.isclose(controller.call("device/robot/joints")["joints_deg"][0], 10.0, atol=0.01)
+
+
+def test_an_engineer_calibrates_but_does_not_command_motion(secured_cell):
+    engineer = secured_cell("engineer")
+    wait_until(lambda: engineer.call("status", timeout_s=5.0), 20, what="daemon")
+    assert engineer.call("config", timeout_s=5.0)["config"]["cell"]
+    with pytest.raises(CommandError):  # allowed through, refused by the daemon: no job running
+        engineer.call("job/confirm", {}, timeout_s=5.0)
+    with pytest.raises(NoDaemon):
+        _move(engineer, 20.0)
+    with pytest.raises(NoDaemon):
+        engineer.call("home", {"joints_deg": [0, 0, 0, 0, 0, 0]}, timeout_s=5.0,
+                      connect_wait_s=1.0)
+
+
+def test_no_credentials_no_session(secured_cell):
+    with pytest.raises(ConnectionError):
+        secured_cell(None, wait_s=2.0)
+    with pytest.raises(ConnectionError):
+        secured_cell("controller", password="wrong", wait_s=2.0)
+    with pytest.raises(ConnectionError):
+        secured_cell("intruder", password="x", wait_s=2.0)
+
+
+@pytest.mark.parametrize("secured_cell", [{"access_control/enabled": False}], indirect=True)
+def test_without_the_acl_the_same_monitor_could_move(secured_cell):
+    """The control experiment: it is the ACL, not the setup, that stops the monitor."""
+    monitor = secured_cell("monitor")
+    wait_until(lambda: monitor.call("status", timeout_s=5.0)["devices"]["robot"]["state"]
+               == "connected", 20, what="daemon behind the router")
+    _move(monitor, 30.0)
+    assert np.isclose(monitor.call("device/robot/joints")["joints_deg"][0], 30.0, atol=0.01)
