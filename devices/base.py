@@ -186,7 +186,25 @@ class Robot(Device):
                     f"{self.name}: {self.joint_names[i]} = {np.degrees(v):.3f} deg is outside "
                     f"[{np.degrees(lo):.1f}, {np.degrees(hi):.1f}] deg",
                 )
+        self.check_workspace(q)
         return q
+
+    def check_workspace(self, q: np.ndarray) -> None:
+        """Raise CommandError('out_of_range') if the flange at ``q`` (forward kinematics of the
+        robot model, robot base frame, mm) leaves the configured ``workspace_mm`` box
+        ``[[xmin, xmax], [ymin, ymax], [zmin, zmax]]``."""
+        box = self.options.get("workspace_mm")
+        if box is None:
+            return
+        from scancell.devices.robot_model import RobotModel
+
+        p = RobotModel().fk(q)[:3, 3]
+        for axis, v, (lo, hi) in zip("xyz", p, box, strict=True):
+            if not lo <= v <= hi:
+                raise CommandError(
+                    "out_of_range",
+                    f"{self.name}: the flange would be at {axis} = {v:.1f} mm, outside the "
+                    f"workspace [{lo:g}, {hi:g}] mm (at joints {_f(np.degrees(q))} deg)")
 
     @abstractmethod
     async def joints(self) -> np.ndarray:

@@ -50,6 +50,9 @@ class SimpleMessageRobot(Robot):
             "state_timeout_s": {"type": "number", "exclusiveMinimum": 0},
             "position_tolerance_rad": {"type": "number", "exclusiveMinimum": 0},
             "joint_limits_deg": {"type": "array", "items": {"type": "array"}},
+            "workspace_mm": {"type": "array", "minItems": 3, "maxItems": 3,
+                             "items": {"type": "array", "minItems": 2, "maxItems": 2,
+                                       "items": {"type": "number"}}},
         },
         "additionalProperties": False,
     }

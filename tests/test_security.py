@@ -148,3 +148,24 @@ def test_without_the_acl_the_same_monitor_could_move(secured_cell):
                == "connected", 20, what="daemon behind the router")
     _move(monitor, 30.0)
     assert np.isclose(monitor.call("device/robot/joints")["joints_deg"][0], 30.0, atol=0.01)
+
+
+def test_motion_outside_the_workspace_is_refused_whoever_asks(make_daemon, client):
+    """Whatever the ACL lets through, the daemon checks every target: joint limits and the
+    flange inside the configured workspace box (robot base frame, forward kinematics)."""
+    import copy
+
+    raw = copy.deepcopy(MOCK_CELL)
+    raw["devices"]["robot"]["workspace_mm"] = [[0, 2500], [-1500, 1500], [200, 2500]]
+    make_daemon(raw)
+    q0 = client.call("device/robot/joints")["joints_deg"]
+    client.call("device/robot/move_joints", {"joints_deg": [10, 0, 0, 0, -90, 0]})  # inside
+    for q in ([180, 0, 0, 0, -90, 0],  # behind the robot: x < 0
+              [0, 90, 0, 0, -90, 0]):  # leaning forward into the floor: z < 200
+        with pytest.raises(CommandError, match="outside the workspace"):
+            client.call("device/robot/move_joints", {"joints_deg": q})
+    plan = {"station": [{"joints_deg": [180, 0, 0, 0, -90, 0]}]}
+    with pytest.raises(CommandError, match=r"station s01.*workspace"):
+        client.call("job/scan_part", {"plan": plan})
+    assert client.call("device/robot/joints")["joints_deg"][0] == pytest.approx(10.0, abs=0.01)
+    assert q0 != client.call("device/robot/joints")["joints_deg"]

@@ -11,10 +11,10 @@ import open3d as o3d
 import pytest
 from scancell.analysis.ecs import ecs_from_points
 from scancell.analysis.patterns import FringeSequence
+from scancell.devices.robot_model import IKError, RobotModel
 from scancell.devices.sim import parts
 from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.devices.sim.optics import default_rig, make_T, read_opencv_yaml
-from scancell.devices.sim.robot_model import IKError, RobotModel
 from scancell.devices.sim.scene import SceneObject
 from scancell.devices.sim.target import Chessboard, render_calibration_set
 from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec

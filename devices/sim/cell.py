@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from scancell.analysis.ecs import ecs_from_points
 from scancell.analysis.patterns import FringeSequence
+from scancell.devices.robot_model import RobotModel
 from scancell.devices.sim import parts
 from scancell.devices.sim.optics import PinholeModel, StereoRig, apply_T, default_rig, make_T, rot_x, rot_y
-from scancell.devices.sim.robot_model import RobotModel
 from scancell.devices.sim.scene import Scene, SceneObject
 from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
 

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import open3d as o3d
 from scancell.analysis.patterns import FringeSequence
+from scancell.devices.robot_model import IKError
 from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.devices.sim.parts import PARTS
-from scancell.devices.sim.robot_model import IKError
 
 
 def _floats(text: str, n: int, what: str) -> np.ndarray:
