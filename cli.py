@@ -161,6 +161,14 @@ def _reprocess_args(p: argparse.ArgumentParser) -> None:
     add_reprocess_arguments(p)
 
 
+@subcommand("monitor", "the cell live in the Foxglove app (WebSocket, decimated)",
+            "scancell.recorder.monitor:main")
+def _monitor_args(p: argparse.ArgumentParser) -> None:
+    from scancell.recorder.monitor import add_arguments
+
+    add_arguments(p, _bus_args)
+
+
 @subcommand("router", "a zenoh router with TLS, users and the cell's ACL (deploy/zenoh)",
             "scancell.deploy.router:main")
 def _router_args(p: argparse.ArgumentParser) -> None:
