@@ -66,7 +66,7 @@ class CellConfig:
         return scrub(self.raw)
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator", "recorder"}
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator", "recorder", "planner"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import open3d as o3d
 from scancell.analysis.ecs import ecs_from_points
 from scancell.analysis.patterns import FringeSequence
 from scancell.devices.robot_model import RobotModel
@@ -179,6 +180,27 @@ class SimCell:
         q = np.radians(np.asarray(self.cfg.home_deg, float))
         return (np.linalg.inv(self.true_T_world_from_ecs(q, j6_angles_deg))
                 @ self.T_world_from_mcs(q))
+
+    def planner_table(self) -> dict:
+        """This cell's geometry as a ``[planner]`` table (what a real cell's config states)."""
+        T_fm = self.T_flange_from_mcs
+        rig_mid = T_fm[:3, 3] + T_fm[:3, :3] @ (self.rig.T_mcs_from_right[:3, 3] / 2)
+        return {"T_world_from_base": self.T_world_from_base.tolist(),
+                "T_flange_from_mcs": T_fm.tolist(), "rig_mid_in_flange_mm": rig_mid.tolist(),
+                "smr_in_mcs_mm": self.cfg.smr_in_mcs_mm.tolist(),
+                "smr_opening_in_mcs": self.cfg.smr_opening_in_mcs.tolist(),
+                "tracker_world_mm": self.tracker.position.tolist(),
+                "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
+                "rail_axis": self.cfg.rail_axis.tolist(),
+                "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0]}
+
+    def part_mesh_world(self) -> o3d.geometry.TriangleMesh:
+        """The part's true surface in ``world`` (mm)."""
+        if not self.cfg.part:
+            raise ValueError("this cell has no part")
+        mesh = parts.PARTS[self.cfg.part]()
+        mesh.transform(self.cfg.T_world_from_part)
+        return mesh
 
     def surface_distance(self, points_world: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm) of world points to the true surface of the part."""

@@ -185,11 +185,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     tg.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
     tg.add_argument("--seed", type=int, default=0)
     tg.add_argument("--out", required=True)
+    pt = sub.add_parser("part", help="the simulated part's surface in the tracker frame (PLY, mm), "
+                                     "for `scancell plan --part`")
+    pt.add_argument("--part", default="car_rear", choices=sorted(PARTS))
+    pt.add_argument("--out", required=True)
 
 
 def main(args: argparse.Namespace) -> int:
     if args.sim_command == "serve":
         return asyncio.run(_serve(args))
+    if args.sim_command == "part":
+        mesh = SimCell(SimCellConfig(part=args.part, camera_scale=8)).part_mesh_world()
+        if not o3d.io.write_triangle_mesh(args.out, mesh):
+            print(f"scancell sim part: cannot write {args.out}", file=sys.stderr)
+            return 2
+        print(f"{args.part}: {len(mesh.triangles)} triangles in the tracker frame -> {args.out}")
+        return 0
     if args.sim_command == "targets":
         return targets(args)
     return render(args)

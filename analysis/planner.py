@@ -1,0 +1,326 @@
+"""Station planning: scanner stations that cover a part, with the paper's 10-40 % overlap between
+neighbours, every one reachable and inside the joint limits, and the tracker seeing the SMR at all
+three J6 positions.
+
+1. The part's surface (a mesh in the tracker frame ``world``, mm) is sampled with normals.
+2. Candidate views: surface patches one step apart (the field minus the wanted overlap), each
+   looked at along its normal and tilted 20° four ways; the scanner's bisector meets the patch
+   ``standoff_mm`` from the rig.
+3. A candidate is kept if inverse kinematics reaches it inside the joint limits, J6 can turn by
+   the ECS angles (one way or the other), and at those three J6 positions the SMR faces the
+   tracker within its acceptance angle with no part in the beam.
+4. What a candidate sees: samples inside the field and depth of view, facing the scanner, not
+   hidden by the part (ray cast).
+5. Stations are chosen greedily by new coverage until ``coverage`` is reached, and ordered by
+   a nearest-neighbour tour in joint space from the first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from scancell.devices.robot_model import IKError, RobotModel
+from scancell.protocols.plan import Plan, PlanStation
+
+
+class PlanningError(ValueError):
+    """No station can see the part, or the part file is unusable; says which."""
+
+
+@dataclass(frozen=True)
+class CellGeometry:
+    """What the planner needs to know of the cell (mm, frames as in design.md)."""
+
+    T_world_from_base: np.ndarray
+    T_flange_from_mcs: np.ndarray
+    #: Midpoint between the cameras in the flange frame; the flange z axis is the scanner's
+    #: viewing direction (the bisector) and x its baseline.
+    rig_mid_in_flange: np.ndarray
+    smr_in_mcs_mm: np.ndarray
+    smr_opening_in_mcs: np.ndarray
+    tracker_world_mm: np.ndarray
+    smr_acceptance_deg: float = 30.0
+    standoff_mm: float = 650.0
+    field_mm: tuple[float, float] = (380.0, 280.0)  # usable field at the standoff (x, y)
+    depth_mm: tuple[float, float] = (-90.0, 90.0)  # around the standoff
+    max_incidence_deg: float = 65.0
+    j6_angles_deg: tuple[float, float] = (30.0, 60.0)
+    #: An external linear axis carrying the robot (unit vector in world) and the positions (mm)
+    #: the planner may use; empty: no axis.
+    rail_axis: tuple[float, float, float] | None = None
+    rail_positions_mm: tuple[float, ...] = ()
+    robot: RobotModel = field(default_factory=RobotModel)
+
+    def base_at(self, rail_mm: float | None) -> np.ndarray:
+        T = np.array(self.T_world_from_base, float)
+        if rail_mm:
+            T[:3, 3] += np.asarray(self.rail_axis, float) * rail_mm
+        return T
+
+    @classmethod
+    def from_table(cls, t: dict[str, Any]) -> CellGeometry:
+        """From a cell config's ``[planner]`` table (matrices as nested lists)."""
+        try:
+            return cls(np.asarray(t["T_world_from_base"], float),
+                       np.asarray(t["T_flange_from_mcs"], float),
+                       np.asarray(t["rig_mid_in_flange_mm"], float),
+                       np.asarray(t["smr_in_mcs_mm"], float),
+                       np.asarray(t.get("smr_opening_in_mcs", [0, 0, -1]), float),
+                       np.asarray(t["tracker_world_mm"], float),
+                       float(t.get("smr_acceptance_deg", 30.0)),
+                       float(t.get("standoff_mm", 650.0)),
+                       tuple(t.get("field_mm", (380.0, 280.0))),
+                       tuple(t.get("depth_mm", (-90.0, 90.0))),
+                       rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
+                       rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())))
+        except KeyError as exc:
+            raise PlanningError(f"[planner]: missing key {exc}") from None
+
+
+@dataclass
+class Candidate:
+    name: str
+    q: np.ndarray  # rad
+    target: np.ndarray
+    view: np.ndarray
+    sees: np.ndarray  # bool over the surface samples
+    j6_sign: float
+    rail_mm: float | None = None
+
+
+@dataclass
+class PlanReport:
+    stations: int
+    coverage: float  # share of the reachable surface samples seen by at least one station
+    reachable: float  # share of all samples some candidate could see
+    #: Per station: its nearest neighbour (most shared surface) and the share of the smaller
+    #: view they share.
+    neighbours: list[tuple[str, str, float]]
+    candidates: int
+    candidates_kept: int
+
+    def to_json(self) -> dict[str, Any]:
+        ov = [o for _, _, o in self.neighbours]
+        return {"stations": self.stations, "coverage": round(self.coverage, 4),
+                "reachable": round(self.reachable, 4), "candidates": self.candidates,
+                "candidates_kept": self.candidates_kept,
+                "neighbour_overlap_min": round(min(ov), 3) if ov else None,
+                "neighbour_overlap_median": round(float(np.median(ov)), 3) if ov else None,
+                "neighbour_overlap_max": round(max(ov), 3) if ov else None,
+                "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40)}
+
+
+def look_at(g: CellGeometry, target: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """``T_world_from_flange`` with the bisector through ``target`` along ``view``, the rig
+    midpoint ``standoff_mm`` before it and the baseline horizontal."""
+    v = view / np.linalg.norm(view)
+    x = np.cross([0.0, 0.0, -1.0], v)
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([0.0, 1.0, 0.0])
+    R = np.stack([x, np.cross(v, x), v], axis=1)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = target - v * g.standoff_mm - R @ g.rig_mid_in_flange
+    return T
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    t = np.radians(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]
+    return T
+
+
+def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
+    a = np.cross(v, [0.0, 0.0, 1.0])
+    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-6 else np.array([0.0, 1.0, 0.0])
+    b = np.cross(v, a)
+    t = np.radians(deg)
+    return [v] + [np.cos(t) * v + np.sin(t) * d for d in (a, -a, b, -b)]
+
+
+class Planner:
+    def __init__(self, mesh: o3d.geometry.TriangleMesh, geometry: CellGeometry,
+                 samples: int = 12000, seed: int = 0) -> None:
+        if len(mesh.triangles) == 0:
+            raise PlanningError("the part mesh has no triangles")
+        self.g = geometry
+        mesh.compute_triangle_normals()
+        o3d.utility.random.seed(seed)
+        pcd = mesh.sample_points_uniformly(samples, use_triangle_normal=True)
+        self.points = np.asarray(pcd.points)
+        n = np.asarray(pcd.normals)
+        base = geometry.T_world_from_base[:3, 3]
+        flip = np.einsum("ij,ij->i", n, base - self.points) < 0  # normals face the robot
+        n[flip] *= -1
+        self.normals = n
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+
+    # ------------------------------------------------------------------ checks
+    def _clear(self, origins: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        d = ends - origins
+        dist = np.linalg.norm(d, axis=1)
+        rays = np.hstack([origins, d / dist[:, None]]).astype(np.float32)
+        hit = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        return hit >= dist - 1.0
+
+    def tracker_sees_smr(self, q: np.ndarray, base: np.ndarray) -> bool:
+        """At joints ``q`` on a robot base at ``base``."""
+        return self._smr_in_sight(base @ self.g.robot.fk(q))
+
+    def _smr_in_sight(self, T_world_from_flange: np.ndarray) -> bool:
+        g = self.g
+        T = T_world_from_flange @ g.T_flange_from_mcs
+        smr = T[:3, :3] @ g.smr_in_mcs_mm + T[:3, 3]
+        to_tracker = g.tracker_world_mm - smr
+        opening = T[:3, :3] @ g.smr_opening_in_mcs
+        cos = opening @ to_tracker / np.linalg.norm(to_tracker)
+        if cos < np.cos(np.radians(g.smr_acceptance_deg)):
+            return False
+        return bool(self._clear(smr[None] + 25.0 * to_tracker[None] / np.linalg.norm(to_tracker),
+                                g.tracker_world_mm[None])[0])
+
+    def _j6_sign(self, T_world_from_flange: np.ndarray) -> float | None:
+        """The J6 turn direction with the SMR in the tracker's sight at all three positions (J6
+        turns the flange about its z axis, so no joint solution is needed to know)."""
+        for sign in (1.0, -1.0):
+            if all(self._smr_in_sight(T_world_from_flange @ _rot_z(sign * a))
+                   for a in (0.0, *self.g.j6_angles_deg)):
+                return sign
+        return None
+
+    def reachable(self, T_world_from_flange: np.ndarray, seed: np.ndarray | None,
+                  rail_mm: float | None = None) -> tuple[np.ndarray, float] | None:
+        """Joints and J6 turn sign, or None if the pose cannot be used."""
+        g = self.g
+        sign = self._j6_sign(T_world_from_flange)
+        if sign is None:
+            return None
+        base = g.base_at(rail_mm)
+        T_base_from_flange = np.linalg.inv(base) @ T_world_from_flange
+        wrist = T_base_from_flange[:3, 3] - 175.0 * T_base_from_flange[:3, 2]
+        if np.linalg.norm(wrist - [0.0, 0.0, 565.0]) > 2050.0:  # beyond the arm's reach
+            return None
+        try:
+            q = g.robot.ik(T_base_from_flange, seed)
+        except IKError:
+            return None
+        qs = [q] + [q + np.radians([0, 0, 0, 0, 0, sign * a]) for a in g.j6_angles_deg]
+        if all(g.robot.within_limits(x) for x in qs):
+            return q, sign
+        return None
+
+    def seen(self, T_world_from_flange: np.ndarray) -> np.ndarray:
+        g = self.g
+        origin = T_world_from_flange[:3, :3] @ g.rig_mid_in_flange + T_world_from_flange[:3, 3]
+        R = T_world_from_flange[:3, :3]
+        rel = (self.points - origin) @ R  # flange axes: x baseline, z view
+        z = rel[:, 2]
+        ok = (z > g.standoff_mm + g.depth_mm[0]) & (z < g.standoff_mm + g.depth_mm[1])
+        scale = z / g.standoff_mm
+        ok &= (np.abs(rel[:, 0]) <= g.field_mm[0] / 2 * scale)
+        ok &= (np.abs(rel[:, 1]) <= g.field_mm[1] / 2 * scale)
+        to_scanner = origin - self.points
+        to_scanner /= np.linalg.norm(to_scanner, axis=1)[:, None]
+        ok &= np.einsum("ij,ij->i", self.normals, to_scanner) > np.cos(
+            np.radians(g.max_incidence_deg))
+        idx = np.flatnonzero(ok)
+        if len(idx):
+            start = self.points[idx] + 0.5 * to_scanner[idx]  # just off the surface
+            ok[idx] = self._clear(start, np.repeat(origin[None], len(idx), axis=0))
+        return ok
+
+    # ------------------------------------------------------------------ planning
+    def candidates(self, overlap: float) -> tuple[list[Candidate], int]:
+        g = self.g
+        step = (1.0 - overlap) * min(g.field_mm)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        pcd.normals = o3d.utility.Vector3dVector(self.normals)
+        patches = pcd.voxel_down_sample(step / 2)
+        centres, normals = np.asarray(patches.points), np.asarray(patches.normals)
+        out: list[Candidate] = []
+        tried = 0
+        seed = None
+        rails: list[float | None] = list(g.rail_positions_mm) or [None]
+        for c, n in zip(centres, normals, strict=True):
+            for view in _tilted(-n / np.linalg.norm(n), 20.0):
+                T = look_at(g, c, view)
+                sees = self.seen(T)
+                if sees.sum() < 20:
+                    continue
+                # the rail position nearest the target first: the arm works best mid-reach
+                along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis or (0, 0, 0))
+                if self._j6_sign(T) is None:
+                    tried += 1
+                    continue
+                for rail in sorted(rails, key=lambda r: abs((r or 0.0) - along)):
+                    tried += 1
+                    r = self.reachable(T, seed, rail)
+                    if r is not None:
+                        seed = r[0]
+                        out.append(Candidate(f"c{tried}", r[0], c, view, sees, r[1], rail))
+                        break
+        return out, tried
+
+    def plan(self, coverage: float = 0.95, overlap: float = 0.25, name: str = "plan",
+             max_stations: int = 60) -> tuple[Plan, PlanReport]:
+        cands, tried = self.candidates(overlap)
+        if not cands:
+            raise PlanningError(f"none of {tried} candidate views is reachable with the tracker "
+                                f"seeing the SMR: is the part in reach of the robot (world frame, "
+                                f"mm)?")
+        possible = np.any([c.sees for c in cands], axis=0)
+        covered = np.zeros(len(self.points), bool)
+        chosen: list[Candidate] = []
+        while covered[possible].mean() < coverage and len(chosen) < max_stations and cands:
+            score = [self._score(c, chosen, covered) for c in cands]
+            best = int(np.argmax(score))
+            if score[best] < 10:
+                break
+            chosen.append(cands.pop(best))
+            covered |= chosen[-1].sees
+        order = _tour([c.q for c in chosen])
+        chosen = [chosen[i] for i in order]
+        stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
+                                     c.rail_mm) for i, c in enumerate(chosen))
+        overlaps = []
+        for i in range(len(chosen)):
+            shares = [((chosen[i].sees & chosen[j].sees).sum()
+                       / min(chosen[i].sees.sum(), chosen[j].sees.sum()), j)
+                      for j in range(len(chosen)) if j != i]
+            if shares:
+                share, j = max(shares)
+                overlaps.append((stations[i].name, stations[j].name, float(share)))
+        report = PlanReport(len(stations), float(covered[possible].mean()),
+                            float(possible.mean()), overlaps, tried, len(cands) + len(chosen))
+        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=report.to_json())
+        return plan, report
+
+
+    @staticmethod
+    def _score(c: Candidate, chosen: list[Candidate], covered: np.ndarray) -> float:
+        """New coverage, halved unless the view overlaps the stations chosen so far by the
+        paper's 10-40 % (its largest overlap with one of them)."""
+        gain = float((c.sees & ~covered).sum())
+        if not chosen:
+            return gain
+        n = max(1, int(c.sees.sum()))
+        best = max(float((c.sees & s.sees).sum()) / n for s in chosen)
+        return gain if 0.10 <= best <= 0.40 else 0.5 * gain
+
+
+def _tour(qs: list[np.ndarray]) -> list[int]:
+    """Nearest-neighbour order in joint space, starting from the first station."""
+    if not qs:
+        return []
+    left = list(range(1, len(qs)))
+    order = [0]
+    while left:
+        last = qs[order[-1]]
+        k = min(left, key=lambda i: float(np.max(np.abs(qs[i] - last))))
+        order.append(k)
+        left.remove(k)
+    return order

@@ -1,0 +1,91 @@
+"""Station planning on the simulated car-body rear: every station reachable, inside the limits,
+tracker in sight at the three J6 positions; the planned stations are then measured by the
+scan_part job on the simulated cell."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scancell.analysis.planner import CellGeometry, Planner, PlanningError
+from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.protocols.plan import plan_from_text
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def planned():
+    cell = SimCell(SimCellConfig(camera_scale=8))
+    g = CellGeometry.from_table(cell.planner_table())
+    planner = Planner(cell.part_mesh_world(), g, samples=2000)
+    plan, report = planner.plan(coverage=0.9, overlap=0.25)
+    return cell, g, planner, plan, report
+
+
+def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(planned):
+    cell, g, planner, plan, report = planned
+    assert report.stations >= 4 and report.coverage >= 0.9, report.to_json()
+    for st in plan.stations:
+        q = np.radians(st.joints_deg)
+        base = g.base_at(st.axis_mm)
+        assert g.robot.within_limits(q)
+        sees = [all(planner.tracker_sees_smr(q + np.radians([0, 0, 0, 0, 0, s * a]), base)
+                    for a in (0.0, *g.j6_angles_deg)) for s in (1, -1)]
+        assert any(sees), st.name
+        # and the simulator agrees: its own beam model sees the SMR at this pose
+        cell.rail_mm = st.axis_mm or 0.0
+        cell.move_joints(q)
+        cell.beam_check("scanner")
+    ov = [o for _, _, o in report.neighbours]
+    assert np.median(ov) > 0.05
+    assert plan_from_text(plan.to_toml(), "plan.toml")["station"][0]["name"] == "s01"
+
+
+def test_plan_cli_and_bad_input(tmp_path):
+    run = [sys.executable, "-m", "scancell"]
+    r = subprocess.run([*run, "sim", "part", "--out", str(tmp_path / "part.ply")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out",
+                        str(tmp_path / "plan.toml"), "--samples", "1500", "--coverage", "0.8"],
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stderr
+    assert "stations ->" in r.stdout and "overlap" in r.stdout
+    assert len(plan_from_text((tmp_path / "plan.toml").read_text(), "plan.toml")["station"]) >= 3
+    r = subprocess.run([*run, "plan", "--part", str(tmp_path / "nope.ply"), "--out", "x.toml"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "no such mesh" in r.stderr
+    r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out", "x.toml",
+                        "--overlap", "0.7"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "overlap" in r.stderr
+    with pytest.raises(PlanningError, match="no triangles"):
+        import open3d as o3d
+
+        Planner(o3d.geometry.TriangleMesh(), CellGeometry.from_table(
+            SimCell(SimCellConfig(camera_scale=8)).planner_table()))
+
+
+def test_planned_stations_run_as_a_scan_job_on_the_simulated_cell(planned, make_daemon, client):
+    """The client's whole path: plan, run the job (rail moves included), watch its events."""
+    from .conftest import sim_cell_raw, wait_until
+
+    _cell, _g, _planner, plan, _report = planned
+    make_daemon(sim_cell_raw(camera_scale=8))
+    wait_until(lambda: all(s["state"] == "connected"
+                           for s in client.status()["devices"].values()), 30, what="sim up")
+    events: list[dict] = []
+    client.bus.subscribe(client.bus.keys.job_event("*"), lambda s: events.append(s.decode()))
+    request = {"plan": plan.to_json(), "stations": [s.name for s in plan.stations[:3]],
+               "tracker_repeats": 1}
+    job = client.call("job/scan_part", request)["job_id"]
+    wait_until(lambda: any(e["job_id"] == job and e["state"] != "running" for e in events),
+               240, period_s=0.5, what="job end")
+    final = [e for e in events if e["job_id"] == job][-1]
+    assert final["state"] == "done", final
+    assert len(final["result"]["stations"]) == 3
+    measured_axis = [s.axis_mm for s in plan.stations[:3]]
+    assert client.call("device/axis/position")["position"] == pytest.approx(
+        measured_axis[-1] or 0.0, abs=0.5)
