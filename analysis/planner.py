@@ -265,7 +265,7 @@ class Planner:
                         break
         return out, tried
 
-    def plan(self, coverage: float = 0.95, overlap: float = 0.25, name: str = "plan",
+    def plan(self, coverage: float = 0.90, overlap: float = 0.25, name: str = "plan",
              max_stations: int = 60) -> tuple[Plan, PlanReport]:
         cands, tried = self.candidates(overlap)
         if not cands:
@@ -276,9 +276,11 @@ class Planner:
         covered = np.zeros(len(self.points), bool)
         chosen: list[Candidate] = []
         while covered[possible].mean() < coverage and len(chosen) < max_stations and cands:
-            score = [self._score(c, chosen, covered) for c in cands]
+            min_gain = max(5, len(self.points) // 1000)
+            score = [self._score(c, chosen, covered) if (c.sees & ~covered).sum() >= min_gain
+                     else -1.0 for c in cands]
             best = int(np.argmax(score))
-            if score[best] < 10:
+            if score[best] < 0:
                 break
             chosen.append(cands.pop(best))
             covered |= chosen[-1].sees
@@ -302,14 +304,19 @@ class Planner:
 
     @staticmethod
     def _score(c: Candidate, chosen: list[Candidate], covered: np.ndarray) -> float:
-        """New coverage, a tenth of it unless the view overlaps the stations chosen so far by the
-        paper's 10-40 % (its largest overlap with one of them)."""
+        """New coverage, ranked first by how the view overlaps the stations chosen so far (its
+        largest overlap with one of them): the paper's 10-40 % first, then near it (5-60 %),
+        then anything."""
         gain = float((c.sees & ~covered).sum())
         if not chosen:
             return gain
         n = max(1, int(c.sees.sum()))
         best = max(float((c.sees & s.sees).sum()) / n for s in chosen)
-        return gain if 0.10 <= best <= 0.40 else 0.1 * gain
+        if 0.10 <= best <= 0.40:
+            return 2e9 + gain
+        if 0.05 <= best <= 0.60:
+            return 1e9 + gain
+        return gain
 
 
 def _tour(qs: list[np.ndarray]) -> list[int]:
