@@ -106,7 +106,7 @@ def _fuse_args(p: argparse.ArgumentParser) -> None:
     add_arguments(p)
 
 
-@subcommand("plan", "stations covering a part: reachable, tracker in sight, 10-40 % overlap",
+@subcommand("plan", "stations covering a part: reachable, tracker in sight, 10-40 %% overlap",
             "scancell.analysis.plan_cli:main")
 def _plan_args(p: argparse.ArgumentParser) -> None:
     from scancell.analysis.plan_cli import add_arguments

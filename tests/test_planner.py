@@ -68,24 +68,34 @@ def test_plan_cli_and_bad_input(tmp_path):
             SimCell(SimCellConfig(camera_scale=8)).planner_table()))
 
 
-def test_planned_stations_run_as_a_scan_job_on_the_simulated_cell(planned, make_daemon, client):
-    """The client's whole path: plan, run the job (rail moves included), watch its events."""
+def test_planned_stations_run_as_a_scan_job_on_the_simulated_cell(planned, make_daemon, client,
+                                                                  cell, endpoint, tmp_path):
+    """The client's whole path: plan file, `scancell ctl scan-part` following the job's events
+    (rail moves included) to its end."""
+    import os
+
     from .conftest import sim_cell_raw, wait_until
 
     _cell, _g, _planner, plan, _report = planned
     make_daemon(sim_cell_raw(camera_scale=8))
     wait_until(lambda: all(s["state"] == "connected"
                            for s in client.status()["devices"].values()), 30, what="sim up")
-    events: list[dict] = []
-    client.bus.subscribe(client.bus.keys.job_event("*"), lambda s: events.append(s.decode()))
-    request = {"plan": plan.to_json(), "stations": [s.name for s in plan.stations[:3]],
-               "tracker_repeats": 1}
-    job = client.call("job/scan_part", request)["job_id"]
-    wait_until(lambda: any(e["job_id"] == job and e["state"] != "running" for e in events),
-               240, period_s=0.5, what="job end")
-    final = [e for e in events if e["job_id"] == job][-1]
-    assert final["state"] == "done", final
-    assert len(final["result"]["stations"]) == 3
-    measured_axis = [s.axis_mm for s in plan.stations[:3]]
+    (tmp_path / "plan.toml").write_text(plan.to_toml().replace(
+        "tracker_repeats = 5", "tracker_repeats = 1"))
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    out = subprocess.run([sys.executable, "-m", "scancell", "ctl", "scan-part", "--plan",
+                          str(tmp_path / "plan.toml"), "--stations",
+                          *[s.name for s in plan.stations[:3]]],
+                         capture_output=True, text=True, timeout=240, env=env)
+    assert out.returncode == 0, out.stdout + out.stderr
+    lines = out.stdout.splitlines()
+    assert "started" in lines[0] and lines[-1].startswith("done")
+    assert any("[3/3]" in line and "measured" in line for line in lines)
+    last = client.call("job/status")["last"]
+    assert last["state"] == "done" and len(last["result"]["stations"]) == 3
     assert client.call("device/axis/position")["position"] == pytest.approx(
-        measured_axis[-1] or 0.0, abs=0.5)
+        plan.stations[2].axis_mm or 0.0, abs=0.5)
+    bad = subprocess.run([sys.executable, "-m", "scancell", "ctl", "scan-part", "--plan",
+                          str(tmp_path / "nope.toml")], capture_output=True, text=True,
+                         timeout=60, env=env)
+    assert bad.returncode == 2 and "nope.toml" in bad.stderr
