@@ -25,16 +25,19 @@ from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import Axis, Camera, Projector, Robot, Tracker
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
-from scancell.protocols.plan import Plan, PlanError, parse_plan
+from scancell.protocols.plan import Plan, PlanError, PlanStation, parse_plan
 
 VERB = "scan_part"
 
 
-def plan_from_request(req: dict[str, Any]) -> Plan:
+def plan_from_request(req: dict[str, Any], geometry: dict[str, Any] | None = None,
+                      seed_rad: np.ndarray | None = None) -> Plan:
+    """The request's plan, stations given as scanner poses solved into joints."""
     try:
         plan = parse_plan(req.get("plan"), "request plan")
     except PlanError as exc:
         raise CommandError("invalid", str(exc)) from None
+    plan = solve_poses(plan, geometry, seed_rad)
     only = req.get("stations")
     if only:
         missing = sorted(set(only) - {s.name for s in plan.stations})
@@ -43,6 +46,48 @@ def plan_from_request(req: dict[str, Any]) -> Plan:
         plan = Plan(plan.name, tuple(s for s in plan.stations if s.name in only), plan.speed,
                     plan.j6_angles_deg, plan.tracker_repeats, plan.extra)
     return plan
+
+
+def solve_poses(plan: Plan, geometry: dict[str, Any] | None, seed_rad: np.ndarray | None
+                ) -> Plan:
+    """Joints for every station given as ``mcs_pose_world``, by inverse kinematics on the robot
+    model with the cell's robot base (on the rail at the station's ``axis_mm``) and scanner
+    mount from ``geometry`` (the ``[planner]`` table)."""
+    if all(s.mcs_pose_world is None for s in plan.stations):
+        return plan
+    from scancell.devices.robot_model import IKError, RobotModel
+    from scipy.spatial.transform import Rotation
+
+    if not geometry or "T_world_from_base" not in geometry or "T_flange_from_mcs" not in geometry:
+        raise CommandError("invalid", "stations given as mcs_pose_world need the cell's robot "
+                                      "base and scanner mount: [planner] T_world_from_base, "
+                                      "T_flange_from_mcs in the cell config")
+    model = RobotModel()
+    T_fm_inv = np.linalg.inv(np.asarray(geometry["T_flange_from_mcs"], float))
+    seed = seed_rad
+    out = []
+    for st in plan.stations:
+        if st.mcs_pose_world is None:
+            out.append(st)
+            seed = np.radians(st.joints_deg)
+            continue
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", st.mcs_pose_world[3:], degrees=True).as_matrix()
+        T[:3, 3] = st.mcs_pose_world[:3]
+        base = np.asarray(geometry["T_world_from_base"], float).copy()
+        if st.axis_mm:
+            base[:3, 3] += np.asarray(geometry.get("rail_axis", [0, 1, 0]), float) * st.axis_mm
+        try:
+            q = model.ik(np.linalg.inv(base) @ T @ T_fm_inv, seed)
+        except IKError as exc:
+            raise CommandError("out_of_range", f"station {st.name}: mcs_pose_world "
+                                               f"{list(st.mcs_pose_world)} not reachable: {exc}"
+                               ) from None
+        seed = q
+        out.append(PlanStation(st.name, tuple(float(v) for v in np.degrees(q)), st.axis_mm,
+                               st.mcs_pose_world))
+    return Plan(plan.name, tuple(out), plan.speed, plan.j6_angles_deg, plan.tracker_repeats,
+                plan.extra)
 
 
 def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
@@ -72,18 +117,20 @@ def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
                                                    f"outside [{lo}, {hi}] mm")
 
 
-def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor]) -> None:
+def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
+             geometry: dict[str, Any] | None = None) -> None:
     """Refuse a bad plan when the job is asked for, not once it runs."""
-    plan = plan_from_request(req)
+    plan = plan_from_request(req, geometry)
     robot = serving_device(supervisors, req.get("robot"), Robot, VERB).device
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
     axis = serving_device(supervisors, req.get("axis"), Axis, VERB).device if needs_axis else None
     check_plan(plan, robot, axis)
 
 
-async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor]) -> dict[str, Any]:
+async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
+                    geometry: dict[str, Any] | None = None) -> dict[str, Any]:
     req = ctx.request
-    plan = plan_from_request(req)
+    plan = plan_from_request(req, geometry)
     speed = float(req.get("speed", plan.speed))
     repeats = int(req.get("tracker_repeats", plan.tracker_repeats))
     turns = [float(a) for a in req.get("j6_angles_deg", plan.j6_angles_deg)]

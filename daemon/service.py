@@ -130,7 +130,7 @@ class Daemon:
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
                                                                  self.simulator),
-            "scan_part": lambda ctx: scan_part(ctx, self.supervisors),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self._geometry()),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,
@@ -251,8 +251,16 @@ class Daemon:
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
         }
 
+    def _geometry(self) -> dict[str, Any] | None:
+        """The cell's ``[planner]`` geometry, or the embedded simulator's own."""
+        table = self.cfg.raw.get("planner")
+        if table:
+            return table
+        world = getattr(self.simulator, "world", None)
+        return world.cell.planner_table() if world is not None else None
+
     async def _cmd_scan_part(self, request: dict[str, Any]) -> dict[str, Any]:
-        scan_part_precheck(request, self.supervisors)
+        scan_part_precheck(request, self.supervisors, self._geometry())
         return await self.jobs.start("scan_part", request)
 
     async def _cmd_estop(self, request: dict[str, Any]) -> dict[str, Any]:

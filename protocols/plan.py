@@ -13,7 +13,15 @@ TOML (or the same structure as JSON)::
     joints_deg = [0.0, 10.0, -5.0, 0.0, -60.0, 0.0]
     axis_mm = 0.0                # optional: external axis position
 
-Stations are in joint space (degrees); ``scancell plan`` writes them from the robot model.
+Stations are in joint space (degrees; ``scancell plan`` writes them from the robot model), or
+as the scanner's pose in the tracker frame, solved by inverse kinematics on the daemon's robot
+model when the job starts (the cell config's ``[planner]`` table gives the robot base and the
+scanner mount)::
+
+    [[station]]
+    name = "s02"
+    mcs_pose_world = [3000.0, 120.0, 1150.0, 0.0, 90.0, 0.0]   # x, y, z mm; rx, ry, rz deg
+                                                               # (extrinsic xyz, scipy)
 """
 
 from __future__ import annotations
@@ -32,8 +40,10 @@ class PlanError(ValueError):
 @dataclass(frozen=True)
 class PlanStation:
     name: str
-    joints_deg: tuple[float, ...]
+    joints_deg: tuple[float, ...] | None
     axis_mm: float | None = None
+    #: x, y, z (mm), rx, ry, rz (deg, extrinsic xyz): MCS in world, when not in joint space.
+    mcs_pose_world: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -53,7 +63,11 @@ class Plan:
             head["report"] = self.extra
         stations = []
         for s in self.stations:
-            d: dict[str, Any] = {"name": s.name, "joints_deg": list(s.joints_deg)}
+            d: dict[str, Any] = {"name": s.name}
+            if s.joints_deg is not None:
+                d["joints_deg"] = list(s.joints_deg)
+            if s.mcs_pose_world is not None:
+                d["mcs_pose_world"] = list(s.mcs_pose_world)
             if s.axis_mm is not None:
                 d["axis_mm"] = s.axis_mm
             stations.append(d)
@@ -139,12 +153,22 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
         if name in seen:
             raise PlanError(f"{at}: duplicate station name {name!r}")
         seen.add(name)
-        q = s.get("joints_deg")
-        if not isinstance(q, list) or len(q) != 6:
-            raise PlanError(f"{at} ({name}): joints_deg must be 6 angles in degrees")
-        joints = tuple(_number(x, f"{at} ({name}) joints_deg") for x in q)
+        q, pose = s.get("joints_deg"), s.get("mcs_pose_world")
+        if (q is None) == (pose is None):
+            raise PlanError(f"{at} ({name}): give joints_deg (6 angles, deg) or mcs_pose_world "
+                            f"(x, y, z mm, rx, ry, rz deg), one of them")
+        joints = pose6 = None
+        if q is not None:
+            if not isinstance(q, list) or len(q) != 6:
+                raise PlanError(f"{at} ({name}): joints_deg must be 6 angles in degrees")
+            joints = tuple(_number(x, f"{at} ({name}) joints_deg") for x in q)
+        else:
+            if not isinstance(pose, list) or len(pose) != 6:
+                raise PlanError(f"{at} ({name}): mcs_pose_world must be x, y, z (mm), rx, ry, "
+                                f"rz (deg)")
+            pose6 = tuple(_number(x, f"{at} ({name}) mcs_pose_world") for x in pose)
         axis = s.get("axis_mm")
         out.append(PlanStation(name, joints, None if axis is None
-                               else _number(axis, f"{at} ({name}) axis_mm")))
+                               else _number(axis, f"{at} ({name}) axis_mm"), pose6))
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
                 dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {})

@@ -175,6 +175,9 @@ def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
                        ({"plan": {"plan": {"j6_angles_deg": [30, 31]}, "station": plan["station"]}},
                         "j6_angles_deg"),
                        ({"plan": plan, "stations": ["nope"]}, "not in plan"),
+                       ({"plan": {"station": [{"joints_deg": [0] * 6,
+                                               "mcs_pose_world": [0] * 6}]}}, "invalid"),
+                       ({"plan": {"station": [{"name": "a"}]}}, "invalid"),
                        ({"plan": plan, "speed": 7}, "invalid")):
         with pytest.raises(CommandError, match=match):
             client.call("job/scan_part", bad)
@@ -197,3 +200,27 @@ def test_estop_stops_at_once_and_aborts_the_job(sim, client):
     wait_until(lambda: True, 0.5)
     assert np.allclose(client.call("device/robot/joints")["joints_deg"], q1, atol=0.01)
     assert client.status()["devices"]["robot"]["state"] == "connected"
+
+
+def test_a_station_given_as_a_scanner_pose_is_solved_by_ik(sim, client):
+    """Cartesian stations: the scanner pose in the tracker frame, joints by IK on the daemon's
+    robot model; an unreachable pose is refused before any motion."""
+    from scipy.spatial.transform import Rotation
+
+    world = sim
+    events = Events(client.bus)
+    with world.lock:
+        plan = plan_for(world.cell, TARGETS[:2])
+        T = world.cell.mcs_pose_looking_at(np.asarray(TARGETS[1]))
+    pose = [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)]
+    plan["station"][1] = {"name": "s02", "mcs_pose_world": pose}
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    wait_until(lambda: events.final(job), 120, period_s=0.3, what="job end")
+    assert events.final(job)["state"] == "done", events.final(job)
+    with world.lock:
+        reached = world.cell.T_world_from_mcs()
+    assert np.linalg.norm(reached[:3, 3] - T[:3, 3]) < 1.0  # robot repeatability, not IK
+    far = dict(plan)
+    far["station"] = [{"name": "x", "mcs_pose_world": [9000.0, 0, 1000, 0, 90, 0]}]
+    with pytest.raises(CommandError, match="not reachable"):
+        client.call("job/scan_part", {"plan": far})

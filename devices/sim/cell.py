@@ -185,7 +185,7 @@ class SimCell:
         """This cell's geometry as a ``[planner]`` table (what a real cell's config states)."""
         T_fm = self.T_flange_from_mcs
         rig_mid = T_fm[:3, 3] + T_fm[:3, :3] @ (self.rig.T_mcs_from_right[:3, 3] / 2)
-        return {"T_world_from_base": self.T_world_from_base.tolist(),
+        return {"T_world_from_base": self.cfg.T_world_from_rail0.tolist(),  # rail at 0
                 "T_flange_from_mcs": T_fm.tolist(), "rig_mid_in_flange_mm": rig_mid.tolist(),
                 "smr_in_mcs_mm": self.cfg.smr_in_mcs_mm.tolist(),
                 "smr_opening_in_mcs": self.cfg.smr_opening_in_mcs.tolist(),
