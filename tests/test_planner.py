@@ -108,6 +108,8 @@ def test_plan_run_watch_abort_and_run_again_on_the_simulated_cell(planned, make_
                            and e.get("station") == names[1] for e in events), 120,
                period_s=0.05, what="moving to the second station")
     assert client.call("job/abort")["aborted"] == job
+    wait_until(lambda: [e for e in events if e["job_id"] == job and e["state"] != "running"],
+               10, what="the aborted event")
     final = [e for e in events if e["job_id"] == job][-1]
     assert final["state"] == "aborted"
     assert [s["station"] for s in final["result"]["stations_done"]] == names[:1]

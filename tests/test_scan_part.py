@@ -149,7 +149,7 @@ def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(si
     wait_until(lambda: any(e["step"] == "move" and e.get("station") == "s02"
                            for e in events.of(job)), 30, period_s=0.05, what="moving to s02")
     assert client.call("job/abort")["aborted"] == job
-    final = events.final(job)
+    final = wait_until(lambda: events.final(job), 10, what="the aborted event")
     assert final["state"] == "aborted"
     assert [s["station"] for s in final["result"]["stations_done"]] == ["s01"]
     q1 = client.call("device/robot/joints")["joints_deg"]
