@@ -59,6 +59,8 @@ def add_reprocess_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calib", default=None,
                    help="stereo.yaml to use instead of the recording's calib/stereo")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--truth-cell", default=None, metavar="CELL.toml",
+                   help="simulated cell config: also each fused point's true error")
 
 
 def _cell(args: argparse.Namespace) -> str:
@@ -175,14 +177,37 @@ def reprocess_main(args: argparse.Namespace) -> int:
     from scancell.analysis.stereo_calibration import CalibrationError
     from scancell.recorder.reprocess import reprocess
 
+    truth = None
+    if args.truth_cell:
+        from scancell.config import ConfigError, load_cell_config
+
+        try:
+            cfg = load_cell_config(args.truth_cell)
+        except ConfigError as exc:
+            print(f"scancell reprocess: {exc}", file=sys.stderr)
+            return 2
+        if cfg.simulator is None:
+            print(f"scancell reprocess: {args.truth_cell} has no [simulator]", file=sys.stderr)
+            return 2
+        from scancell.devices.sim.host import sim_cell
+
+        truth = sim_cell(cfg.simulator).surface_distance
     try:
-        r = reprocess(args.file, args.out, args.calib, progress=not args.no_progress)
+        r = reprocess(args.file, args.out, args.calib, progress=not args.no_progress,
+                      truth=truth)
     except (RecordingError, CalibrationError) as exc:
         print(f"scancell reprocess: {exc}", file=sys.stderr)
         return 2
     ok = sum(1 for s in r.scans if s.get("ok"))
     print(f"reprocessed {r.messages} messages in {r.seconds:.1f} s: {ok}/{len(r.scans)} scans "
           f"decoded, {len(r.hand_eye)} hand-eye calibrations -> {r.out_dir}")
+    for f in r.fusion:
+        t = f.get("translation_mm") or {}
+        e = f.get("true_error_mm") or {}
+        print(f"  fused {f['job_id']}: {f['stations']} stations, overlap translation mean "
+              f"{t.get('mean', float('nan')):.4f} mm, share < 0.6 mm "
+              f"{t.get('p_lt_0_6', float('nan')):.2%}"
+              + (f", true error mean {e['mean']:.4f} mm" if e else ""))
     for s in r.scans:
         if not s.get("ok"):
             print(f"  scan {s.get('scan_id')} (station {s.get('station')}): {s.get('error')}")

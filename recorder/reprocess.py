@@ -109,7 +109,8 @@ class _Outputs:
 
 
 def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | None = None,
-              progress: bool = True) -> ReprocessResult:
+              progress: bool = True, truth: Any = None) -> ReprocessResult:
+    """``truth``: points (world, mm) -> true distances to the part, simulation only."""
     from scancell.analysis.calibrate_worker import CalibrateWorker
     from scancell.analysis.fuse_worker import FuseSettings, FuseWorker
     from scancell.analysis.scan_worker import ScanWorker
@@ -130,7 +131,7 @@ def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | No
     outputs = _Outputs(bus, out, result)
     scan_worker = ScanWorker(bus, calib, width)
     cal_worker = CalibrateWorker(bus, out / "calibration")
-    fuse_worker = FuseWorker(bus, FuseSettings(out / "fusion"))
+    fuse_worker = FuseWorker(bus, FuseSettings(out / "fusion", truth=truth))
     workers = (scan_worker, cal_worker, fuse_worker)
     for w in workers:
         w.start()
