@@ -287,7 +287,8 @@ class Planner:
         order = _tour([c.q for c in chosen])
         chosen = [chosen[i] for i in order]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
-                                     c.rail_mm) for i, c in enumerate(chosen))
+                                     c.rail_mm, None, int(c.j6_sign))
+                         for i, c in enumerate(chosen))
         overlaps = []
         for i in range(len(chosen)):
             shares = [((chosen[i].sees & chosen[j].sees).sum()

@@ -85,7 +85,7 @@ def solve_poses(plan: Plan, geometry: dict[str, Any] | None, seed_rad: np.ndarra
                                ) from None
         seed = q
         out.append(PlanStation(st.name, tuple(float(v) for v in np.degrees(q)), st.axis_mm,
-                               st.mcs_pose_world))
+                               st.mcs_pose_world, st.j6_sign))
     return Plan(plan.name, tuple(out), plan.speed, plan.j6_angles_deg, plan.tracker_repeats,
                 plan.extra)
 
@@ -182,7 +182,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                         hold_locks=False)
                     step = "ecs"
                     ecs = await measure_ecs(
-                        robot, tracker, q0, turns, speed, repeats, meta,
+                        robot, tracker, q0, [st.j6_sign * a for a in turns], speed, repeats, meta,
                         lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 "  # noqa: B023
                                                                    f"{turn:+.1f} deg"),
                         p1=EcsPoint(0.0, p, s))

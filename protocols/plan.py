@@ -44,6 +44,8 @@ class PlanStation:
     axis_mm: float | None = None
     #: x, y, z (mm), rx, ry, rz (deg, extrinsic xyz): MCS in world, when not in joint space.
     mcs_pose_world: tuple[float, ...] | None = None
+    #: The J6 turn direction the planner found the tracker sees (the job tries it first).
+    j6_sign: int = 1
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,8 @@ class Plan:
                 d["joints_deg"] = list(s.joints_deg)
             if s.mcs_pose_world is not None:
                 d["mcs_pose_world"] = list(s.mcs_pose_world)
+            if s.j6_sign != 1:
+                d["j6_sign"] = s.j6_sign
             if s.axis_mm is not None:
                 d["axis_mm"] = s.axis_mm
             stations.append(d)
@@ -168,7 +172,10 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
                                 f"rz (deg)")
             pose6 = tuple(_number(x, f"{at} ({name}) mcs_pose_world") for x in pose)
         axis = s.get("axis_mm")
+        sign = s.get("j6_sign", 1)
+        if sign not in (1, -1):
+            raise PlanError(f"{at} ({name}): j6_sign must be 1 or -1, got {sign!r}")
         out.append(PlanStation(name, joints, None if axis is None
-                               else _number(axis, f"{at} ({name}) axis_mm"), pose6))
+                               else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign))
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
                 dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {})
