@@ -277,20 +277,13 @@ def main(args: argparse.Namespace) -> int:
 
     truth = None
     if args.truth_cell:
-        from scancell.config import ConfigError, load_cell_config
+        from scancell.devices.sim.host import truth_from_config
 
         try:
-            cfg = load_cell_config(args.truth_cell)
-        except ConfigError as exc:
+            truth = truth_from_config(args.truth_cell)
+        except ValueError as exc:
             print(f"scancell worker fuse: {exc}", file=sys.stderr)
             return 2
-        if cfg.simulator is None:
-            print(f"scancell worker fuse: {args.truth_cell} has no [simulator]: no ground truth",
-                  file=sys.stderr)
-            return 2
-        from scancell.devices.sim.host import sim_cell
-
-        truth = sim_cell(cfg.simulator).surface_distance
     settings = FuseSettings(Path(args.out) if args.out else None, args.voxel,
                             mesh=not args.no_mesh, truth=truth)
     return serve(args, "fuse", lambda bus: FuseWorker(bus, settings),

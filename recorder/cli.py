@@ -179,19 +179,13 @@ def reprocess_main(args: argparse.Namespace) -> int:
 
     truth = None
     if args.truth_cell:
-        from scancell.config import ConfigError, load_cell_config
+        from scancell.devices.sim.host import truth_from_config
 
         try:
-            cfg = load_cell_config(args.truth_cell)
-        except ConfigError as exc:
+            truth = truth_from_config(args.truth_cell)
+        except ValueError as exc:
             print(f"scancell reprocess: {exc}", file=sys.stderr)
             return 2
-        if cfg.simulator is None:
-            print(f"scancell reprocess: {args.truth_cell} has no [simulator]", file=sys.stderr)
-            return 2
-        from scancell.devices.sim.host import sim_cell
-
-        truth = sim_cell(cfg.simulator).surface_distance
     try:
         r = reprocess(args.file, args.out, args.calib, progress=not args.no_progress,
                       truth=truth)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jsonschema
+import numpy as np
 from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.devices.sim.parts import PARTS
 from scancell.devices.sim.world import SimWorld, register, unregister
@@ -71,6 +72,20 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
     return SimCell(SimCellConfig(seed=int(options.get("seed", 0)),
                                  camera_scale=float(options.get("camera_scale", 1.0)),
                                  part=options.get("part", "car_rear") or None))
+
+
+def truth_from_config(path: str) -> Callable[[np.ndarray], np.ndarray]:
+    """The true-distance function of the part of the simulated cell a config file describes;
+    raises ValueError naming the file (no such config, no ``[simulator]``)."""
+    from scancell.config import ConfigError, load_cell_config
+
+    try:
+        cfg = load_cell_config(path)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
+    if cfg.simulator is None:
+        raise ValueError(f"{path} has no [simulator]: no ground truth")
+    return sim_cell(cfg.simulator).surface_distance
 
 
 def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:
