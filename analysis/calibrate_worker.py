@@ -43,6 +43,7 @@ class JobData:
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # scan_id -> points (MCS)
     done: bool = False
     expected: int = 0
+    expected_ecs: int = 0  # from the job's done event
 
 
 def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
@@ -156,6 +157,11 @@ class CalibrateWorker:
                                                                             "aborted"):
             return
         if e["state"] == "done":
+            result = e.get("result") or {}
+            with self._lock:
+                job = self._job(e["job_id"])
+                job.expected_ecs = int(result.get("ecs_points", 0))
+                job.expected = int(result.get("balls", job.expected))
             self._queue.put(e["job_id"])
         else:
             log.warning("job %s %s: no calibration", e["job_id"], e["state"])
@@ -176,12 +182,15 @@ class CalibrateWorker:
 
     def _process_when_complete(self, job_id: str) -> None:
         deadline = time.monotonic() + self.cloud_wait_s
-        while True:  # the scan worker may still be decoding the last balls
+        while True:
+            # the scan worker may still be decoding the last balls, and the last samples may
+            # still be on their way (the done event travels on another key)
             with self._lock:
                 job = self._job(job_id)
                 missing = [s["scan_id"] for s in job.balls.values()
                            if s["scan_id"] not in job.clouds]
-            if not missing or time.monotonic() > deadline:
+                short = len(job.ecs) < job.expected_ecs or len(job.balls) < job.expected
+            if (not missing and not short) or time.monotonic() > deadline:
                 break
             time.sleep(0.2)
         self.process(job)
