@@ -44,6 +44,9 @@ class JobStations:
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # station -> MCS points
     fused: dict[str, Station] = field(default_factory=dict)
     ended: str | None = None  # done | failed | aborted
+    #: The stations the job's final event says were measured (its samples travel on other keys
+    #: and may still be on their way).
+    announced: set[str] = field(default_factory=set)
 
 
 @dataclass
@@ -129,8 +132,12 @@ class FuseWorker:
     def _on_event(self, sample: Any) -> None:
         e = sample.decode()
         if e.get("kind") == "scan_part" and e.get("state") in ("done", "failed", "aborted"):
+            result = e.get("result") or {}
+            done = result.get("stations") or result.get("stations_done") or []
             with self._lock:
-                self._job(e["job_id"]).ended = e["state"]
+                job = self._job(e["job_id"])
+                job.ended = e["state"]
+                job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
             self._queue.put(("end", e["job_id"]))
 
     # ---------------------------------------------------------------- worker thread
@@ -192,7 +199,8 @@ class FuseWorker:
         while time.monotonic() < deadline:
             with self._lock:
                 job = self._job(job_id)
-                waiting = sorted(set(job.ecs) - set(job.clouds))
+                expected = set(job.ecs) | job.announced
+                waiting = sorted(expected - set(job.clouds)) + sorted(job.announced - set(job.ecs))
             if not waiting:
                 break
             time.sleep(0.2)
