@@ -8,7 +8,7 @@ import os
 import sys
 from typing import Any
 
-from scancell.client import CellClient, CommandError, NoDaemon
+from scancell.client import CellClient, CommandError
 
 
 def _cell(args: argparse.Namespace) -> str:
@@ -97,16 +97,6 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.action == "scan-part":
-        try:
-            with CellClient(_cell(args), args.connect, timeout_s=args.timeout) as client:
-                return _scan_part(client, args)
-        except CommandError as exc:
-            print(f"error {exc.code}: {exc.message}", file=sys.stderr)
-            return 1
-        except ConnectionError as exc:
-            print(f"scancell ctl: {exc}", file=sys.stderr)
-            return 3
     if args.action == "call":
         try:
             request = json.loads(args.json)
@@ -122,14 +112,13 @@ def main(args: argparse.Namespace) -> int:
         request, verb = {}, args.action
     try:
         with CellClient(_cell(args), args.connect, timeout_s=args.timeout) as client:
+            if args.action == "scan-part":
+                return _scan_part(client, args)
             result = client.call(verb, request)
     except CommandError as exc:
         print(f"error {exc.code}: {exc.message}", file=sys.stderr)
         return 1
-    except NoDaemon as exc:
-        print(f"scancell ctl: {exc}", file=sys.stderr)
-        return 3
-    except ConnectionError as exc:
+    except ConnectionError as exc:  # NoDaemon included
         print(f"scancell ctl: {exc}", file=sys.stderr)
         return 3
     if args.json_out or args.action in ("call", "estop", "abort"):

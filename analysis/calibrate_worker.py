@@ -237,6 +237,6 @@ class CalibrateWorker:
 def main(args: argparse.Namespace) -> int:
     from scancell.analysis.worker_cli import serve
 
-    return serve(args, "calibrate", lambda bus: CalibrateWorker(bus, Path(args.store)),
+    return serve(args, "worker calibrate", lambda bus: CalibrateWorker(bus, Path(args.store)),
                  lambda bus: f"calibrate worker on cell {bus.keys.cell!r}: waiting for hand-eye "
                              f"jobs (store {args.store})")

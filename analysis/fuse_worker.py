@@ -43,6 +43,7 @@ class JobStations:
     ecs: dict[str, dict[str, Any]] = field(default_factory=dict)  # station -> StationEcs
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # station -> MCS points
     fused: dict[str, Station] = field(default_factory=dict)
+    display: dict[str, np.ndarray] = field(default_factory=dict)  # thinned world points
     ended: str | None = None  # done | failed | aborted
     #: The stations the job's final event says were measured (its samples travel on other keys
     #: and may still be on their way).
@@ -76,7 +77,7 @@ class FuseWorker:
     def start(self) -> None:
         self._thread.start()
         k = self.bus.keys
-        for s in getattr(self.bus, "fetch_latched", lambda *_a, **_k: [])(k.hand_eye, 1.0):
+        for s in self.bus.fetch_latched(k.hand_eye, 1.0):
             self._on_hand_eye(s)
         self._subs = [self.bus.subscribe(k.hand_eye, self._on_hand_eye),
                       self.bus.subscribe(k.station_ecs("*"), self._on_ecs),
@@ -175,22 +176,24 @@ class FuseWorker:
             log.error("station %s of %s: no ECS: %s", station, job_id, exc)
             return None
         st = Station(station, cloud, T_world_from_ecs)
+        T_ecs_from_mcs = np.asarray(he["T_ecs_from_mcs"])
+        thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
         with self._lock:
             job.fused[station] = st
-            stations = list(job.fused.values())
-        T_ecs_from_mcs = np.asarray(he["T_ecs_from_mcs"])
+            job.display[station] = thinned
+            n_stations = len(job.fused)
+            shown = np.concatenate(list(job.display.values()))
         now = messages.now_ns()
         k = self.bus.keys
         for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
                                  (T_ecs_from_mcs, f"ecs_{station}", f"mcs_{station}")):
             self.bus.publish(k.transform(child), messages.encode_proto(
                 messages.frame_transform(T, now, parent, child)))
-        shown = fuse(stations, T_ecs_from_mcs, self.settings.display_voxel_mm)
         self.bus.publish(k.fusion_cloud, messages.encode_proto(
-            messages.point_cloud(shown.points, now, "world")),
-            Attachment(now, len(stations), None, {"job_id": job_id, "stations": len(stations)}))
+            messages.point_cloud(shown, now, "world")),
+            Attachment(now, n_stations, None, {"job_id": job_id, "stations": n_stations}))
         log.info("job %s: station %s fused (%d stations, %d display points)", job_id, station,
-                 len(stations), len(shown.points))
+                 n_stations, len(shown))
         return st
 
     def finish(self, job_id: str) -> dict[str, Any] | None:
@@ -294,6 +297,6 @@ def main(args: argparse.Namespace) -> int:
             return 2
     settings = FuseSettings(Path(args.out) if args.out else None, args.voxel,
                             mesh=not args.no_mesh, truth=truth)
-    return serve(args, "fuse", lambda bus: FuseWorker(bus, settings),
+    return serve(args, "worker fuse", lambda bus: FuseWorker(bus, settings),
                  lambda bus: f"fuse worker on cell {bus.keys.cell!r}: waiting for stations "
                              f"(out {args.out or '-'})")

@@ -199,7 +199,7 @@ def main(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         print(f"scancell worker scan: {exc}", file=sys.stderr)
         return 2
-    return serve(args, "scan", lambda bus: ScanWorker(bus, calib, args.projector_width),
+    return serve(args, "worker scan", lambda bus: ScanWorker(bus, calib, args.projector_width),
                  lambda bus: f"scan worker on cell {bus.keys.cell!r}: waiting for scans "
                              f"(calibration {args.calib}, {calib.image_size[0]} x "
                              f"{calib.image_size[1]})")

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from scancell.recorder.reading import RecordingError
@@ -101,7 +99,7 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from scancell.bus import Bus, BusConfig, NoDaemon
+    from scancell.analysis.worker_cli import serve
     from scancell.recorder.recorder import Recorder, RecorderSettings
     from scancell.recorder.session_file import FileSettings
 
@@ -117,27 +115,17 @@ def _record(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(f"scancell record: {exc}", file=sys.stderr)
         return 2
-    try:
-        bus = Bus.open(BusConfig.client_default(args.connect), _cell(args), wait_s=30.0)
-    except NoDaemon as exc:
-        print(f"scancell record: {exc}", file=sys.stderr)
-        return 3
-    recorder = Recorder(bus, settings)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    recorder.start()
-    print(f"recording cell {bus.keys.cell!r} ({', '.join(settings.topics)}) into {args.dir}",
-          flush=True)
-    stop.wait()
-    recorder.stop()
-    bus.close()
+    return serve(args, "record", lambda bus: Recorder(bus, settings),
+                 lambda bus: f"recording cell {bus.keys.cell!r} ({', '.join(settings.topics)}) "
+                             f"into {args.dir}", _report_files)
+
+
+def _report_files(recorder) -> None:
     for f in recorder.files:
         print(f"wrote {f}")
     dropped = sum(recorder.dropped.values())
     if dropped:
         print(f"scancell record: {dropped} messages dropped: {recorder.dropped}", file=sys.stderr)
-    return 0
 
 
 def replay_main(args: argparse.Namespace) -> int:

@@ -37,7 +37,9 @@ class _Latched:
         self.key = key
 
     def publish(self, encoded: Encoded) -> None:
-        self.bus.publish(self.key, encoded)
+        sample = self.bus.publish(self.key, encoded)
+        with self.bus._lock:
+            self.bus._last[self.key] = sample
 
     def close(self) -> None:
         pass
@@ -49,6 +51,7 @@ class LocalBus:
         self._subs: list[_Subscription] = []
         self._lock = threading.Lock()
         self._seq: dict[str, int] = {}
+        self._last: dict[str, BusSample] = {}  # latched key -> last sample
 
     def subscribe(self, key_expr: str, callback: Callable[[BusSample], None],
                   on_error: Callable[[str, Exception], None] | None = None) -> _Subscription:
@@ -57,13 +60,16 @@ class LocalBus:
             self._subs.append(sub)
         return sub
 
-    def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None) -> None:
+    def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None
+                ) -> BusSample:
         if attachment is None:
             with self._lock:
                 seq = self._seq.get(key, 0)
                 self._seq[key] = seq + 1
             attachment = Attachment(messages.now_ns(), seq)
-        self.deliver(BusSample(key, encoded.payload, encoded.mime, encoded.schema, attachment))
+        sample = BusSample(key, encoded.payload, encoded.mime, encoded.schema, attachment)
+        self.deliver(sample)
+        return sample
 
     def publish_json(self, key: str, obj: Any, schema: str) -> None:
         self.publish(key, messages.encode_json(obj, schema))
@@ -78,6 +84,12 @@ class LocalBus:
 
     def latched(self, key: str) -> _Latched:
         return _Latched(self, key)
+
+    def fetch_latched(self, key_expr: str, timeout_s: float = 0.0) -> list[BusSample]:
+        """The last samples of the latched publishers matching ``key_expr``."""
+        ke = zenoh.KeyExpr(key_expr)
+        with self._lock:
+            return [s for k, s in self._last.items() if ke.intersects(zenoh.KeyExpr(k))]
 
     def close(self) -> None:
         with self._lock:

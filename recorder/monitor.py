@@ -14,9 +14,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -84,8 +81,11 @@ class Monitor:
     def start(self) -> None:
         import foxglove
 
-        self.server = foxglove.start_server(name=f"scancell {self.bus.keys.cell}", host=self.host,
-                                            port=self.port)
+        try:
+            self.server = foxglove.start_server(name=f"scancell {self.bus.keys.cell}",
+                                                host=self.host, port=self.port)
+        except Exception as exc:  # foxglove raises its own error type: the port is taken
+            raise OSError(f"cannot serve on {self.host}:{self.port}: {exc}") from None
         self.port = self.server.port
         self._thread.start()
         for t in self.settings.topics:
@@ -161,28 +161,16 @@ def add_arguments(p: argparse.ArgumentParser, bus_args) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from scancell.bus import Bus, BusConfig, NoDaemon
+    from scancell.analysis.worker_cli import serve
 
-    try:
-        bus = Bus.open(BusConfig.client_default(args.connect),
-                       args.cell or os.environ.get("SCANCELL_CELL", "sim"), wait_s=30.0)
-    except NoDaemon as exc:
-        print(f"scancell monitor: {exc}", file=sys.stderr)
-        return 3
-    mon = Monitor(bus, MonitorSettings(tuple(args.topics), args.max_hz, args.max_image_width,
-                                       args.max_cloud_points), args.host, args.port)
-    try:
-        mon.start()
-    except Exception as exc:  # the port is taken, most likely
-        print(f"scancell monitor: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
-        bus.close()
-        return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    print(f"monitor of cell {bus.keys.cell!r}: open Foxglove and connect to "
-          f"ws://{args.host}:{mon.port}", flush=True)
-    stop.wait()
-    mon.stop()
-    bus.close()
-    return 0
+    settings = MonitorSettings(tuple(args.topics), args.max_hz, args.max_image_width,
+                               args.max_cloud_points)
+    monitors: list[Monitor] = []
+
+    def make(bus: Any) -> Monitor:
+        monitors.append(Monitor(bus, settings, args.host, args.port))
+        return monitors[0]
+
+    return serve(args, "monitor", make,
+                 lambda bus: f"monitor of cell {bus.keys.cell!r}: open Foxglove and connect to "
+                             f"ws://{args.host}:{monitors[0].port}")
