@@ -18,7 +18,7 @@ import numpy as np
 from scancell.daemon.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs import JobContext
 from scancell.daemon.scan import scan, serving_device
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Camera, Projector, Robot, Tracker
 from scancell.protocols.commands import CommandError
 
@@ -132,9 +132,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                              "scancell.HandEyeSample")
 
     async with contextlib.AsyncExitStack() as stack:
-        for sup in (robot_s, tracker_s, proj_s, *cam_s):
-            await sup.lock.acquire()
-            stack.callback(sup.lock.release)
+        await hold_for_job(stack, ctx.job_id, [robot_s, tracker_s, proj_s, *cam_s])
         # Balls first, then the ECS starting from this very pose: the robot does not move
         # between the scans and P1, so its repeatability does not enter between them.
         q0 = await robot.joints()

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from scancell.daemon.jobs import JobContext
 from scancell.daemon.scan import serving_device
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot
 from scancell.protocols.commands import CommandError
 
@@ -25,9 +25,7 @@ async def home(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     robot: Robot = robot_s.device
     robot.check_joints(np.radians(q_deg))
     async with contextlib.AsyncExitStack() as stack:
-        for sup in (robot_s, *axes):
-            await sup.lock.acquire()
-            stack.callback(sup.lock.release)
+        await hold_for_job(stack, ctx.job_id, [robot_s, *axes])
         try:
             ctx.event("running", "move", f"robot to home {list(q_deg)} deg")
             await robot.move_joints(np.radians(q_deg), speed)

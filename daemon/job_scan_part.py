@@ -21,7 +21,7 @@ import numpy as np
 from scancell.daemon.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs import JobContext, StepFailed
 from scancell.daemon.scan import scan, serving_device
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Camera, Projector, Robot, Tracker
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
@@ -152,9 +152,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     t_start = time.monotonic()
 
     async with contextlib.AsyncExitStack() as stack:
-        for sup in (robot_s, tracker_s, proj_s, *cam_s, *([axis_s] if axis_s else [])):
-            await sup.lock.acquire()
-            stack.callback(sup.lock.release)
+        await hold_for_job(stack, ctx.job_id,
+                           [robot_s, tracker_s, proj_s, *cam_s, *([axis_s] if axis_s else [])])
         try:
             for i, st in enumerate(plan.stations):
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)

@@ -105,6 +105,8 @@ class CommandRouter:
         verb = f"device/{name}/{op}"
         if not spec.exclusive:
             return await self._run_op(sup, spec, verb, handler(request), timeout)
+        if sup.job is not None:
+            raise CommandError("busy", f"{verb}: {name} is in use by job {sup.job}")
         try:
             await asyncio.wait_for(sup.lock.acquire(), timeout)
         except TimeoutError:

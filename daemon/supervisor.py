@@ -57,6 +57,7 @@ class DeviceSupervisor:
         self._lost = asyncio.Event()
         self._stopping = asyncio.Event()
         self.lock = asyncio.Lock()  # serialises commands on the device link
+        self.job: str | None = None  # the job holding the lock, if one does
 
     @property
     def name(self) -> str:
@@ -197,3 +198,14 @@ class DeviceSupervisor:
                 log.debug("device %s: telemetry failed: %s", self.name, exc)
             next_t += period
             await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+
+
+async def hold_for_job(stack: contextlib.AsyncExitStack, job_id: str,
+                       sups: list[DeviceSupervisor]) -> None:
+    """Hold the devices' locks for a whole job; commands for them answer ``busy`` at once
+    instead of waiting out their timeout behind the job."""
+    for sup in sups:
+        await sup.lock.acquire()
+        stack.callback(sup.lock.release)
+        sup.job = job_id
+        stack.callback(setattr, sup, "job", None)

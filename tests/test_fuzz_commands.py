@@ -11,7 +11,7 @@ import pytest
 import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scancell.protocols.commands import ERROR_CODES, request_schema_name
+from scancell.protocols.commands import ERROR_CODES, CommandError, request_schema_name
 from scancell.protocols.messages import json_schema
 
 pytestmark = pytest.mark.timeout(600)
@@ -92,3 +92,17 @@ def test_the_daemon_serves_on_after_a_burst_of_garbage(daemon, client):
     status = client.status()
     assert all(d["state"] == "connected" for d in status["devices"].values()), status
     assert client.call("device/robot/joints")["joints_deg"]
+
+
+def test_a_device_held_by_a_job_answers_busy_at_once(daemon, client):
+    """Found by the fuzz: a move for a robot a waiting job holds used to wait out the move's
+    120 s timeout behind the job."""
+    started = client.call("job/calibrate_hand_eye", {"balls": 3})["job_id"]
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(CommandError, match="busy.*" + started):
+            client.call("device/robot/move_joints", {"joints_deg": [1, 0, 0, 0, -90, 0]})
+        assert time.monotonic() - t0 < 5.0
+        assert client.status()["devices"]["robot"]["state"] == "connected"
+    finally:
+        client.call("job/abort")
