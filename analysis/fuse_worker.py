@@ -33,6 +33,7 @@ from scancell.analysis.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ class FuseWorker:
             log.error("station %s of %s: no hand-eye calibration on calib/hand_eye; not fused",
                       station, job_id)
             return None
-        frame = [0.0, *he.get("j6_angles_deg", [30.0, 60.0])[:2]]
+        frame = [0.0, *he.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
         try:
             T_world_from_ecs = ecs_for_frame(np.asarray(ecs["points_mm"]), ecs["j6_deg"], frame)
         except DegenerateGeometry as exc:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 from scancell.devices.robot_model import IKError, RobotModel
-from scancell.protocols.plan import Plan, PlanStation
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG, Plan, PlanStation
 
 
 class PlanningError(ValueError):
@@ -47,7 +47,7 @@ class CellGeometry:
     field_mm: tuple[float, float] = (380.0, 280.0)  # usable field at the standoff (x, y)
     depth_mm: tuple[float, float] = (-90.0, 90.0)  # around the standoff
     max_incidence_deg: float = 65.0
-    j6_angles_deg: tuple[float, float] = (30.0, 60.0)
+    j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG
     #: An external linear axis carrying the robot (unit vector in world) and the positions (mm)
     #: the planner may use; empty: no axis.
     rail_axis: tuple[float, float, float] | None = None

@@ -17,8 +17,8 @@ from scancell.devices.sim.cell import SimCell, SimCellConfig
 
 def main() -> dict[str, float]:
     cell = SimCell(SimCellConfig(camera_scale=1, seed=0))
-    targets = [np.array([3300.0, 0, 1100]), np.array([3350.0, -300, 1000]),
-               np.array([3300.0, 250, 1150])]
+    centre = cell.cfg.T_world_from_part[:3, 3]
+    targets = [centre + np.array(d) for d in ([0.0, 0, 0], [50.0, -300, -100], [0.0, 250, 50])]
     poses = [cell.ik_for_mcs(cell.mcs_pose_looking_at(t)) for t in targets]
     cell.move_joints(poses[0])
     t0 = time.perf_counter()

@@ -108,7 +108,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                              simulator: Any) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
-    turns = [float(a) for a in req.get("j6_angles_deg", [30.0, 60.0, 90.0, 120.0])]
+    turns = [float(a) for a in req.get("j6_angles_deg", [120.0, -120.0, 60.0, -60.0])]
     speed = float(req.get("speed", 0.2))
     repeats = int(req.get("tracker_repeats", 10))
     verb = "calibrate_hand_eye"

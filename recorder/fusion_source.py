@@ -12,6 +12,7 @@ import numpy as np
 from scancell.analysis.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.analysis.fusion import FusionError, Station
 from scancell.protocols import messages
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.recorder.reading import samples
 
 
@@ -35,7 +36,7 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
         raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")
     if not ecs:
         raise FusionError(f"{path}: no scan_part stations (scan/<station>/ecs) in the recording")
-    frame = [0.0, *hand_eye.get("j6_angles_deg", [30.0, 60.0])[:2]]
+    frame = [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
     stations = []
     for scan_id, e in sorted(ecs.items(), key=lambda kv: kv[1].get("index", 0)):
         if scan_id not in clouds:

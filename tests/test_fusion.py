@@ -41,10 +41,10 @@ def test_true_transforms_put_every_point_on_the_part(stations):
 def test_a_wrong_hand_eye_shows_as_the_expected_error(stations):
     cell, st = stations
     T = cell.true_T_ecs_from_mcs().copy()
-    T[:3, 3] += [0.3, 0.0, 0.0]
+    T[:3, 3] += T[:3, :3] @ [0.0, 0.0, 0.3]  # the scanner 0.3 mm off along its view
     fused = fuse(st, T, voxel_mm=0.0)
     d = np.concatenate([cell.surface_distance(p) for p in fused.per_station.values()])
-    assert 0.05 < d.mean() < 0.3  # a 0.3 mm shift, seen along each surface normal
+    assert 0.2 < d.mean() < 0.3  # seen along each surface normal, which the view nearly follows
 
 
 def test_resampling_thins_and_transforms_are_checked(stations):

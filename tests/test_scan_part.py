@@ -13,6 +13,7 @@ import pytest
 from scancell.analysis.fuse_worker import FuseSettings, FuseWorker
 from scancell.analysis.scan_worker import ScanWorker
 from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.devices.sim.cell import SimCellConfig
 from scancell.devices.sim.world import get_world
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
@@ -22,7 +23,8 @@ from .conftest import sim_cell_raw, wait_until
 
 pytestmark = pytest.mark.timeout(300)
 
-TARGETS = ([3300.0, -110.0, 1100.0], [3300.0, 0.0, 1100.0], [3300.0, 110.0, 1100.0])
+PART_CENTRE = SimCellConfig().T_world_from_part[:3, 3]
+TARGETS = tuple((PART_CENTRE + np.array([0.0, dy, 0.0])).tolist() for dy in (-110.0, 0.0, 110.0))
 
 
 def _all_connected(client) -> bool:
@@ -69,8 +71,8 @@ def sim(make_daemon, client, tmp_path):
     # the true mounting as the calibration in force (the calibration job has its own tests)
     he = client.bus.latched(client.bus.keys.hand_eye)
     he.publish(messages.encode_json({
-        "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((30.0, 60.0)).tolist(),
-        "j6_angles_deg": [30.0, 60.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
+        "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((120.0, -120.0)).tolist(),
+        "j6_angles_deg": [120.0, -120.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
     fuse = FuseWorker(client.bus, FuseSettings(tmp_path / "fused", voxel_mm=1.0, mesh=False,
                                                truth=world.cell.surface_distance))
     fuse.start()

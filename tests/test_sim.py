@@ -23,7 +23,7 @@ from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerS
 @pytest.fixture(scope="module")
 def cell() -> SimCell:
     c = SimCell(SimCellConfig(camera_scale=8, seed=3))
-    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(np.array([3300.0, 0, 1100]))))
+    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
     return c
 
 
@@ -98,7 +98,7 @@ def test_occluded_or_turned_away_smr_gives_beam_break(cell):
         cell._scene_version += 1
     assert cell.measure_smr()  # back
     turned = SimCell(SimCellConfig(camera_scale=8))
-    q = turned.ik_for_mcs(turned.mcs_pose_looking_at(np.array([3300.0, 0, 1100]),
+    q = turned.ik_for_mcs(turned.mcs_pose_looking_at(turned.cfg.T_world_from_part[:3, 3],
                                                      view_dir=np.array([0.3, 1.0, 0.0])))
     turned.move_joints(q)
     with pytest.raises(BeamBreak, match="acceptance"):
@@ -167,7 +167,7 @@ def test_shadows_where_the_projector_cannot_see():
 def test_same_seed_same_everything_and_seed_matters():
     def run(seed):
         c = SimCell(SimCellConfig(camera_scale=16, seed=seed))
-        c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(np.array([3300.0, 0, 1100]))))
+        c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
         return c.render("left", 0), c.measure_smr().point_mm, c.q.copy()
 
     a, b, c = run(11), run(11), run(12)

@@ -63,7 +63,7 @@ def test_fuzz_splitter_raises_only_line_errors(data):
 
 def _cell() -> SimCell:
     c = SimCell(SimCellConfig(camera_scale=16, seed=4))
-    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(np.array([3300.0, 0, 1100]))))
+    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
     return c
 
 

@@ -1,10 +1,12 @@
 """The simulated cell: world model, sensors and ground truth.
 
-World = the laser tracker's frame (tracker at the origin, z up), mm. The robot base stands at
-``T_world_from_rail0`` moved by the linear rail (external axis, along world y); the part is in
-front of the robot (+x), facing it. The scanner is rigidly mounted on the flange at the true
-hand-eye ``T_flange_from_mcs``; the SMR sits on the scanner base, its opening facing backwards
-(towards the tracker), off the J6 axis so that J6 rotations move it on a circle.
+World = the laser tracker's frame (tracker at the origin, z up), mm. The tracker stands on its
+tripod behind the robot with its head 1.2 m above the floor (world z = -1200 mm is the floor).
+The robot base stands at ``T_world_from_rail0`` moved by the linear rail (external axis, along
+world y); the part is in front of the robot (+x), facing it. The scanner is rigidly mounted on
+the flange at the true hand-eye ``T_flange_from_mcs``; the SMR sits on the scanner base, off the
+J6 axis so that J6 rotations move it on a circle, its opening facing backwards along the
+scanner's axis (towards the tracker) so that those rotations keep it in the tracker's sight.
 
 Everything random comes from generators seeded by ``seed``: the same seed and the same sequence
 of calls give identical images and measurements.
@@ -25,6 +27,7 @@ from scancell.devices.sim import parts
 from scancell.devices.sim.optics import PinholeModel, StereoRig, apply_T, default_rig, make_T, rot_x, rot_y
 from scancell.devices.sim.scene import Scene, SceneObject
 from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
 
 def _rot_z(deg: float) -> np.ndarray:
@@ -32,14 +35,19 @@ def _rot_z(deg: float) -> np.ndarray:
     return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
 
 
+def rig_bisector(rig: StereoRig) -> np.ndarray:
+    """Unit vector in MCS halfway between the two cameras' optical axes (the scanner's axis)."""
+    z_left = np.array([0.0, 0.0, 1.0])
+    z_right = rig.T_mcs_from_right[:3, 2]
+    return (z_left + z_right) / np.linalg.norm(z_left + z_right)
+
+
 def default_mount(rig: StereoRig) -> np.ndarray:
     """True hand-eye ``T_flange_from_mcs``: the rig's bisector along the flange z axis, 180 mm in
     front of the flange, with a few tenths of a degree of mounting error on purpose."""
     # rig frame seen from MCS: midway between the cameras, z along the bisector
     right_origin = rig.T_mcs_from_right[:3, 3]
-    z_left = np.array([0.0, 0.0, 1.0])
-    z_right = rig.T_mcs_from_right[:3, 2]
-    bis = (z_left + z_right) / np.linalg.norm(z_left + z_right)
+    bis = rig_bisector(rig)
     x = right_origin / np.linalg.norm(right_origin)
     x = x - bis * np.dot(x, bis)
     x /= np.linalg.norm(x)
@@ -54,15 +62,16 @@ class SimCellConfig:
     seed: int = 0
     camera_scale: float = 1.0  # 1 = 2448 x 2048; tests use 8 (306 x 256)
     part: str | None = "car_rear"
-    T_world_from_part: np.ndarray = field(default_factory=lambda: make_T(t=[3300.0, 0.0, 1100.0]))
-    T_world_from_rail0: np.ndarray = field(default_factory=lambda: make_T(t=[1800.0, 0.0, 0.0]))
+    T_world_from_part: np.ndarray = field(default_factory=lambda: make_T(t=[3300.0, 0.0, -100.0]))
+    T_world_from_rail0: np.ndarray = field(default_factory=lambda: make_T(t=[1800.0, 0.0, -1200.0]))
     rail_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     rail_limits_mm: tuple[float, float] = (-1500.0, 1500.0)
     joint_repeatability_deg: float = 0.002  # 1 sigma per joint (~±0.07 mm at the flange)
     j6_repeatability_deg: float = 0.003  # extra 1 sigma on J6 (the ECS rotations)
-    j6_angles_deg: tuple[float, float] = (30.0, 60.0)  # J6 turns for P2 and P3
+    j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG  # J6 turns for P2 and P3
     smr_in_mcs_mm: np.ndarray = field(default_factory=lambda: np.array([276.0, 95.0, -140.0]))
-    smr_opening_in_mcs: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    #: None: backwards along the rig's bisector (how the nest is machined into the housing)
+    smr_opening_in_mcs: np.ndarray | None = None
     albedo: float = 0.6
     ambient: float = 0.08  # ambient irradiance relative to the projector's full white
     exposure: float = 1.3  # DN = 255 * exposure * radiance
@@ -90,6 +99,8 @@ class SimCell:
         self.rig = full_rig if self.cfg.camera_scale == 1 else full_rig.scaled(self.cfg.camera_scale)
         self.robot = RobotModel()
         self.T_flange_from_mcs = default_mount(full_rig)
+        self.smr_opening_in_mcs = (-rig_bisector(full_rig) if self.cfg.smr_opening_in_mcs is None
+                                   else np.asarray(self.cfg.smr_opening_in_mcs, float))
         self._rng = np.random.default_rng([self.cfg.seed, 1])
         self.tracker = TrackerModel(self.cfg.tracker, np.random.default_rng([self.cfg.seed, 2]))
         self._frame = 0
@@ -137,7 +148,7 @@ class SimCell:
         return apply_T(self.T_world_from_mcs(q_rad), self.cfg.smr_in_mcs_mm[None])[0]
 
     def smr_opening_world(self, q_rad: np.ndarray | None = None) -> np.ndarray:
-        return self.T_world_from_mcs(q_rad)[:3, :3] @ self.cfg.smr_opening_in_mcs
+        return self.T_world_from_mcs(q_rad)[:3, :3] @ self.smr_opening_in_mcs
 
     def mcs_pose_looking_at(self, target_world: np.ndarray, standoff_mm: float = 650.0,
                             view_dir: np.ndarray | None = None) -> np.ndarray:
@@ -154,6 +165,14 @@ class SimCell:
         T_world_from_flange = make_T(R, np.asarray(target_world, float) - v * standoff_mm
                                      - R @ rig_mid_in_flange)
         return T_world_from_flange @ T_fm
+
+    def start_joints(self, down_deg: float = 20.0) -> np.ndarray:
+        """Joints (rad) with the scanner looking at the part's centre from ``down_deg`` above the
+        horizontal: the part is in view, the SMR faces the tracker, and a calibration ball in
+        front of the scanner is seen by the tracker below the scanner's housing."""
+        t = np.radians(down_deg)
+        return self.ik_for_mcs(self.mcs_pose_looking_at(
+            self.cfg.T_world_from_part[:3, 3], view_dir=np.array([np.cos(t), 0.0, -np.sin(t)])))
 
     def ik_for_mcs(self, T_world_from_mcs: np.ndarray, seed_rad: np.ndarray | None = None
                    ) -> np.ndarray:
@@ -188,7 +207,7 @@ class SimCell:
         return {"T_world_from_base": self.cfg.T_world_from_rail0.tolist(),  # rail at 0
                 "T_flange_from_mcs": T_fm.tolist(), "rig_mid_in_flange_mm": rig_mid.tolist(),
                 "smr_in_mcs_mm": self.cfg.smr_in_mcs_mm.tolist(),
-                "smr_opening_in_mcs": self.cfg.smr_opening_in_mcs.tolist(),
+                "smr_opening_in_mcs": self.smr_opening_in_mcs.tolist(),
                 "tracker_world_mm": self.tracker.position.tolist(),
                 "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
                 "rail_axis": self.cfg.rail_axis.tolist(),

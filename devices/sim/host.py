@@ -179,8 +179,7 @@ class SimHost:
         o = self.options
         cell = sim_cell(o)
         if o.get("look_at_part", True) and cell.cfg.part:
-            target = cell.cfg.T_world_from_part[:3, 3]
-            cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target)))
+            cell.move_joints(cell.start_joints())
         return SimWorld(str(o.get("world", "default")), cell)
 
     async def _run(self) -> None:
