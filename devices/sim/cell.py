@@ -25,6 +25,7 @@ from scancell.analysis.patterns import FringeSequence
 from scancell.devices.robot_model import RobotModel
 from scancell.devices.sim import parts
 from scancell.devices.sim.optics import PinholeModel, StereoRig, apply_T, default_rig, make_T, rot_x, rot_y
+from scancell.devices.sim.render_kernels import pattern_dn, projector_terms, quantise
 from scancell.devices.sim.scene import Scene, SceneObject
 from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
@@ -314,7 +315,7 @@ class SimCell:
 
     def _pixel_rays(self, camera: str) -> np.ndarray:
         if camera not in self._rays:
-            self._rays[camera] = self.camera_model(camera).pixel_rays()
+            self._rays[camera] = self.camera_model(camera).pixel_rays().astype(np.float32)
         return self._rays[camera]
 
     def geometry(self, camera: str) -> CameraGeometry:
@@ -336,54 +337,37 @@ class SimCell:
         rays = self._pixel_rays(camera)
         t1 = clock()
         h, w, _ = rays.shape
-        d_world = rays.reshape(-1, 3) @ T_wc[:3, :3].T
-        hits = self.scene.cast(T_wc[:3, 3], d_world)
+        dirs = rays.reshape(-1, 3)
+        hits = self.scene.cast(T_wc[:3, 3], dirs @ T_wc[:3, :3].T.astype(np.float32))
         t2 = clock()
-        hit = np.isfinite(hits.t)
-        idx = np.flatnonzero(hit)
-        X = T_wc[:3, 3] + d_world[idx] * hits.t[idx, None]
-        n = hits.normal[idx]
-        albedo = np.array([o.albedo for o in self.scene.objects])[hits.object_index[idx]]
-
-        T_wp = self.T_world_from_camera("projector")
-        to_p = T_wp[:3, 3] - X
-        dist = np.linalg.norm(to_p, axis=1)
-        to_p_unit = to_p / dist[:, None]
-        cos_p = np.einsum("ij,ij->i", n, to_p_unit)
-        Xp = apply_T(np.linalg.inv(T_wp), X)
-        in_front = Xp[:, 2] > 1.0
-        uv = np.full((len(X), 2), np.nan)
-        if in_front.any():
-            uv[in_front] = self.rig.projector.project(Xp[in_front])
-        pw, ph = self.rig.projector.width, self.rig.projector.height
-        inside = in_front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & \
-            (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
-        lit = inside & (cos_p > 0)
+        T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
+        proj = self.rig.projector
+        d = np.zeros(5)
+        d[: min(5, proj.dist.size)] = proj.dist.ravel()[:5]
+        eps = 0.05
+        proj_x, cos_p, dist, shadow_rays, tfar = projector_terms(
+            dirs, hits.t, hits.normal, T_wc[:3, :3], T_wc[:3, 3], T_pc[:3, :3], T_pc[:3, 3],
+            proj.K, d, proj.width, proj.height, eps)
         t3 = clock()
-        cand = np.flatnonzero(lit)
+        cand = np.flatnonzero(np.isfinite(proj_x))
         if cand.size:
-            eps = 0.05
-            shadow = self.scene.occluded(X[cand] + to_p_unit[cand] * eps, to_p_unit[cand],
-                                         dist[cand] - 2 * eps)
-            lit[cand[shadow]] = False
+            shadow = self.scene.occluded_rays(shadow_rays[cand], tfar[cand])
+            proj_x[cand[shadow]] = np.nan
         t4 = clock()
-        d0 = np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0])
-        gain = 255.0 * cfg.exposure
-        fringe = np.where(lit, gain * albedo * np.clip(cos_p, 0, 1) * (d0 / dist) ** 2, 0.0)
-        base = gain * albedo * cfg.ambient
-
-        def full(values: np.ndarray, fill: float) -> np.ndarray:
-            out = np.full(h * w, fill)
-            out[idx] = values
-            return out.reshape(h, w)
-
-        pts_cam = np.full((h * w, 3), np.nan)
-        pts_cam[idx] = rays.reshape(-1, 3)[idx] * hits.t[idx, None]
+        lit = np.isfinite(proj_x)
+        albedo = np.array([o.albedo for o in self.scene.objects] + [0.0],
+                          np.float32)[hits.object_index]
+        d0 = np.float32(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0]))
+        gain = np.float32(255.0 * cfg.exposure)
+        fringe = np.where(lit, gain * albedo * np.clip(cos_p, 0, 1) * (d0 / np.maximum(dist, 1.0))
+                          ** 2, np.float32(0.0))
+        base = gain * albedo * np.float32(cfg.ambient)
+        hit = np.isfinite(hits.t)
+        pts_cam = np.multiply(dirs, np.where(hit, hits.t, np.nan)[:, None], dtype=np.float64)
         self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
                         "shadow": t4 - t3, "shading": clock() - t4}
-        return CameraGeometry(
-            hit.reshape(h, w), pts_cam.reshape(h, w, 3),
-            full(np.where(lit, uv[:, 0], np.nan), np.nan), full(base, 0.0), full(fringe, 0.0))
+        return CameraGeometry(hit.reshape(h, w), pts_cam.reshape(h, w, 3),
+                              proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w))
 
     def load_sequence(self, sequence: FringeSequence) -> int:
         self.sequence = sequence
@@ -400,20 +384,19 @@ class SimCell:
         -1 dark, -2 full white); ``brightness`` scales the signal (exposure time and gain)."""
         g = self.geometry(camera)
         k = self.pattern if pattern is None else pattern
-        pw = self.rig.projector.width
-        if k == -1:
-            light = 0.0
-        elif k == -2:
-            light = np.where(np.isfinite(g.proj_x), 1.0, 0.0)
+        seq = self.sequence
+        if k >= 0:
+            j, n = seq.split(k)
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, 0,
+                            seq.periods[j] / self.rig.projector.width, 2 * np.pi * n / seq.steps,
+                            seq.A, seq.B, brightness)
         else:
-            light = np.nan_to_num(self.sequence.intensity(k, g.proj_x, pw), nan=0.0)
-        dn = (g.base_dn + g.fringe_dn * light) * brightness
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, k, 0.0, 0.0, 0.0, 0.0, brightness)
         if self.cfg.psf_sigma_px > 0:
             dn = cv2.GaussianBlur(dn, (0, 0), self.cfg.psf_sigma_px)
         rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
         self._frame += 1
-        dn = dn + rng.standard_normal(dn.shape) * self.cfg.noise_dn
-        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+        return quantise(dn, rng.standard_normal(dn.shape, np.float32), self.cfg.noise_dn)
 
     def render_sequence(self, camera: str) -> list[np.ndarray]:
         """All patterns of the loaded sequence for one camera (one ray cast)."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
+from scancell.devices.sim.render_kernels import move_rays, rays_from_point
 
 
 @dataclass
@@ -63,25 +64,29 @@ class Scene:
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray, cameras_only: bool = True) -> Hits:
         """Nearest hit of each unit ray (N, 3) from origins (N, 3) or one origin (3,)."""
-        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
-        origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
-        n = dirs.shape[0]
-        best_t = np.full(n, np.inf)
-        normal = np.zeros((n, 3))
-        idx = np.full(n, -1)
+        dirs32 = np.ascontiguousarray(np.asarray(dirs).reshape(-1, 3), np.float32)
+        n = dirs32.shape[0]
+        best_t = np.full(n, np.inf, np.float32)
+        normal = np.zeros((n, 3), np.float32)
+        idx = np.full(n, -1, np.int32)
         for i, obj in enumerate(self.objects):
             if cameras_only and not obj.visible_to_cameras:
                 continue
-            r = obj.scene.cast_rays(o3d.core.Tensor(obj._local(origins, dirs)))
-            t = r["t_hit"].numpy().astype(np.float64)
-            closer = t < best_t
-            if not closer.any():
+            T = np.linalg.inv(obj.T_world_from_object)
+            if np.ndim(origins) == 1:
+                rays = rays_from_point(dirs32, T[:3, :3], T[:3, :3] @ origins + T[:3, 3])
+            else:
+                rays = obj._local(np.asarray(origins, np.float64), dirs32.astype(np.float64))
+            r = obj.scene.cast_rays(o3d.core.Tensor(rays))
+            t = r["t_hit"].numpy()
+            closer = np.flatnonzero(t < best_t)
+            if not closer.size:
                 continue
             best_t[closer] = t[closer]
-            nl = r["primitive_normals"].numpy()[closer].astype(np.float64)
-            normal[closer] = nl @ obj.T_world_from_object[:3, :3].T
+            R = obj.T_world_from_object[:3, :3].astype(np.float32)
+            normal[closer] = r["primitive_normals"].numpy()[closer] @ R.T
             idx[closer] = i
-        flip = np.einsum("ij,ij->i", normal, dirs) > 0
+        flip = np.einsum("ij,ij->i", normal, dirs32) > 0
         normal[flip] *= -1
         return Hits(best_t, normal, idx)
 
@@ -91,14 +96,21 @@ class Scene:
         tfar (per ray)."""
         dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
         origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
-        tfar = np.broadcast_to(np.asarray(tfar, np.float64), dirs.shape[:1])
-        out = np.zeros(dirs.shape[0], bool)
+        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+        return self.occluded_rays(rays, np.asarray(tfar, np.float32), tnear, exclude)
+
+    def occluded_rays(self, rays: np.ndarray, tfar: np.ndarray, tnear: float = 0.0,
+                      exclude: Collection[str] = ()) -> np.ndarray:
+        """:meth:`occluded` for world rays (N, 6) float32, origin then unit direction."""
+        tfar = np.broadcast_to(np.asarray(tfar, np.float32), rays.shape[:1])
+        out = np.zeros(rays.shape[0], bool)
         for obj in self.objects:
             if obj.name in exclude:
                 continue
-            rays = obj._local(origins, dirs)
+            T = np.linalg.inv(obj.T_world_from_object)
             # rays leave unit length under a rigid transform, so tfar keeps its meaning
-            occ = obj.scene.test_occlusions(o3d.core.Tensor(rays), tnear=tnear,
+            local = move_rays(rays, T[:3, :3], T[:3, 3])
+            occ = obj.scene.test_occlusions(o3d.core.Tensor(local), tnear=tnear,
                                             tfar=float(np.max(tfar)) if tfar.size else 0.0)
             occ = occ.numpy()
             if not occ.any():
@@ -106,7 +118,7 @@ class Scene:
             # test_occlusions takes one tfar; confirm candidates with their own tfar
             cand = np.flatnonzero(occ & ~out)
             if cand.size:
-                r = obj.scene.cast_rays(o3d.core.Tensor(rays[cand]))
+                r = obj.scene.cast_rays(o3d.core.Tensor(local[cand]))
                 t = r["t_hit"].numpy()
                 out[cand] |= (t > tnear) & (t < tfar[cand])
         return out
