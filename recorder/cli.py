@@ -53,12 +53,14 @@ def add_replay_arguments(p: argparse.ArgumentParser, bus_args) -> None:
 
 def add_reprocess_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("file")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", default=None,
+                   help="output folder (default: next to the file, <name>-reprocessed/)")
     p.add_argument("--calib", default=None,
                    help="stereo.yaml to use instead of the recording's calib/stereo")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--truth-cell", default=None, metavar="CELL.toml",
-                   help="simulated cell config: also each fused point's true error")
+                   help="simulated cell config: also each fused point's true error (default: "
+                        "the simulated cell recorded in the file, if any)")
 
 
 def _cell(args: argparse.Namespace) -> str:
@@ -162,22 +164,23 @@ def replay_main(args: argparse.Namespace) -> int:
 
 
 def reprocess_main(args: argparse.Namespace) -> int:
-    from scancell.analysis.stereo_calibration import CalibrationError
-    from scancell.recorder.reprocess import reprocess
+    from scancell.recorder.reprocess import recorded_simulator, reprocess
 
     truth = None
-    if args.truth_cell:
-        from scancell.devices.sim.host import truth_from_config
-
-        try:
-            truth = truth_from_config(args.truth_cell)
-        except ValueError as exc:
-            print(f"scancell reprocess: {exc}", file=sys.stderr)
-            return 2
+    out = args.out or str(Path(args.file).with_suffix("")) + "-reprocessed"
     try:
-        r = reprocess(args.file, args.out, args.calib, progress=not args.no_progress,
-                      truth=truth)
-    except (RecordingError, CalibrationError) as exc:
+        if args.truth_cell:
+            from scancell.devices.sim.host import truth_from_config
+
+            truth = truth_from_config(args.truth_cell)
+        elif (simulator := recorded_simulator(args.file)) is not None:
+            from scancell.devices.sim.host import truth_from_simulator
+
+            truth = truth_from_simulator(simulator)
+            print(f"true errors against the simulated cell recorded in {args.file} "
+                  f"(part {simulator.get('part', 'car_rear')!r}, seed {simulator.get('seed', 0)})")
+        r = reprocess(args.file, out, args.calib, progress=not args.no_progress, truth=truth)
+    except ValueError as exc:  # RecordingError, CalibrationError, a bad --truth-cell
         print(f"scancell reprocess: {exc}", file=sys.stderr)
         return 2
     ok = sum(1 for s in r.scans if s.get("ok"))

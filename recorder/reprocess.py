@@ -108,6 +108,18 @@ class _Outputs:
         self.result.hand_eye.append(s.decode())
 
 
+def recorded_simulator(path: str | Path) -> dict[str, Any] | None:
+    """The ``[simulator]`` table of the cell config recorded in the file, or None (a real cell,
+    or no config recorded)."""
+    raw = info(path).metadata.get("scancell.config", {}).get("config")
+    try:
+        config = json.loads(raw) if raw else None
+    except json.JSONDecodeError:
+        return None
+    simulator = config.get("simulator") if isinstance(config, dict) else None
+    return simulator if isinstance(simulator, dict) and simulator.get("part", "car_rear") else None
+
+
 def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | None = None,
               progress: bool = True, truth: Any = None) -> ReprocessResult:
     """``truth``: points (world, mm) -> true distances to the part, simulation only."""

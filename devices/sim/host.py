@@ -85,7 +85,13 @@ def truth_from_config(path: str) -> Callable[[np.ndarray], np.ndarray]:
         raise ValueError(str(exc)) from None
     if cfg.simulator is None:
         raise ValueError(f"{path} has no [simulator]: no ground truth")
-    return sim_cell(cfg.simulator).surface_distance
+    return truth_from_simulator(cfg.simulator)
+
+
+def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+    """The true-distance function (world points, mm -> mm) of the part of the simulated cell a
+    ``[simulator]`` table describes (from a config file, or recorded in an MCAP file)."""
+    return sim_cell(options).surface_distance
 
 
 def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:
