@@ -268,6 +268,7 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "true_error_mm": {k: report.get("true_error_mm", {}).get(k)
                               for k in ("mean", "std", "max")},
             "stations": report["stations"], "points": report["points"],
+            "error_budget": report.get("error_budget"),
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
@@ -293,4 +294,10 @@ def table(s: dict[str, Any]) -> str:
     w = max(len(a) for a, _, _ in rows)
     lines = [f"{'':{w}}  {'scancell':>20}  {'paper':>16}"]
     lines += [f"{a:{w}}  {b:>20}  {c!s:>16}" for a, b, c in rows]
+    budget = s.get("error_budget") or {}
+    if "dominant" in budget:
+        lines += ["", f"error budget: the tracker's noise alone would give "
+                      f"{budget['overlap_predicted_from_tracker_mm']:.4f} mm of overlap error, "
+                      f"the rest {budget['overlap_rest_mm']:.4f} mm; dominant: "
+                      f"{budget['dominant']}"]
     return "\n".join(lines)

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.ecs import DegenerateGeometry, ecs_for_frame
+from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
@@ -176,8 +177,12 @@ class FuseWorker:
         except DegenerateGeometry as exc:
             log.error("station %s of %s: no ECS: %s", station, job_id, exc)
             return None
-        st = Station(station, cloud, T_world_from_ecs)
         T_ecs_from_mcs = np.asarray(he["T_ecs_from_mcs"])
+        noise = None
+        if ecs.get("sigma_mm") is not None and len(cloud):
+            noise = ecs_noise_effect(np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]),
+                                     ecs["j6_deg"], frame, T_ecs_from_mcs, cloud)
+        st = Station(station, cloud, T_world_from_ecs, noise)
         thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
         with self._lock:
             job.fused[station] = st
@@ -252,6 +257,10 @@ def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarra
         truth = d
         body["true_error_mm"] = {"mean": float(d.mean()), "std": float(d.std()),
                                  "max": float(d.max()), "p95": float(np.percentile(d, 95))}
+    body["error_budget"] = budget(
+        {st.name: st.ecs_noise_mm for st in stations if st.ecs_noise_mm is not None},
+        body.get("translation_mm", {}).get("mean"), body.get("true_error_mm", {}).get("mean"),
+        hand_eye.get("rms_mm"))
     if settings.out_dir is not None:
         body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
                                       settings.mesh)
@@ -277,6 +286,7 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
         files["report"] = str(write_report(folder / "report", fused, metrics,
                                            f"scancell fusion report: {body['job_id']}",
                                            extra={"true_error_mm": body.get("true_error_mm")},
+                                           error_budget=body.get("error_budget"),
                                            truth=truth))
     (folder / "summary.json").write_text(json.dumps(body, indent=2))
     return files

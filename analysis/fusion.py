@@ -27,6 +27,8 @@ class Station:
     name: str
     points_mcs: np.ndarray
     T_world_from_ecs: np.ndarray
+    #: what the tracker's stated noise in P1..P3 moves the cloud along the view, mean (mm)
+    ecs_noise_mm: float | None = None
 
 
 def check_rigid(T: np.ndarray, where: str) -> np.ndarray:

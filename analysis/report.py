@@ -49,9 +49,10 @@ def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray,
 
 def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
                  title: str = "scancell fusion report", extra: dict[str, Any] | None = None,
-                 truth: np.ndarray | None = None) -> Path:
+                 truth: np.ndarray | None = None,
+                 error_budget: dict[str, Any] | None = None) -> Path:
     """``truth``: per fused point, the true distance to the part (simulation): adds the
-    ground-truth error map."""
+    ground-truth error map. ``error_budget``: :func:`scancell.analysis.error_budget.budget`."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     pictures = histograms(metrics, str(out))
@@ -87,9 +88,33 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
                   f"mean {d.mean():.4f} mm, std {d.std():.4f} mm, max {d.max():.4f} mm, "
                   f"95 % below {np.percentile(d, 95):.4f} mm", "",
                   "![true error map](true_error_map.png)"]
+    if error_budget and error_budget.get("ecs_noise_mm"):
+        lines += budget_lines(error_budget)
     for key, value in (extra or {}).items():
         if value is not None:
             lines += ["", f"## {key}", "", str(value)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def budget_lines(b: dict[str, Any]) -> list[str]:
+    """The report's error-budget section."""
+    lines = ["", "## Error budget", "",
+             "What the laser tracker's stated noise alone does to each station: P1..P3 drawn "
+             "again from their 1-sigma, the ECS rebuilt, the cloud's mean shift along the view.",
+             "", "| station | tracker (ECS) share, mean (mm) |", "|---|---|"]
+    lines += [f"| {k} | {v:.4f} |" for k, v in b["ecs_noise_mm"].items()]
+    lines.append("")
+    if "overlap_predicted_from_tracker_mm" in b:
+        lines += [f"- Overlap translation error expected from the tracker alone (two stations): "
+                  f"{b['overlap_predicted_from_tracker_mm']:.4f} mm; the rest (scanner, "
+                  f"calibrations, resampling): {b['overlap_rest_mm']:.4f} mm.",
+                  f"- What dominates: {b['dominant']}."]
+    if b.get("true_mean_mm") is not None:
+        lines.append(f"- True error (simulation), mean {b['true_mean_mm']:.4f} mm: it adds what is "
+                     f"common to all stations (the hand-eye calibration, the scanner's "
+                     f"calibration), which the overlaps cannot see.")
+    if b.get("hand_eye_rms_mm") is not None:
+        lines.append(f"- Hand-eye calibration: pair RMS {b['hand_eye_rms_mm']:.4f} mm.")
+    return lines

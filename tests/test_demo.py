@@ -27,6 +27,7 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert set(s["hand_eye"]) >= {"rms_mm", "rotation_error_arcsec", "translation_error_mm"}
     assert s["true_error_mm"]["mean"] < 0.2 and s["stations"] == 3 and s["points"] > 1000
     assert s["seconds"] > 0
+    assert "dominant" in s["error_budget"] and "error budget:" in out.stdout
     for name in ("fused.ply", "fused.e57", "mesh.ply", "report/report.md", "plan.toml",
                  "calibration/stereo.yaml", "calibration/hand_eye/active.json"):
         assert (run / name).exists(), name

@@ -119,3 +119,27 @@ def test_multi_view_icp_undoes_a_station_error_and_reports_it_apart(stations):
     assert max(held.translation_mm.values()) < 0.05
     with pytest.raises(FusionError, match="at least two"):
         refine({"a": moved["s1"]})
+
+
+def test_error_budget_follows_the_tracker_noise(stations):
+    """The ECS share scales with the tracker's sigma and is zero without noise; the budget
+    names what dominates."""
+    from scancell.analysis.error_budget import budget, ecs_noise_effect
+
+    cell, st = stations
+    q = cell.q_commanded
+    pts = np.array([cell.smr_center_world(cell.j6_turned(q, a))
+                    for a in (0.0, *cell.cfg.j6_angles_deg)])
+    frame = [0.0, *cell.cfg.j6_angles_deg]
+    T = cell.true_T_ecs_from_mcs()
+    cloud = st[-1].points_mcs
+    args = ([0.0, *cell.cfg.j6_angles_deg], frame, T, cloud)
+    assert ecs_noise_effect(pts, np.zeros(3), *args) < 1e-9
+    one = ecs_noise_effect(pts, np.full(3, 0.005), *args)
+    two = ecs_noise_effect(pts, np.full(3, 0.010), *args)
+    assert 0.0005 < one < 0.05 and two == pytest.approx(2 * one, rel=0.15)
+    b = budget({"s1": one, "s2": one}, overlap_mean_mm=10 * one, true_mean_mm=0.02,
+               hand_eye_rms_mm=0.008)
+    assert b["dominant"].startswith("the scanner")
+    assert budget({"s1": one}, overlap_mean_mm=one, true_mean_mm=None,
+                  hand_eye_rms_mm=None)["dominant"].startswith("the tracker")

@@ -108,6 +108,8 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     assert r["job_id"] == job and r["stations"] == 3 and r["state"] == "done"
     # true hand-eye: what is left is the tracker, the robot's repeatability and the scanner
     assert r["true_error_mm"]["mean"] < 0.1, r["true_error_mm"]
+    assert set(r["error_budget"]["ecs_noise_mm"]) == {"s01", "s02", "s03"}
+    assert "dominant" in r["error_budget"]
     assert r["translation_mm"]["mean"] < 0.1 and r["translation_mm"]["p_lt_0_6"] > 0.98, r
     assert {(t.parent_frame_id, t.child_frame_id) for t in tfs} >= {
         ("world", "ecs_s01"), ("ecs_s01", "mcs_s01"), ("world", "ecs_s03")}
