@@ -53,8 +53,8 @@ def budget(ecs_noise_mm: dict[str, float], overlap_mean_mm: float | None,
         out["overlap_predicted_from_tracker_mm"] = float(predicted)
         out["overlap_rest_mm"] = rest
         out["dominant"] = ("the tracker's noise in each station's ECS" if predicted >= rest else
-                           "the scanner and the calibrations (more than the tracker's noise in "
-                           "the ECS)")
+                           "the rest: the scanner, the robot between the J6 turns and the "
+                           "calibrations (more than the tracker's noise in the ECS)")
     if true_mean_mm is not None:
         out["true_mean_mm"] = true_mean_mm
     if hand_eye_rms_mm is not None:

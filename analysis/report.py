@@ -108,8 +108,9 @@ def budget_lines(b: dict[str, Any]) -> list[str]:
     lines.append("")
     if "overlap_predicted_from_tracker_mm" in b:
         lines += [f"- Overlap translation error expected from the tracker alone (two stations): "
-                  f"{b['overlap_predicted_from_tracker_mm']:.4f} mm; the rest (scanner, "
-                  f"calibrations, resampling): {b['overlap_rest_mm']:.4f} mm.",
+                  f"{b['overlap_predicted_from_tracker_mm']:.4f} mm; the rest (scanner, the "
+                  f"robot's J6 repeatability, calibrations, resampling): "
+                  f"{b['overlap_rest_mm']:.4f} mm.",
                   f"- What dominates: {b['dominant']}."]
     if b.get("true_mean_mm") is not None:
         lines.append(f"- True error (simulation), mean {b['true_mean_mm']:.4f} mm: it adds what is "

@@ -140,6 +140,6 @@ def test_error_budget_follows_the_tracker_noise(stations):
     assert 0.0005 < one < 0.05 and two == pytest.approx(2 * one, rel=0.15)
     b = budget({"s1": one, "s2": one}, overlap_mean_mm=10 * one, true_mean_mm=0.02,
                hand_eye_rms_mm=0.008)
-    assert b["dominant"].startswith("the scanner")
+    assert b["dominant"].startswith("the rest")
     assert budget({"s1": one}, overlap_mean_mm=one, true_mean_mm=None,
                   hand_eye_rms_mm=None)["dominant"].startswith("the tracker")
