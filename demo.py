@@ -220,6 +220,8 @@ def main(args: argparse.Namespace) -> int:
         final = follow_job(client, job, 1800)
         if final.get("state") != "done":
             raise RuntimeError(f"scan job {final.get('state')}: {final.get('error')}")
+        print("   measured; the fuse worker now fuses the stations, measures the overlaps and "
+              "writes the model, the mesh and the report", flush=True)
         report = wait_for(lambda: [r for r in reports if r.get("job_id") == job], 600,
                           "fusion report")[-1]
         if report.get("error"):
