@@ -109,7 +109,11 @@ class Scene:
                 continue
             T = np.linalg.inv(obj.T_world_from_object)
             # rays leave unit length under a rigid transform, so tfar keeps its meaning
-            local = move_rays(rays, T[:3, :3], T[:3, 3])
+            if len(rays) < 4096:  # the tracker's beam checks: waking the kernel's threads costs more
+                local = np.hstack([rays[:, :3] @ T[:3, :3].T + T[:3, 3],
+                                   rays[:, 3:] @ T[:3, :3].T]).astype(np.float32)
+            else:
+                local = move_rays(rays, T[:3, :3], T[:3, 3])
             occ = obj.scene.test_occlusions(o3d.core.Tensor(local), tnear=tnear,
                                             tfar=float(np.max(tfar)) if tfar.size else 0.0)
             occ = occ.numpy()
