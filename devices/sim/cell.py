@@ -355,6 +355,7 @@ class SimCell:
             proj_x[cand[shadow]] = np.nan
         t4 = clock()
         lit = np.isfinite(proj_x)
+        # object index -1 (no hit) picks the appended albedo 0
         albedo = np.array([o.albedo for o in self.scene.objects] + [0.0],
                           np.float32)[hits.object_index]
         d0 = np.float32(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0]))
