@@ -21,6 +21,7 @@ from scancell.daemon.scan import scan, serving_device
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Camera, Projector, Robot, Tracker
 from scancell.protocols.commands import CommandError
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
 
 def ball_layout(n: int, depths_mm: list[float], spread_mm: tuple[float, float],
@@ -108,7 +109,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                              simulator: Any) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
-    turns = [float(a) for a in req.get("j6_angles_deg", [120.0, -120.0, 60.0, -60.0])]
+    turns = [float(a) for a in req.get("j6_angles_deg", [*DEFAULT_J6_ANGLES_DEG, 60.0, -60.0])]
     speed = float(req.get("speed", 0.2))
     repeats = int(req.get("tracker_repeats", 10))
     verb = "calibrate_hand_eye"

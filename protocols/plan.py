@@ -38,6 +38,7 @@ from scancell.protocols.keys import check_name
 #: The SMR's opening must face along J6 for the tracker to keep it over such turns.
 DEFAULT_J6_ANGLES_DEG: tuple[float, float] = (120.0, -120.0)
 
+
 class PlanError(ValueError):
     """A plan that cannot be run; the message names the station and the key."""
 

@@ -342,12 +342,10 @@ class SimCell:
         t2 = clock()
         T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
         proj = self.rig.projector
-        d = np.zeros(5)
-        d[: min(5, proj.dist.size)] = proj.dist.ravel()[:5]
         eps = 0.05
         proj_x, cos_p, dist, shadow_rays, tfar = projector_terms(
             dirs, hits.t, hits.normal, T_wc[:3, :3], T_wc[:3, 3], T_pc[:3, :3], T_pc[:3, 3],
-            proj.K, d, proj.width, proj.height, eps)
+            proj.K, proj.brown_conrady5, proj.width, proj.height, eps)
         t3 = clock()
         cand = np.flatnonzero(np.isfinite(proj_x))
         if cand.size:

@@ -69,6 +69,13 @@ class PinholeModel:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return d.reshape(self.height, self.width, 3)
 
+    @property
+    def brown_conrady5(self) -> np.ndarray:
+        """(k1, k2, p1, p2, k3), zeros where ``dist`` has fewer terms."""
+        d = np.zeros(5)
+        d[: min(5, self.dist.size)] = self.dist.ravel()[:5]
+        return d
+
     def project(self, pts_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of points (N, 3) given in this device's frame.
 
@@ -77,8 +84,7 @@ class PinholeModel:
         1e-12 px (tests/test_sim.py checks it against OpenCV).
         """
         pts = np.asarray(pts_cam, np.float64).reshape(-1, 3)
-        d = np.zeros(5)
-        d[: min(5, self.dist.size)] = self.dist.ravel()[:5]
+        d = self.brown_conrady5
         if self.dist.size > 5 and np.any(self.dist.ravel()[5:]):
             uv, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K,
                                       self.dist)

@@ -16,9 +16,15 @@ import numpy as np
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 
-@numba.njit(parallel=True, cache=True)
 def move_rays(rays: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Rays (N, 6) float32, origin then unit direction, moved by ``x -> R x + t``."""
+    if len(rays) < 4096:  # e.g. the tracker's beam checks: waking the kernel's threads costs more
+        return np.hstack([rays[:, :3] @ R.T + t, rays[:, 3:] @ R.T]).astype(np.float32)
+    return _move_rays(rays, R, t)
+
+
+@numba.njit(parallel=True, cache=True)
+def _move_rays(rays: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     n = rays.shape[0]
     out = np.empty((n, 6), np.float32)
     for i in numba.prange(n):

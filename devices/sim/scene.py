@@ -30,13 +30,6 @@ class SceneObject:
             self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(self.mesh))
         return self._scene
 
-    def _local(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        T_obj_from_world = np.linalg.inv(self.T_world_from_object)
-        R, t = T_obj_from_world[:3, :3], T_obj_from_world[:3, 3]
-        o = origins @ R.T + t
-        d = dirs @ R.T
-        return np.concatenate([o, d], axis=-1).astype(np.float32)
-
 
 @dataclass
 class Hits:
@@ -76,7 +69,7 @@ class Scene:
             if np.ndim(origins) == 1:
                 rays = rays_from_point(dirs32, T[:3, :3], T[:3, :3] @ origins + T[:3, 3])
             else:
-                rays = obj._local(np.asarray(origins, np.float64), dirs32.astype(np.float64))
+                rays = move_rays(_world_rays(origins, dirs32), T[:3, :3], T[:3, 3])
             r = obj.scene.cast_rays(o3d.core.Tensor(rays))
             t = r["t_hit"].numpy()
             closer = np.flatnonzero(t < best_t)
@@ -94,10 +87,8 @@ class Scene:
                  tnear: float = 0.0, exclude: Collection[str] = ()) -> np.ndarray:
         """True where a ray hits any object (but those named in ``exclude``) between tnear and
         tfar (per ray)."""
-        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
-        origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
-        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        return self.occluded_rays(rays, np.asarray(tfar, np.float32), tnear, exclude)
+        return self.occluded_rays(_world_rays(origins, dirs), np.asarray(tfar, np.float32), tnear,
+                                  exclude)
 
     def occluded_rays(self, rays: np.ndarray, tfar: np.ndarray, tnear: float = 0.0,
                       exclude: Collection[str] = ()) -> np.ndarray:
@@ -109,11 +100,7 @@ class Scene:
                 continue
             T = np.linalg.inv(obj.T_world_from_object)
             # rays leave unit length under a rigid transform, so tfar keeps its meaning
-            if len(rays) < 4096:  # the tracker's beam checks: waking the kernel's threads costs more
-                local = np.hstack([rays[:, :3] @ T[:3, :3].T + T[:3, 3],
-                                   rays[:, 3:] @ T[:3, :3].T]).astype(np.float32)
-            else:
-                local = move_rays(rays, T[:3, :3], T[:3, 3])
+            local = move_rays(rays, T[:3, :3], T[:3, 3])
             occ = obj.scene.test_occlusions(o3d.core.Tensor(local), tnear=tnear,
                                             tfar=float(np.max(tfar)) if tfar.size else 0.0)
             occ = occ.numpy()
@@ -139,3 +126,10 @@ class Scene:
             d = obj.scene.compute_distance(o3d.core.Tensor(local)).numpy()
             best = np.minimum(best, d)
         return best
+
+
+def _world_rays(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Rays (N, 6) float32 from unit directions (N, 3) and origins (N, 3) or one origin (3,)."""
+    dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+    origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
+    return np.concatenate([origins, dirs], axis=1).astype(np.float32)
