@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import jsonschema
 from scancell.bus import BusConfig
+from scancell.model.cell_geometry import CellGeometry, GeometryError
 from scancell.protocols.keys import check_name
 
 
@@ -53,6 +55,18 @@ class CellConfig:
     simulator: dict[str, Any] | None = None
     #: The embedded recorder's ``[recorder]`` table (None: no recorder in the daemon).
     recorder: Any = None
+    #: The cell's ``[planner]`` table, parsed (None: the config has none).
+    planner: CellGeometry | None = None
+
+    @cached_property
+    def geometry(self) -> CellGeometry | None:
+        """The cell's geometry for planning and the scan job: ``[planner]``, else the embedded
+        simulator's own, else None."""
+        if self.planner is not None or self.simulator is None:
+            return self.planner
+        from scancell.devices.simulator import load_simulator
+
+        return CellGeometry.from_table(load_simulator().planner_table(self.simulator))
 
     def redacted(self) -> dict[str, Any]:
         """The config as loaded, without passwords and private keys (for recordings, replies)."""
@@ -180,11 +194,20 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
     if simulator is not None:
         if not isinstance(simulator, dict):
             raise err("[simulator]", "must be a table")
-        from scancell.devices.sim.host import check_options
+        from scancell.devices.simulator import SimulatorUnavailable, load_simulator
 
-        problem = check_options(simulator)
+        try:
+            problem = load_simulator().check_options(simulator)
+        except SimulatorUnavailable as exc:
+            raise err("[simulator]", str(exc)) from None
         if problem:
             raise err("[simulator]", problem)
+    planner = None
+    if raw.get("planner"):
+        try:
+            planner = CellGeometry.from_table(_table(raw, "planner", err))
+        except GeometryError as exc:
+            raise err("[planner]", str(exc)) from None
     recorder = None
     rec_t = _table(raw, "recorder", err)
     if rec_t.get("enabled", bool(rec_t)):
@@ -195,7 +218,7 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         except (ValueError, TypeError) as exc:
             raise err("[recorder]", str(exc)) from None
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
-                      simulator, recorder)
+                      simulator, recorder, planner)
 
 
 def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scancell.analysis.ecs import ecs_for_frame
+from scancell.model.ecs import ecs_for_frame
 
 
 def ecs_noise_effect(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: list[float],

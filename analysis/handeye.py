@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scancell.model.transforms import rotation_angle_deg
 
 
 class HandEyeError(ValueError):
@@ -46,7 +47,7 @@ def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_arcsec(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))) * 3600)
+    return rotation_angle_deg(R) * 3600
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Phase decoding: wrapped phase, modulation, quality mask and temporal unwrapping.
 
-Input: the K·N images of one camera in the sequence order of :mod:`scancell.analysis.patterns`
+Input: the K·N images of one camera in the sequence order of :mod:`scancell.model.patterns`
 (image k = j·N + n). Output: the absolute projector column (0 … W−1, projector pixels) seen by
 every camera pixel, with the fringe modulation and background (DN) and a validity mask.
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scancell.analysis.patterns import FringeSequence
+from scancell.model.patterns import FringeSequence
 
 TWO_PI = np.float32(2 * np.pi)
 

@@ -17,67 +17,19 @@ three J6 positions.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import open3d as o3d
-from scancell.devices.robot_model import IKError, RobotModel
-from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG, Plan, PlanStation
+from scancell.model.cell_geometry import CellGeometry, GeometryError
+from scancell.model.robot_model import IKError
+from scancell.model.transforms import T_rot_z, look_at_flange
+from scancell.protocols.plan import Plan, PlanStation
 
 
-class PlanningError(ValueError):
+class PlanningError(GeometryError):
     """No station can see the part, or the part file is unusable; says which."""
-
-
-@dataclass(frozen=True)
-class CellGeometry:
-    """What the planner needs to know of the cell (mm, frames as in design.md)."""
-
-    T_world_from_base: np.ndarray
-    T_flange_from_mcs: np.ndarray
-    #: Midpoint between the cameras in the flange frame; the flange z axis is the scanner's
-    #: viewing direction (the bisector) and x its baseline.
-    rig_mid_in_flange: np.ndarray
-    smr_in_mcs_mm: np.ndarray
-    smr_opening_in_mcs: np.ndarray
-    tracker_world_mm: np.ndarray
-    smr_acceptance_deg: float = 30.0
-    standoff_mm: float = 650.0
-    field_mm: tuple[float, float] = (380.0, 280.0)  # usable field at the standoff (x, y)
-    depth_mm: tuple[float, float] = (-90.0, 90.0)  # around the standoff
-    max_incidence_deg: float = 65.0
-    j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG
-    #: An external linear axis carrying the robot (unit vector in world) and the positions (mm)
-    #: the planner may use; empty: no axis.
-    rail_axis: tuple[float, float, float] | None = None
-    rail_positions_mm: tuple[float, ...] = ()
-    robot: RobotModel = field(default_factory=RobotModel)
-
-    def base_at(self, rail_mm: float | None) -> np.ndarray:
-        T = np.array(self.T_world_from_base, float)
-        if rail_mm:
-            T[:3, 3] += np.asarray(self.rail_axis, float) * rail_mm
-        return T
-
-    @classmethod
-    def from_table(cls, t: dict[str, Any]) -> CellGeometry:
-        """From a cell config's ``[planner]`` table (matrices as nested lists)."""
-        try:
-            return cls(np.asarray(t["T_world_from_base"], float),
-                       np.asarray(t["T_flange_from_mcs"], float),
-                       np.asarray(t["rig_mid_in_flange_mm"], float),
-                       np.asarray(t["smr_in_mcs_mm"], float),
-                       np.asarray(t.get("smr_opening_in_mcs", [0, 0, -1]), float),
-                       np.asarray(t["tracker_world_mm"], float),
-                       float(t.get("smr_acceptance_deg", 30.0)),
-                       float(t.get("standoff_mm", 650.0)),
-                       tuple(t.get("field_mm", (380.0, 280.0))),
-                       tuple(t.get("depth_mm", (-90.0, 90.0))),
-                       rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
-                       rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())))
-        except KeyError as exc:
-            raise PlanningError(f"[planner]: missing key {exc}") from None
 
 
 @dataclass
@@ -111,26 +63,6 @@ class PlanReport:
                 "neighbour_overlap_median": round(float(np.median(ov)), 3) if ov else None,
                 "neighbour_overlap_max": round(max(ov), 3) if ov else None,
                 "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40)}
-
-
-def look_at(g: CellGeometry, target: np.ndarray, view: np.ndarray) -> np.ndarray:
-    """``T_world_from_flange`` with the bisector through ``target`` along ``view``, the rig
-    midpoint ``standoff_mm`` before it and the baseline horizontal."""
-    v = view / np.linalg.norm(view)
-    x = np.cross([0.0, 0.0, -1.0], v)
-    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([0.0, 1.0, 0.0])
-    R = np.stack([x, np.cross(v, x), v], axis=1)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = target - v * g.standoff_mm - R @ g.rig_mid_in_flange
-    return T
-
-
-def _rot_z(deg: float) -> np.ndarray:
-    t = np.radians(deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]
-    return T
 
 
 def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
@@ -187,7 +119,7 @@ class Planner:
         """The J6 turn direction with the SMR in the tracker's sight at all three positions (J6
         turns the flange about its z axis, so no joint solution is needed to know)."""
         for sign in (1.0, -1.0):
-            if all(self._smr_in_sight(T_world_from_flange @ _rot_z(sign * a))
+            if all(self._smr_in_sight(T_world_from_flange @ T_rot_z(sign * a))
                    for a in (0.0, *self.g.j6_angles_deg)):
                 return sign
         return None
@@ -201,8 +133,7 @@ class Planner:
             return None
         base = g.base_at(rail_mm)
         T_base_from_flange = np.linalg.inv(base) @ T_world_from_flange
-        wrist = T_base_from_flange[:3, 3] - 175.0 * T_base_from_flange[:3, 2]
-        if np.linalg.norm(wrist - [0.0, 0.0, 565.0]) > 2050.0:  # beyond the arm's reach
+        if not g.robot.within_reach(T_base_from_flange):
             return None
         try:
             q = g.robot.ik(T_base_from_flange, seed)
@@ -247,7 +178,7 @@ class Planner:
         rails: list[float | None] = list(g.rail_positions_mm) or [None]
         for c, n in zip(centres, normals, strict=True):
             for view in _tilted(-n / np.linalg.norm(n), 20.0):
-                T = look_at(g, c, view)
+                T = look_at_flange(c, view, g.standoff_mm, g.rig_mid_in_flange)
                 sees = self.seen(T)
                 if sees.sum() < 20:
                     continue

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scancell.analysis.fusion import FusionError
+from scancell.model.transforms import rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -84,7 +85,7 @@ def refine(per_station: dict[str, np.ndarray], voxel_mm: float = 1.0,
         T = anchor_inv @ graph.nodes[i + 1].pose
         corrections[n] = T
         tr[n] = float(np.linalg.norm(T[:3, 3]))
-        rot[n] = float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))))
+        rot[n] = rotation_angle_deg(T)
         p = np.asarray(per_station[n], float)
         refined[n] = p @ T[:3, :3].T + T[:3, 3]
     return Refinement(corrections, tr, rot, pairs, refined)

@@ -9,10 +9,9 @@ from typing import Any
 import numpy as np
 from scancell.analysis.fusion import FusedCloud
 from scancell.analysis.metrics import MetricsReport, histograms
+from scancell.model.paper import PAPER
 
 #: The seed paper's Table 2 figures for its car-body rear, for comparison.
-PAPER = {"translation_mean_mm": 0.2965, "translation_std_mm": 0.2465,
-         "translation_max_mm": 1.5081, "p_lt_0_6": 0.8853, "rotation_mean_deg": 2.8333}
 
 
 def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray,

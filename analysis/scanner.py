@@ -14,10 +14,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.phase import DecodeError, DecodeSettings, PhaseMap, decode_phase
 from scancell.analysis.stereo import Cloud, Rectification, reconstruct, rectify
 from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 
@@ -34,7 +34,7 @@ class ScanDecoder:
     """Decodes image sets of one calibrated scanner (rectification maps computed once)."""
 
     def __init__(self, calib: StereoCalibration, sequence: FringeSequence,
-                 projector_width: int = 1280, settings: DecodeSettings | None = None) -> None:
+                 projector_width: int = PROJECTOR_WIDTH, settings: DecodeSettings | None = None) -> None:
         self.calib = calib
         self.sequence = sequence
         self.projector_width = projector_width

@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scancell.model.transforms import rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +196,7 @@ class CalibrationReport:
                  f"  RMS reprojection: left {c.rms['rms_left_px']:.3f} px, right "
                  f"{c.rms['rms_right_px']:.3f} px, stereo {c.rms['rms_stereo_px']:.3f} px",
                  f"  baseline {c.baseline_mm:.3f} mm, convergence "
-                 f"{np.degrees(np.arccos(np.clip((np.trace(c.R) - 1) / 2, -1, 1))):.2f} deg",
+                 f"{rotation_angle_deg(c.R):.2f} deg",
                  f"  f left {c.K1[0, 0]:.1f} px, f right {c.K2[0, 0]:.1f} px"]
         for name, why in self.views_rejected.items():
             lines.append(f"  rejected {name}: {why}")

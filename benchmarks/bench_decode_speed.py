@@ -16,11 +16,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo import mask_discontinuities, rectify, typical_step
 from scancell.analysis.stereo_calibration import StereoCalibration
-from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.model.patterns import FringeSequence
+from scancell.sim.cell import SimCell, SimCellConfig
 
 sys.path.insert(0, str(Path(__file__).parent))
 import reference_decode as ref

@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from scancell.analysis.calibrate_worker import CalibrateWorker
 from scancell.analysis.handeye import rotation_angle_arcsec
-from scancell.analysis.scan_worker import ScanWorker
 from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.bus import Bus, BusConfig
 from scancell.client import CellClient
-from scancell.devices.sim.world import get_world
+from scancell.sim.world import get_world
+from scancell.workers.calibrate import CalibrateWorker
+from scancell.workers.scan import ScanWorker
 
 from tests.conftest import DaemonThread, free_port, sim_cell_raw, wait_until
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.sim.cell import SimCell, SimCellConfig
 
 
 def main() -> dict[str, float]:

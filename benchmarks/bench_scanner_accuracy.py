@@ -22,12 +22,13 @@ from pathlib import Path
 
 import numpy as np
 from scancell.analysis.fit import fit_plane, fit_sphere
-from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import ChessboardSpec, StereoCalibration, calibrate_stereo
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.optics import apply_T, default_rig
-from scancell.devices.sim.target import render_calibration_set
+from scancell.model.patterns import FringeSequence
+from scancell.model.transforms import apply_T
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.optics import default_rig
+from scancell.sim.target import render_calibration_set
 
 STANDOFF = 600.0
 W_PROJ = 1280

@@ -19,16 +19,17 @@ import zenoh
 from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
-from scancell.daemon.job_hand_eye import calibrate_hand_eye
-from scancell.daemon.job_home import home
-from scancell.daemon.job_scan_part import precheck as scan_part_precheck
-from scancell.daemon.job_scan_part import scan_part
-from scancell.daemon.jobs import JobRunner
+from scancell.daemon.jobs.hand_eye import calibrate_hand_eye
+from scancell.daemon.jobs.home import home
+from scancell.daemon.jobs.runner import JobRunner
+from scancell.daemon.jobs.scan import scan
+from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
+from scancell.daemon.jobs.scan_part import scan_part
 from scancell.daemon.router import CellVerb, CommandRouter
-from scancell.daemon.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import Device
 from scancell.devices.registry import load_driver
+from scancell.devices.simulator import Simulator, load_simulator
 from scancell.protocols import messages
 from scancell.protocols.commands import REPLY_SCHEMA, error_reply
 from scancell.protocols.encoding import Attachment
@@ -53,7 +54,7 @@ class Daemon:
         self._stop: asyncio.Event | None = None
         self._started = time.monotonic()
         self.ready = False
-        self.simulator: Any = None
+        self.simulator: Simulator | None = None
         self.recorder: Any = None
 
     # ---------------------------------------------------------------- lifecycle
@@ -95,11 +96,8 @@ class Daemon:
     async def _start_simulator(self) -> None:
         if self.cfg.simulator is None:
             return
-        # Imported only when a config asks for it: drivers never import simulation code.
-        from scancell.devices.sim.host import SimHost
-
-        host = SimHost(self.cfg.simulator)
         try:
+            host = load_simulator()(self.cfg.simulator)
             await asyncio.to_thread(host.start)
         except Exception as exc:
             raise SimulatorError(f"{self.cfg.path or '<config>'}: [simulator] could not start: "
@@ -130,7 +128,7 @@ class Daemon:
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
                                                                  self.simulator),
-            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self._geometry()),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.planner),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,
@@ -251,16 +249,8 @@ class Daemon:
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
         }
 
-    def _geometry(self) -> dict[str, Any] | None:
-        """The cell's ``[planner]`` geometry, or the embedded simulator's own."""
-        table = self.cfg.raw.get("planner")
-        if table:
-            return table
-        world = getattr(self.simulator, "world", None)
-        return world.cell.planner_table() if world is not None else None
-
     async def _cmd_scan_part(self, request: dict[str, Any]) -> dict[str, Any]:
-        scan_part_precheck(request, self.supervisors, self._geometry())
+        scan_part_precheck(request, self.supervisors, self.cfg.planner)
         return await self.jobs.start("scan_part", request)
 
     async def _cmd_estop(self, request: dict[str, Any]) -> dict[str, Any]:

@@ -1,18 +1,17 @@
-"""Deployment files: cell configs, router configs, systemd units (see deploy/README.md)."""
+"""Deployment files: cell configs, router configs, systemd units (see deploy/systemd/README.md
+and docs/commissioning.md). This module only finds them inside the installed package."""
 
 from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
 
-#: The cell config ``scancell daemon`` and ``scancell demo`` use when none is given.
-DEFAULT_CELL = "sim"
+
+def deploy_file(*parts: str) -> Path:
+    """Path of a packaged deployment file, e.g. ``deploy_file("zenoh", "router.json5")``."""
+    return Path(str(resources.files("scancell.deploy").joinpath(*parts)))
 
 
 def cell_config_path(name: str) -> Path:
     """Path of a packaged cell config, e.g. ``cell_config_path("sim")``."""
-    return Path(str(resources.files("scancell.deploy") / "cells" / f"{name}.toml"))
-
-
-def default_cell_config() -> Path:
-    return cell_config_path(DEFAULT_CELL)
+    return deploy_file("cells", f"{name}.toml")

@@ -196,7 +196,7 @@ class Robot(Device):
         box = self.options.get("workspace_mm")
         if box is None:
             return
-        from scancell.devices.robot_model import RobotModel
+        from scancell.model.robot_model import RobotModel
 
         p = RobotModel().fk(q)[:3, 3]
         for axis, v, (lo, hi) in zip("xyz", p, box, strict=True):

@@ -22,6 +22,7 @@ import can
 import canopen
 from canopen.profiles.p402 import BaseNode402
 from scancell.devices.base import OK, Axis, Health, HealthState
+from scancell.devices.cia402_dictionary import drive_object_dictionary
 from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
 from scancell.protocols import cia402 as p
 from scancell.protocols.commands import CommandError
@@ -107,7 +108,7 @@ class CanopenAxis(Axis):
         except (can.CanError, OSError, ValueError) as exc:
             raise ConnectionLost(f"{self.name}: {self._where()}: {exc}") from None
         try:
-            od = self.options.get("eds") or p.drive_object_dictionary()
+            od = self.options.get("eds") or drive_object_dictionary()
             node = BaseNode402(int(self.options["node_id"]), od)
             net.add_node(node)
             node.sdo.RESPONSE_TIMEOUT = float(self.options.get("sdo_timeout_s", 0.5))

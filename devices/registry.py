@@ -24,8 +24,8 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "canopen_axis": "scancell.devices.canopen_axis:CanopenAxis",
     "opencv_camera": "scancell.devices.opencv_camera:OpenCVCamera",
     "basler_camera": "scancell.devices.basler_camera:BaslerCamera",
-    "sim_camera": "scancell.devices.sim.devices:SimCamera",
-    "sim_projector": "scancell.devices.sim.devices:SimProjector",
+    "sim_camera": "scancell.sim.devices:SimCamera",
+    "sim_projector": "scancell.sim.devices:SimProjector",
 }
 
 

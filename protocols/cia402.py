@@ -1,14 +1,11 @@
 """CiA 402 (CANopen drives and motion control): the objects and bits scancell uses.
 
-Pure definitions, no I/O: the object dictionary of a profile-position drive with homing
-(shared by the ``canopen_axis`` driver and the simulated drive, and replaceable by a vendor's
-EDS file), the controlword commands and the statusword bits of CiA 402 part 2.
+Pure definitions, no I/O: the object indices, the controlword commands and the statusword bits
+of CiA 402 part 2. The object dictionary built from them, as python-canopen wants it, is in
+``devices/cia402_dictionary.py``.
 """
 
 from __future__ import annotations
-
-from canopen import objectdictionary as od
-from canopen.objectdictionary import datatypes as dt
 
 # ---- objects (index, subindex)
 DEVICE_TYPE = 0x1000
@@ -88,46 +85,3 @@ def state_of(statusword: int) -> str:
         if statusword & mask == value:
             return name
     return "UNKNOWN"
-
-
-def _var(index: int, name: str, data_type: int, access: str, default: int | str = 0,
-         subindex: int = 0) -> od.ODVariable:
-    v = od.ODVariable(name, index, subindex)
-    v.data_type = data_type
-    v.access_type = access
-    v.default = default
-    return v
-
-
-def drive_object_dictionary(name: str = "scancell CiA 402 axis") -> od.ObjectDictionary:
-    """The object dictionary of a profile-position drive with homing and software limits."""
-    d = od.ObjectDictionary()
-    for var in (
-        _var(DEVICE_TYPE, "Device type", dt.UNSIGNED32, "ro", DEVICE_TYPE_402_SERVO),
-        _var(ERROR_REGISTER, "Error register", dt.UNSIGNED8, "ro"),
-        _var(DEVICE_NAME, "Manufacturer device name", dt.VISIBLE_STRING, "const", name),
-        _var(ERROR_CODE, "Error code", dt.UNSIGNED16, "ro"),
-        _var(CONTROLWORD, "Controlword", dt.UNSIGNED16, "rw"),
-        _var(STATUSWORD, "Statusword", dt.UNSIGNED16, "ro"),
-        _var(MODES_OF_OPERATION, "Modes of operation", dt.INTEGER8, "rw"),
-        _var(MODES_OF_OPERATION_DISPLAY, "Modes of operation display", dt.INTEGER8, "ro"),
-        _var(POSITION_ACTUAL, "Position actual value", dt.INTEGER32, "ro"),
-        _var(VELOCITY_ACTUAL, "Velocity actual value", dt.INTEGER32, "ro"),
-        _var(TARGET_POSITION, "Target position", dt.INTEGER32, "rw"),
-        _var(HOME_OFFSET, "Home offset", dt.INTEGER32, "rw"),
-        _var(PROFILE_VELOCITY, "Profile velocity", dt.UNSIGNED32, "rw", 100_000),
-        _var(PROFILE_ACCELERATION, "Profile acceleration", dt.UNSIGNED32, "rw", 500_000),
-        _var(PROFILE_DECELERATION, "Profile deceleration", dt.UNSIGNED32, "rw", 500_000),
-        _var(HOMING_METHOD, "Homing method", dt.INTEGER8, "rw", 35),
-        _var(SUPPORTED_DRIVE_MODES, "Supported drive modes", dt.UNSIGNED32, "ro",
-             SUPPORTED_MODES_BITS),
-    ):
-        d.add_object(var)
-    limits = od.ODRecord("Software position limit", SOFTWARE_POSITION_LIMIT)
-    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Number of entries", dt.UNSIGNED8, "ro", 2, 0))
-    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Min position limit", dt.INTEGER32, "rw",
-                           -(2**31), 1))
-    limits.add_member(_var(SOFTWARE_POSITION_LIMIT, "Max position limit", dt.INTEGER32, "rw",
-                           2**31 - 1, 2))
-    d.add_object(limits)
-    return d

@@ -17,7 +17,7 @@ from typing import Any
 import zenoh
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from scancell.bus import BusSample
+from scancell.bus.protocol import BusSample
 from scancell.protocols.encoding import JSON, PROTOBUF, Attachment
 from scancell.protocols.keys import ROOT
 from scancell.recorder.session_file import META_SUFFIX

@@ -76,7 +76,7 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[st
     import tomllib
 
     from scancell.config import merge_into
-    from scancell.devices.sim.host import relocated_ports
+    from scancell.sim.host import relocated_ports
 
     raw = tomllib.loads(cell_config_path("sim").read_text())
     merge_into(raw, relocated_ports(raw, lambda _old: free_port()))

@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scancell.devices.canopen_axis import CanopenAxis
 from scancell.devices.errors import ConnectionLost, DeviceFault
-from scancell.devices.sim.axis_server import SimulatedDrive, SocketcandServer, _parse_send
-from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.protocols import cia402
 from scancell.protocols.commands import CommandError
+from scancell.sim.axis_server import SimulatedDrive, SocketcandServer, _parse_send
+from scancell.sim.cell import SimCell, SimCellConfig
 
 
 @contextlib.asynccontextmanager

@@ -10,15 +10,15 @@ import uuid
 import cv2
 import numpy as np
 import pytest
-from scancell.analysis.patterns import FringeSequence
 from scancell.devices.acquisition import CouplingError, acquire_sequence
 from scancell.devices.basler_camera import BaslerCamera
 from scancell.devices.errors import ConnectionLost, DeviceFault, Timeout
 from scancell.devices.opencv_camera import OpenCVCamera
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.devices import SimCamera, SimProjector
-from scancell.devices.sim.world import SimWorld, register, unregister
+from scancell.model.patterns import FringeSequence
 from scancell.protocols.commands import CommandError
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.devices import SimCamera, SimProjector
+from scancell.sim.world import SimWorld, register, unregister
 
 SPEC = {"kind": "fringe", "steps": 3, "periods": [70, 64, 59]}
 

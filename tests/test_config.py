@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from scancell.cli._common import default_cell_config
 from scancell.config import ConfigError, load_cell_config
-from scancell.deploy import cell_config_path, default_cell_config
+from scancell.deploy import cell_config_path
 
 
 def test_packaged_configs_load():

@@ -12,7 +12,7 @@ import pytest
 from scancell.analysis.cloud_io import read_ply, write_ply
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
 from scancell.analysis.metrics import compare_clouds
-from scancell.devices.sim.cell import SimCell, SimCellConfig
+from scancell.sim.cell import SimCell, SimCellConfig
 
 
 @pytest.fixture(scope="module")

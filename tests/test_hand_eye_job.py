@@ -13,9 +13,9 @@ import threading
 import numpy as np
 import pytest
 from scancell.analysis.handeye import rotation_angle_arcsec
-from scancell.analysis.scan_worker import ScanWorker
 from scancell.analysis.stereo_calibration import StereoCalibration
-from scancell.devices.sim.world import get_world
+from scancell.sim.world import get_world
+from scancell.workers.scan import ScanWorker
 
 from .conftest import sim_cell_raw, wait_until
 

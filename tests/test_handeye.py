@@ -9,9 +9,9 @@ import sys
 
 import numpy as np
 import pytest
-from scancell.analysis.ecs import DegenerateGeometry, ecs_from_circle, ecs_from_points
 from scancell.analysis.fit import detect_sphere
 from scancell.analysis.handeye import HandEyeError, Pair, rotation_angle_arcsec, solve_hand_eye
+from scancell.model.ecs import DegenerateGeometry, ecs_from_circle, ecs_from_points
 from scipy.spatial.transform import Rotation
 
 TRUE_T = np.eye(4)
@@ -99,12 +99,12 @@ def test_ecs_refuses_degenerate_points():
 
 
 def test_ball_centre_from_a_simulated_scan_with_its_opening_and_stand():
-    from scancell.analysis.patterns import FringeSequence
     from scancell.analysis.scanner import ScanDecoder
     from scancell.analysis.stereo_calibration import StereoCalibration
-    from scancell.devices.sim import parts
-    from scancell.devices.sim.cell import SimCell, SimCellConfig
-    from scancell.devices.sim.optics import apply_T
+    from scancell.model.patterns import FringeSequence
+    from scancell.model.transforms import apply_T
+    from scancell.sim import parts
+    from scancell.sim.cell import SimCell, SimCellConfig
 
     cell = SimCell(SimCellConfig(camera_scale=4))
     target = cell.cfg.T_world_from_part[:3, 3] + [-300.0, 0, 0]
@@ -134,7 +134,7 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_hand_eye_cli_table_json_and_bad_csv(tmp_path):
-    from scancell.analysis.calib_cli import write_pairs
+    from scancell.analysis.pair_table import write_pairs
 
     p = pairs()
     p[4] = Pair("b4", p[4].ecs + np.array([0, 2.0, 0]), p[4].mcs)

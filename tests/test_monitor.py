@@ -14,7 +14,7 @@ from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from scancell.protocols import messages
-from scancell.recorder.monitor import Monitor, MonitorSettings
+from scancell.workers.monitor import Monitor, MonitorSettings
 
 from .conftest import free_port
 

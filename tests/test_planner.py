@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 from scancell.analysis.planner import CellGeometry, Planner, PlanningError
-from scancell.devices.sim.cell import SimCell, SimCellConfig
 from scancell.protocols.plan import plan_from_text
+from scancell.sim.cell import SimCell, SimCellConfig
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
-from scancell.analysis.calibrate_worker import CalibrateWorker
 from scancell.analysis.cloud_io import read_ply
-from scancell.analysis.scan_worker import ScanWorker
 from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.bus import Bus, BusConfig
-from scancell.devices.sim.world import get_world
 from scancell.protocols import messages
 from scancell.recorder.reading import info, samples
 from scancell.recorder.replay import replay
+from scancell.sim.world import get_world
+from scancell.workers.calibrate import CalibrateWorker
+from scancell.workers.scan import ScanWorker
 
 from .conftest import free_port, sim_cell_raw, wait_until
 

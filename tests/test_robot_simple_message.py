@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.robot_server import KarelRobotServer
 from scancell.devices.simple_message_robot import SimpleMessageRobot
 from scancell.protocols.commands import CommandError
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.robot_server import KarelRobotServer
 
 HOME = np.radians([0.0, 0.0, 0.0, 0.0, -90.0, 0.0])
 

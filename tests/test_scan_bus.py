@@ -13,12 +13,12 @@ import cv2
 import numpy as np
 import pytest
 from scancell.analysis.cloud_io import read_ply
-from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo_calibration import StereoCalibration
-from scancell.devices.sim.optics import apply_T
-from scancell.devices.sim.world import get_world
+from scancell.model.patterns import FringeSequence
+from scancell.model.transforms import apply_T
 from scancell.protocols import messages
+from scancell.sim.world import get_world
 
 from .conftest import sim_cell_raw, wait_until
 

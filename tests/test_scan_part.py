@@ -10,14 +10,14 @@ import threading
 
 import numpy as np
 import pytest
-from scancell.analysis.fuse_worker import FuseSettings, FuseWorker
-from scancell.analysis.scan_worker import ScanWorker
 from scancell.analysis.stereo_calibration import StereoCalibration
-from scancell.devices.sim.cell import SimCellConfig
-from scancell.devices.sim.world import get_world
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
 from scancell.recorder.recorder import Recorder, RecorderSettings
+from scancell.sim.cell import SimCellConfig
+from scancell.sim.world import get_world
+from scancell.workers.fuse import FuseSettings, FuseWorker
+from scancell.workers.scan import ScanWorker
 
 from .conftest import sim_cell_raw, wait_until
 

@@ -11,7 +11,6 @@ import cv2
 import numpy as np
 import pytest
 from scancell.analysis.cloud_io import read_ply
-from scancell.analysis.patterns import FringeSequence
 from scancell.analysis.phase import (
     DecodeError,
     DecodeSettings,
@@ -21,8 +20,9 @@ from scancell.analysis.phase import (
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo import rectify
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.optics import apply_T
+from scancell.model.patterns import FringeSequence
+from scancell.model.transforms import apply_T
+from scancell.sim.cell import SimCell, SimCellConfig
 
 W = 1280
 

@@ -11,7 +11,7 @@ import threading
 import numpy as np
 import pytest
 from scancell.bus import Bus, BusConfig, NoDaemon
-from scancell.deploy.router import load_router_config, open_router, router_config_path
+from scancell.cli.router import load_router_config, open_router, router_config_path
 from scancell.protocols.commands import CommandError
 
 from .conftest import MOCK_CELL, DaemonThread, free_port, wait_until

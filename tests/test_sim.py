@@ -9,15 +9,16 @@ import cv2
 import numpy as np
 import open3d as o3d
 import pytest
-from scancell.analysis.ecs import ecs_from_points
-from scancell.analysis.patterns import FringeSequence
-from scancell.devices.robot_model import IKError, RobotModel
-from scancell.devices.sim import parts
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.optics import default_rig, make_T, read_opencv_yaml
-from scancell.devices.sim.scene import SceneObject
-from scancell.devices.sim.target import Chessboard, render_calibration_set
-from scancell.devices.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
+from scancell.model.ecs import ecs_from_points
+from scancell.model.patterns import FringeSequence
+from scancell.model.robot_model import IKError, RobotModel
+from scancell.model.transforms import make_T
+from scancell.sim import parts
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.optics import default_rig, read_opencv_yaml
+from scancell.sim.scene import SceneObject
+from scancell.sim.target import Chessboard, render_calibration_set
+from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +65,7 @@ def test_car_rear_part_has_paper_dimensions():
 def test_tracker_noise_matches_spec():
     spec = TrackerSpec()
     tm = TrackerModel(spec, np.random.default_rng(1))
-    from scancell.devices.sim.scene import Scene
+    from scancell.sim.scene import Scene
 
     center = np.array([3000.0, 1000.0, 500.0])
     u = center / np.linalg.norm(center)

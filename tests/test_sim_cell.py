@@ -15,11 +15,11 @@ import time
 import numpy as np
 import pytest
 from scancell.deploy import cell_config_path
-from scancell.devices.sim import parts
-from scancell.devices.sim.host import flatten_overrides, relocated_ports
-from scancell.devices.sim.optics import make_T
-from scancell.devices.sim.scene import SceneObject
-from scancell.devices.sim.world import get_world
+from scancell.model.transforms import make_T
+from scancell.sim import parts
+from scancell.sim.host import flatten_overrides, relocated_ports
+from scancell.sim.scene import SceneObject
+from scancell.sim.world import get_world
 
 from .conftest import free_port, sim_cell_raw, wait_until
 

@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scancell.devices.errors import BeamBroken, ConnectionLost, Timeout
 from scancell.devices.line_tracker import LineTracker
-from scancell.devices.sim import parts
-from scancell.devices.sim.cell import SimCell, SimCellConfig
-from scancell.devices.sim.optics import make_T
-from scancell.devices.sim.scene import SceneObject
-from scancell.devices.sim.tracker_server import PtyTrackerServer, TcpTrackerServer
+from scancell.model.transforms import make_T
 from scancell.protocols import tracker_line as tl
+from scancell.sim import parts
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.scene import SceneObject
+from scancell.sim.tracker_server import PtyTrackerServer, TcpTrackerServer
 
 
 def test_codec_round_trips_and_rejects_malformed_lines():

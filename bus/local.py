@@ -1,0 +1,96 @@
+"""An in-process bus with the interface the workers use, for reprocessing without zenoh.
+
+Like python-can's ``virtual`` interface: publishers and subscribers in one process, delivered
+synchronously on the publishing thread (as zenoh delivers on its own threads). Key expressions
+match with zenoh's own rules. Every sample goes through the same encoding and attachment objects
+as on the real bus, so a worker cannot tell the difference.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+from scancell.bus.protocol import BusSample
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment, Encoded
+from scancell.protocols.keys import CellKeys
+
+
+class _Subscription:
+    def __init__(self, bus: LocalBus, key_expr: str, callback: Callable[[BusSample], None]) -> None:
+        self.bus = bus
+        self.key_expr = zenoh.KeyExpr(key_expr)
+        self.callback = callback
+
+    def undeclare(self) -> None:
+        with self.bus._lock:
+            if self in self.bus._subs:
+                self.bus._subs.remove(self)
+
+
+class _Latched:
+    def __init__(self, bus: LocalBus, key: str) -> None:
+        self.bus = bus
+        self.key = key
+
+    def publish(self, encoded: Encoded) -> None:
+        sample = self.bus.publish(self.key, encoded)
+        with self.bus._lock:
+            self.bus._last[self.key] = sample
+
+    def close(self) -> None:
+        pass
+
+
+class LocalBus:
+    def __init__(self, cell: str) -> None:
+        self.keys = CellKeys(cell)
+        self._subs: list[_Subscription] = []
+        self._lock = threading.Lock()
+        self._seq: dict[str, int] = {}
+        self._last: dict[str, BusSample] = {}  # latched key -> last sample
+
+    def subscribe(self, key_expr: str, callback: Callable[[BusSample], None],
+                  on_error: Callable[[str, Exception], None] | None = None) -> _Subscription:
+        sub = _Subscription(self, key_expr, callback)
+        with self._lock:
+            self._subs.append(sub)
+        return sub
+
+    def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None
+                ) -> BusSample:
+        if attachment is None:
+            with self._lock:
+                seq = self._seq.get(key, 0)
+                self._seq[key] = seq + 1
+            attachment = Attachment(messages.now_ns(), seq)
+        sample = BusSample(key, encoded.payload, encoded.mime, encoded.schema, attachment)
+        self.deliver(sample)
+        return sample
+
+    def publish_json(self, key: str, obj: Any, schema: str) -> None:
+        self.publish(key, messages.encode_json(obj, schema))
+
+    def deliver(self, sample: BusSample) -> None:
+        """Hand an existing sample (e.g. from a recording) to every matching subscriber."""
+        ke = zenoh.KeyExpr(sample.key)
+        with self._lock:
+            subs = [s for s in self._subs if s.key_expr.intersects(ke)]
+        for s in subs:
+            s.callback(sample)
+
+    def latched(self, key: str) -> _Latched:
+        return _Latched(self, key)
+
+    def fetch_latched(self, key_expr: str, timeout_s: float = 0.0) -> list[BusSample]:
+        """The last samples of the latched publishers matching ``key_expr``."""
+        ke = zenoh.KeyExpr(key_expr)
+        with self._lock:
+            return [s for k, s in self._last.items() if ke.intersects(zenoh.KeyExpr(k))]
+
+    def close(self) -> None:
+        with self._lock:
+            self._subs.clear()

@@ -1,0 +1,66 @@
+"""What every bus offers a worker: the ``BusLike`` protocol and the ``BusSample`` it delivers.
+
+Two buses implement it: :class:`scancell.bus.zenoh_bus.Bus` (a zenoh session) and
+:class:`scancell.bus.local.LocalBus` (in-process, for reprocessing a recording without zenoh).
+A worker typed against ``BusLike`` cannot tell them apart.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment, Encoded
+from scancell.protocols.keys import CellKeys
+
+
+@dataclass(frozen=True)
+class BusSample:
+    """A sample as a generic subscriber sees it."""
+
+    key: str
+    payload: bytes
+    mime: str
+    schema: str
+    attachment: Attachment
+
+    @property
+    def encoding(self) -> str:
+        return f"{self.mime};{self.schema}"
+
+    def decode(self) -> Any:
+        return messages.decode(self.payload, self.encoding)
+
+
+class Subscription(Protocol):
+    def undeclare(self) -> None: ...
+
+
+class Latched(Protocol):
+    """A publisher whose last sample a late subscriber can still fetch."""
+
+    def publish(self, encoded: Encoded) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class BusLike(Protocol):
+    """The publish/subscribe surface the workers, the recorder and the monitor use."""
+
+    keys: CellKeys
+
+    def subscribe(self, key_expr: str, callback: Callable[[BusSample], None],
+                  on_error: Callable[[str, Exception], None] | None = None) -> Subscription: ...
+
+    def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None
+                ) -> Any: ...
+
+    def publish_json(self, key: str, obj: Any, schema: str) -> None: ...
+
+    def latched(self, key: str) -> Latched: ...
+
+    def fetch_latched(self, key_expr: str, timeout_s: float = ...) -> list[BusSample]: ...
+
+    def close(self) -> None: ...

@@ -1,0 +1,320 @@
+"""The zenoh bus: sessions from config, and typed publish / subscribe / query helpers.
+
+Default: an embedded peer on loopback, no router, multicast scouting off. The daemon listens on
+``tcp/127.0.0.1:7447``; every other process connects there (and finds the rest by gossip).
+A deployment adds router endpoints, TLS files and user/password (see deploy/).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+from scancell.bus.protocol import BusSample
+from scancell.protocols import messages
+from scancell.protocols.commands import (
+    REPLY_SCHEMA,
+    CommandError,
+    request_schema_name,
+    unwrap_reply,
+)
+from scancell.protocols.encoding import Attachment, Encoded, EncodingError, split_encoding
+from scancell.protocols.keys import CellKeys
+
+log = logging.getLogger(__name__)
+
+
+def sample_from_zenoh(s: zenoh.Sample) -> BusSample:
+    """A zenoh sample as a :class:`BusSample`; raises EncodingError on a bad encoding."""
+    mime, schema = split_encoding(str(s.encoding))
+    att = Attachment.from_bytes(s.attachment.to_bytes() if s.attachment is not None else None)
+    return BusSample(str(s.key_expr), s.payload.to_bytes(), mime, schema, att)
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+ENV_CONNECT = "SCANCELL_CONNECT"
+
+_TLS_KEYS = (
+    "root_ca_certificate",
+    "listen_certificate",
+    "listen_private_key",
+    "connect_certificate",
+    "connect_private_key",
+    "enable_mtls",
+    "verify_name_on_connect",
+)
+
+_zenoh_log_started = False
+
+
+def _init_zenoh_logging() -> None:
+    global _zenoh_log_started
+    if not _zenoh_log_started:
+        zenoh.init_log_from_env_or("error")
+        _zenoh_log_started = True
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How a process joins the bus."""
+
+    mode: str = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    tls: dict[str, Any] = field(default_factory=dict)
+    user: str | None = None
+    password: str | None = None
+
+    @classmethod
+    def from_mapping(cls, m: dict[str, Any]) -> BusConfig:
+        known = {"mode", "listen", "connect", "multicast_scouting", "tls", "user", "password"}
+        for key in m:
+            if key not in known:
+                raise ValueError(f"unknown key {key!r}; expected one of {sorted(known)}")
+        mode = m.get("mode", "peer")
+        if mode not in ("peer", "client"):
+            raise ValueError(f"mode must be 'peer' or 'client', got {mode!r}")
+        for key in ("listen", "connect"):
+            v = m.get(key, [])
+            if not isinstance(v, list) or not all(isinstance(e, str) and "/" in e for e in v):
+                raise ValueError(f"{key} must be a list of zenoh endpoints like {DEFAULT_ENDPOINT!r}")
+        tls = m.get("tls", {})
+        bad = set(tls) - set(_TLS_KEYS)
+        if bad:
+            raise ValueError(f"tls: unknown key {sorted(bad)[0]!r}; expected one of {_TLS_KEYS}")
+        if ("user" in m) != ("password" in m):
+            raise ValueError("give both user and password, or neither")
+        return cls(mode, tuple(m.get("listen", [])), tuple(m.get("connect", [])),
+                   bool(m.get("multicast_scouting", False)), dict(tls), m.get("user"),
+                   m.get("password"))
+
+    @classmethod
+    def client_default(cls, connect: str | list[str] | None = None) -> BusConfig:
+        """A non-daemon process (ctl, worker, recorder, monitor): a zenoh *client* of ``connect``,
+        $SCANCELL_CONNECT or the loopback default. Client mode matters: the daemon's peer routes
+        between its clients, while connect-only peers behind it never hear each other (a
+        worker's clouds would not reach a viewer)."""
+        if connect is None:
+            connect = os.environ.get(ENV_CONNECT, DEFAULT_ENDPOINT)
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        eps = tuple(e.strip() for ep in endpoints for e in ep.split(",") if e.strip())
+        return cls(mode="client", connect=eps)
+
+    def to_zenoh(self) -> zenoh.Config:
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(self.mode))
+        c.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        c.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        c.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        for key, value in self.tls.items():
+            c.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+        if self.user is not None:
+            c.insert_json5("transport/auth/usrpwd/user", json.dumps(self.user))
+            c.insert_json5("transport/auth/usrpwd/password", json.dumps(self.password))
+        return c
+
+
+def open_session(cfg: BusConfig) -> zenoh.Session:
+    _init_zenoh_logging()
+    try:
+        return zenoh.open(cfg.to_zenoh())
+    except zenoh.ZError as exc:
+        raise ConnectionError(
+            f"cannot open zenoh session (listen={list(cfg.listen)}, connect={list(cfg.connect)}): "
+            f"{exc}"
+        ) from None
+
+
+class Bus:
+    """One zenoh session plus the cell's key expressions."""
+
+    def __init__(self, session: zenoh.Session, keys: CellKeys,
+                 config: BusConfig | None = None) -> None:
+        self.session = session
+        self.keys = keys
+        self.config = config
+        self._lock = threading.Lock()
+        self._seq: dict[str, int] = {}
+        self._closed = False
+
+    @classmethod
+    def open(cls, cfg: BusConfig, cell: str, wait_s: float = 3.0) -> Bus:
+        """Open a session. A client session needs its daemon (or router) up: it retries for
+        ``wait_s`` and then raises NoDaemon."""
+        keys = CellKeys(cell)
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                return cls(open_session(cfg), keys, cfg)
+            except ConnectionError as exc:
+                if cfg.mode != "client":
+                    raise
+                if time.monotonic() >= deadline:
+                    raise NoDaemon(f"no daemon reachable at {', '.join(cfg.connect)} for cell "
+                                   f"{cell!r} after {wait_s:g} s (is `scancell daemon` running "
+                                   f"there?): {exc}") from None
+                time.sleep(0.2)
+
+    # ---- publish
+    def publish(self, key: str, encoded: Encoded, attachment: Attachment | None = None) -> None:
+        """Publish with encoding ``<mime>;<schema>`` and an acquisition-time attachment."""
+        if attachment is None:
+            with self._lock:
+                seq = self._seq.get(key, 0)
+                self._seq[key] = seq + 1
+            attachment = Attachment(messages.now_ns(), seq)
+        self.session.put(
+            key,
+            encoded.payload,
+            encoding=zenoh.Encoding(encoded.encoding),
+            attachment=attachment.to_bytes(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+
+    def publish_json(self, key: str, obj: Any, schema: str) -> None:
+        self.publish(key, messages.encode_json(obj, schema))
+
+    def latched(self, key: str) -> LatchedPublisher:
+        """A publisher on ``key`` whose last sample a late subscriber can still fetch (``get``)."""
+        return LatchedPublisher(self, key)
+
+    def fetch_latched(self, key_expr: str, timeout_s: float = 2.0) -> list[BusSample]:
+        """The last samples of every latched publisher matching ``key_expr``."""
+        out = []
+        for reply in self.session.get(key_expr, timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            try:
+                out.append(sample_from_zenoh(reply.ok))
+            except EncodingError as exc:
+                log.warning("ignoring latched sample on %s: %s", reply.ok.key_expr, exc)
+        return out
+
+    # ---- subscribe
+    def subscribe(
+        self,
+        key_expr: str,
+        callback: Callable[[BusSample], None],
+        on_error: Callable[[str, Exception], None] | None = None,
+    ) -> zenoh.Subscriber:
+        """Call ``callback`` on a zenoh thread for every sample; bad samples go to ``on_error``."""
+
+        def handler(s: zenoh.Sample) -> None:
+            if s.kind != zenoh.SampleKind.PUT:
+                return
+            try:
+                sample = sample_from_zenoh(s)
+            except EncodingError as exc:
+                if on_error is not None:
+                    on_error(str(s.key_expr), exc)
+                else:
+                    log.warning("ignoring sample on %s: %s", s.key_expr, exc)
+                return
+            callback(sample)
+
+        return self.session.declare_subscriber(key_expr, handler)
+
+    # ---- commands
+    def query(self, key: str, request: dict[str, Any] | None, schema: str,
+              timeout_s: float) -> Any:
+        """Send one JSON request; return the first reply's decoded JSON, or None if none came."""
+        payload = json.dumps(request or {}).encode()
+        replies = self.session.get(
+            key, payload=payload, encoding=zenoh.Encoding(f"application/json;{schema}"),
+            timeout=timeout_s,
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                try:
+                    return json.loads(reply.ok.payload.to_bytes())
+                except ValueError:
+                    raise CommandError("bad_reply", f"{key}: reply is not JSON") from None
+            raise CommandError("internal", reply.err.payload.to_bytes().decode(errors="replace"))
+        return None
+
+    def call(self, verb: str, request: dict[str, Any] | None = None, timeout_s: float = 130.0,
+             connect_wait_s: float = 3.0) -> Any:
+        """Call ``cmd/<verb>`` and return its result; raise CommandError on an error reply.
+
+        Retries for ``connect_wait_s`` while nobody answers, so a freshly opened session has time
+        to find the daemon. Raises NoDaemon if no one answers at all.
+        """
+        key = self.keys.cmd(verb)
+        deadline = time.monotonic() + connect_wait_s
+        while True:
+            t0 = time.monotonic()
+            reply = self.query(key, request, request_schema_name(verb), timeout_s)
+            if reply is not None:
+                return unwrap_reply(reply)
+            if time.monotonic() - t0 > 1.0 or time.monotonic() > deadline:
+                raise NoDaemon(
+                    f"no daemon answered {key}: is `scancell daemon` running for cell "
+                    f"{self.keys.cell!r} and reachable (connect={self._endpoints()})?"
+                )
+            time.sleep(0.1)
+
+    def _endpoints(self) -> list[str]:
+        return list(self.config.connect) if self.config else []
+
+    def liveliness_token(self, key: str) -> zenoh.LivelinessToken:
+        return self.session.liveliness().declare_token(key)
+
+    def alive(self, timeout_s: float = 1.0) -> list[str]:
+        """Names of the devices holding a liveliness token right now."""
+        prefix = self.keys.alive("")
+        out = []
+        for r in self.session.liveliness().get(self.keys.alive("*"), timeout=timeout_s):
+            if r.ok is not None:
+                out.append(str(r.ok.key_expr)[len(prefix) :])
+        return sorted(out)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.session.close()
+
+
+class LatchedPublisher:
+    """Publishes on one key and answers queries on it with the last sample (calibrations: a
+    recorder started after the worker still gets the calibration in force)."""
+
+    def __init__(self, bus: Bus, key: str) -> None:
+        self.bus = bus
+        self.key = key
+        self._last: tuple[Encoded, Attachment] | None = None
+        self._lock = threading.Lock()
+        self._queryable = bus.session.declare_queryable(key, self._on_query)
+
+    def publish(self, encoded: Encoded) -> None:
+        att = Attachment(messages.now_ns())
+        with self._lock:
+            self._last = (encoded, att)
+        self.bus.publish(self.key, encoded, att)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            last = self._last
+        try:
+            if last is not None:
+                query.reply(self.key, last[0].payload, encoding=zenoh.Encoding(last[0].encoding),
+                            attachment=last[1].to_bytes())
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+
+
+class NoDaemon(ConnectionError):
+    """Nobody answered a command: the daemon is not running or not reachable."""
+
+
+__all__ = ["REPLY_SCHEMA", "Bus", "BusConfig", "BusSample", "LatchedPublisher", "NoDaemon",
+           "open_session"]

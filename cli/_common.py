@@ -1,0 +1,93 @@
+"""What the command modules share: the bus and cell arguments, the one default cell, serving a
+worker until a signal, and failing with a message.
+
+Like zenoh-python's ``examples/common``: every bus client takes ``--cell`` and ``--connect`` the
+same way, with ``$SCANCELL_CELL`` and ``$SCANCELL_CONNECT`` as defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any, Protocol
+
+#: The cell a client talks to when neither ``--cell`` nor ``$SCANCELL_CELL`` names one; also
+#: the packaged config ``scancell daemon`` runs without ``--config`` (deploy/cells/sim.toml).
+DEFAULT_CELL = "sim"
+ENV_CELL = "SCANCELL_CELL"
+
+
+def default_cell_config():
+    """The packaged config of the default cell (``deploy/cells/sim.toml``)."""
+    from scancell.deploy import cell_config_path
+
+    return cell_config_path(DEFAULT_CELL)
+
+
+def add_bus_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--cell", default=None,
+                   help=f"cell name (default: ${ENV_CELL} or {DEFAULT_CELL!r})")
+    p.add_argument("--connect", default=None,
+                   help="zenoh endpoint(s) of the daemon, comma-separated "
+                        "(default: $SCANCELL_CONNECT or tcp/127.0.0.1:7447)")
+
+
+def cell_name(args: argparse.Namespace) -> str:
+    """``--cell``, else ``$SCANCELL_CELL``, else the default cell."""
+    return getattr(args, "cell", None) or os.environ.get(ENV_CELL) or DEFAULT_CELL
+
+
+def fail(command: str, message: str, code: int = 2) -> int:
+    """Print ``scancell <command>: <message>`` to stderr and return the exit code."""
+    print(f"scancell {command}: {message}", file=sys.stderr)
+    return code
+
+
+class Worker(Protocol):
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+
+def serve(args: argparse.Namespace, name: str, make: Callable[[Any], Worker],
+          banner: Callable[[Any], str], finish: Callable[[Any], None] | None = None) -> int:
+    """Open the bus as a client of the daemon, start the worker, print a banner and run until
+    SIGINT/SIGTERM; then stop and close. ``name`` as in ``scancell <name>``. Exit 3 if no
+    daemon answers within 30 s, 2 if the worker cannot start, else 0 after a signal
+    (``finish(worker)`` runs after it stopped)."""
+    from scancell.bus import Bus, BusConfig, NoDaemon
+
+    try:
+        bus = Bus.open(BusConfig.client_default(args.connect), cell_name(args), wait_s=30.0)
+    except NoDaemon as exc:
+        return fail(name, str(exc), 3)
+    worker = make(bus)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        worker.start()
+    except OSError as exc:
+        bus.close()
+        return fail(name, f"cannot start: {exc}")
+    print(banner(bus), flush=True)
+    stop.wait()
+    worker.stop()
+    bus.close()
+    if finish is not None:
+        finish(worker)
+    return 0
+
+
+def table(rows: list[list[Any]], header: list[str]) -> str:
+    """Rows as a plain-text table with a header and a rule under it."""
+    cells = [[str(c) for c in r] for r in [header, *rows]]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+             for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)

@@ -1,0 +1,109 @@
+"""``scancell calibrate cameras | hand-eye | ecs``: the calibrations on files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from scancell.cli._common import fail
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="calibrate_command", required=True)
+    cams = sub.add_parser("cameras", help="stereo calibration from chessboard image pairs")
+    cams.add_argument("--images", required=True, help="DIR/left/*.png and DIR/right/*.png")
+    cams.add_argument("--target", default="9x7x20",
+                      help="chessboard inner corners and square size, COLSxROWSxMM (default 9x7x20)")
+    cams.add_argument("--out", required=True, help="stereo.yaml to write")
+    he = sub.add_parser("hand-eye", help="T_ecs_from_mcs from ball-centre pairs (CSV)")
+    he.add_argument("--pairs", required=True, help="CSV: id,ecs_x,ecs_y,ecs_z,mcs_x,mcs_y,mcs_z (mm)")
+    he.add_argument("--json", help="write the result as JSON")
+    he.add_argument("--threshold-mm", type=float, default=None,
+                    help="exclude pairs whose leave-one-out error exceeds this (default: robust)")
+    he.add_argument("--no-robust", action="store_true", help="use every pair")
+    ecs = sub.add_parser("ecs", help="end coordinate system from SMR points P1..Pn (CSV)")
+    ecs.add_argument("--points", required=True, help="CSV: id,x,y,z[,j6_deg] (mm, deg)")
+    ecs.add_argument("--json", help="write the frame as JSON")
+
+
+def main(args: argparse.Namespace) -> int:
+    return {"cameras": cameras_main, "hand-eye": hand_eye_main,
+            "ecs": ecs_main}[args.calibrate_command](args)
+
+
+def cameras_main(args: argparse.Namespace) -> int:
+    from scancell.analysis.scanner import ImageSetError, read_image
+    from scancell.analysis.stereo_calibration import CalibrationError, ChessboardSpec, calibrate_stereo
+
+    try:
+        board = ChessboardSpec.parse(args.target)
+        root = Path(args.images)
+        if not (root / "left").is_dir() or not (root / "right").is_dir():
+            raise CalibrationError(f"{root}: expected {root}/left/*.png and {root}/right/*.png "
+                                   f"(pairs with the same file name)")
+        left = {p.name: p for p in (root / "left").iterdir() if p.suffix.lower() in
+                (".png", ".tif", ".tiff", ".bmp", ".jpg")}
+        pairs = []
+        for name in sorted(left):
+            right = root / "right" / name
+            if not right.exists():
+                print(f"scancell calibrate cameras: {right} missing, skipping {name}",
+                      file=sys.stderr)
+                continue
+            pairs.append((name, read_image(left[name]), read_image(right)))
+        report = calibrate_stereo(pairs, board)
+        report.calibration.write(args.out)
+    except (CalibrationError, ImageSetError) as exc:
+        return fail("calibrate cameras", str(exc))
+    except OSError as exc:
+        return fail("calibrate cameras", f"{exc.filename or args.out}: {exc.strerror or exc}")
+    print(report.table())
+    print(f"-> {args.out}")
+    return 0
+
+
+def hand_eye_main(args: argparse.Namespace) -> int:
+    from scancell.analysis.handeye import HandEyeError, solve_hand_eye
+    from scancell.analysis.pair_table import TableError, read_pairs
+
+    try:
+        pairs = read_pairs(args.pairs)
+        result = solve_hand_eye(pairs, robust=not args.no_robust, threshold_mm=args.threshold_mm)
+    except (TableError, HandEyeError) as exc:
+        return fail("calibrate hand-eye", str(exc))
+    print(result.table())
+    if args.json:
+        Path(args.json).write_text(json.dumps(result.to_json(), indent=2))
+        print(f"-> {args.json}")
+    return 0
+
+
+def ecs_main(args: argparse.Namespace) -> int:
+    import numpy as np
+    from scancell.analysis.pair_table import POINT_HEADER, TableError, read_rows
+    from scancell.model.ecs import DegenerateGeometry, ecs_from_circle, ecs_from_points, fit_rotation_circle
+
+    try:
+        rows = read_rows(args.points, POINT_HEADER, ["j6_deg"])
+        pts = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows])
+        if len(pts) < 3:
+            raise TableError(f"{args.points}: {len(pts)} points; the ECS needs P1, P2, P3 (or more)")
+        angles = np.array([float(r["j6_deg"]) for r in rows]) if "j6_deg" in rows[0] else None
+        T = ecs_from_points(*pts[:3]) if len(pts) == 3 else ecs_from_circle(pts, angles)
+        centre, axis, radius, resid = fit_rotation_circle(pts)
+    except (TableError, DegenerateGeometry) as exc:
+        return fail("calibrate ecs", str(exc))
+    method = "paper (P1, P2, P3)" if len(pts) == 3 else f"circle fit of {len(pts)} points"
+    print(f"T_world_from_ecs by {method}:")
+    print("\n".join("  [" + ", ".join(f"{v:12.6f}" for v in row) + "]" for row in T))
+    print(f"rotation circle: radius {radius:.4f} mm, in-plane residual RMS "
+          f"{float(np.sqrt(np.mean(resid**2))):.4f} mm, axis {np.round(axis, 6).tolist()}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({
+            "T_world_from_ecs": T.tolist(), "method": method, "circle_radius_mm": radius,
+            "circle_centre_mm": centre.tolist(), "axis": axis.tolist(),
+            "circle_residuals_mm": {r["id"]: float(v) for r, v in zip(rows, resid, strict=True)},
+        }, indent=2))
+    return 0

@@ -1,0 +1,131 @@
+"""``scancell ctl``: status, devices and any command, as readable tables (or raw JSON)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from scancell.cli._common import add_bus_arguments, cell_name, fail, table
+from scancell.client import CellClient, CommandError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_bus_arguments(p)
+    p.add_argument("--timeout", type=float, default=130.0, help="seconds to wait for a reply")
+    p.add_argument("--json-out", action="store_true", help="print raw JSON instead of tables")
+    sub = p.add_subparsers(dest="action", required=True)
+    sub.add_parser("status", help="every device and its state")
+    sub.add_parser("devices", help="devices, drivers and their operations")
+    sp = sub.add_parser("scan-part", help="run a plan file as a scan_part job and follow it")
+    sp.add_argument("--plan", required=True, help="plan TOML/JSON (scancell plan writes one)")
+    sp.add_argument("--stations", nargs="+", help="only these stations")
+    sp.add_argument("--no-wait", action="store_true", help="start the job and return")
+    sub.add_parser("abort", help="abort the running job")
+    es = sub.add_parser("estop", help="stop robot and axis at once, abort the job")
+    es.add_argument("--reason", default="scancell ctl estop")
+    call = sub.add_parser("call", help="call any command, e.g. device/robot/joints")
+    call.add_argument("verb")
+    call.add_argument("--json", default="{}", help="request as a JSON object")
+
+
+def _age(status: dict[str, Any]) -> str:
+    s = (status.get("stamp_ns", 0) - status.get("since_ns", 0)) / 1e9
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.0f} min"
+
+
+def format_status(result: dict[str, Any]) -> str:
+    head = (f"cell {result['cell']}  scancell {result['version']}  pid {result['pid']}  "
+            f"up {result['uptime_s']:.0f} s")
+    rows = []
+    for name, s in result["devices"].items():
+        detail = s["message"]
+        if s.get("next_retry_s"):
+            detail = f"retry in {s['next_retry_s']:.1f} s; {detail}"
+        rows.append([name, s["kind"], s["driver"], s["state"], s["reason"], _age(s), detail])
+    return head + "\n" + table(rows, ["DEVICE", "KIND", "DRIVER", "STATE", "REASON", "FOR",
+                                      "DETAIL"])
+
+
+def format_devices(result: dict[str, Any]) -> str:
+    rows = [[d["name"], d["kind"], d["driver"], d.get("url") or "-", d["state"],
+             " ".join(o["name"] for o in d["operations"])] for d in result["devices"]]
+    return table(rows, ["DEVICE", "KIND", "DRIVER", "URL", "STATE", "OPERATIONS"])
+
+
+def _follow(client: CellClient, job_id: str) -> int:
+    """Print the job's events until it ends; exit 0 if done, 1 otherwise."""
+    import queue
+
+    q: queue.Queue[dict[str, Any]] = queue.Queue()
+    sub = client.bus.subscribe(client.bus.keys.job_event(job_id), lambda s: q.put(s.decode()))
+    try:
+        while True:
+            try:
+                e = q.get(timeout=5.0)
+            except queue.Empty:
+                if not (client.call("job/status").get("running") or {}).get("job_id") == job_id:
+                    last = client.call("job/status").get("last") or {}
+                    print(f"job {job_id}: {last.get('state', 'gone')}")
+                    return 0 if last.get("state") == "done" else 1
+                continue
+            where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
+            eta = f" (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
+            print(f"{e['state']:8s} {where}{e['message'] or e['step']}{eta}", flush=True)
+            if e["state"] != "running":
+                return 0 if e["state"] == "done" else 1
+    finally:
+        sub.undeclare()
+
+
+def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from scancell.protocols.plan import PlanError, plan_from_text
+
+    try:
+        plan = plan_from_text(Path(args.plan).read_text(), args.plan)
+    except OSError as exc:
+        return fail("ctl", f"{args.plan}: {exc.strerror or exc}")
+    except PlanError as exc:
+        return fail("ctl", str(exc))
+    request: dict[str, Any] = {"plan": plan}
+    if args.stations:
+        request["stations"] = args.stations
+    started = client.call("job/scan_part", request)
+    print(f"job {started['job_id']} started; events on {started['events']}", flush=True)
+    return 0 if args.no_wait else _follow(client, started["job_id"])
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.action == "call":
+        try:
+            request = json.loads(args.json)
+        except ValueError as exc:
+            return fail("ctl", f"--json is not valid JSON: {exc}")
+        verb = args.verb.strip("/")
+    elif args.action == "estop":
+        request, verb = {"reason": args.reason}, "estop"
+    elif args.action == "abort":
+        request, verb = {}, "job/abort"
+    else:
+        request, verb = {}, args.action
+    try:
+        with CellClient(cell_name(args), args.connect, timeout_s=args.timeout) as client:
+            if args.action == "scan-part":
+                return _scan_part(client, args)
+            result = client.call(verb, request)
+    except CommandError as exc:
+        print(f"error {exc.code}: {exc.message}", file=sys.stderr)
+        return 1
+    except ConnectionError as exc:  # NoDaemon included
+        return fail("ctl", str(exc), 3)
+    if args.json_out or args.action in ("call", "estop", "abort"):
+        print(json.dumps(result, indent=2))
+    elif args.action == "status":
+        print(format_status(result))
+    else:
+        print(format_devices(result))
+    return 0
+

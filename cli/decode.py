@@ -1,0 +1,69 @@
+"""``scancell decode``: fringe images of both cameras into a point cloud (PLY, mm, MCS)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from scancell.cli._common import fail
+
+
+def parse_sequence(periods: str, steps: int):
+    """``--periods 70,64,59 --steps 3`` as a FringeSequence; raises DecodeError."""
+    from scancell.analysis.phase import DecodeError
+    from scancell.model.patterns import FringeSequence
+
+    try:
+        return FringeSequence(tuple(float(p) for p in periods.split(",")), steps)
+    except ValueError as exc:
+        raise DecodeError(f"--periods {periods!r} --steps {steps}: {exc}") from None
+
+
+def main(args: argparse.Namespace) -> int:
+    from scancell.analysis.cloud_io import CloudFileError, write_ply
+    from scancell.analysis.phase import DecodeError, DecodeSettings
+    from scancell.analysis.scanner import ImageSetError, ScanDecoder, read_image_set
+    from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
+    from scancell.model.patterns import PROJECTOR_WIDTH
+
+    t0 = time.perf_counter()
+    try:
+        seq = parse_sequence(args.periods, args.steps)
+        settings = DecodeSettings(method=args.method, **({} if args.min_modulation is None else
+                                   {"min_modulation_dn": args.min_modulation}))
+        calib = StereoCalibration.read(args.calib)
+        left, right, names = read_image_set(args.images, len(seq))
+        t_read = time.perf_counter() - t0
+        decoder = ScanDecoder(calib, seq, args.projector_width or PROJECTOR_WIDTH, settings)
+        result = decoder.decode(left, right, names)
+        c = result.cloud
+        if len(c) == 0:
+            raise DecodeError("no stereo matches: do both cameras see the same lit surface?")
+        write_ply(args.out, c.points, {"quality": c.quality, "intensity": c.intensity},
+                  ascii=args.ascii)
+    except (CalibrationError, ImageSetError, DecodeError, CloudFileError) as exc:
+        return fail("decode", str(exc))
+    except OSError as exc:
+        return fail("decode", f"{exc.filename or args.out}: {exc.strerror or exc}")
+    t = result.timings
+    steps = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
+    print(f"{len(c)} points -> {args.out} (left {result.left.valid_share:.1%} / right "
+          f"{result.right.valid_share:.1%} of pixels decoded)")
+    print(f"read {t_read:.2f} s, decode {t['total']:.2f} s ({steps}), total "
+          f"{time.perf_counter() - t0:.2f} s")
+    return 0
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--calib", required=True, help="stereo.yaml (OpenCV FileStorage)")
+    p.add_argument("--images", required=True, help="DIR with left/00.png … and right/00.png …")
+    p.add_argument("--periods", default="70,64,59", help="fringe periods across the projector")
+    p.add_argument("--steps", type=int, default=3, help="phase steps per period")
+    p.add_argument("--out", required=True, help="output PLY (x, y, z in mm, left camera frame)")
+    p.add_argument("--method", choices=["heterodyne", "hierarchical"], default="heterodyne")
+    p.add_argument("--projector-width", type=int, default=None,
+                   help="projector columns (default: the DLP's, 1280)")
+    p.add_argument("--min-modulation", type=float, default=None,
+                   help="fringe amplitude (8-bit DN) below which a pixel is masked "
+                        "(default: the decoder's own, DecodeSettings.min_modulation_dn)")
+    p.add_argument("--ascii", action="store_true", help="ASCII PLY instead of binary")

@@ -1,0 +1,96 @@
+"""``scancell fuse SOURCE --out fused.ply``: station clouds into one model in the tracker frame."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from scancell.cli._common import fail
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="a scan_part recording (.mcap), or a folder: <station>.ply + "
+                                  "<station>.json {T_world_from_ecs} and hand_eye.json "
+                                  "{T_ecs_from_mcs}")
+    p.add_argument("--out", required=True, help="fused cloud PLY (world frame, mm)")
+    p.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm); 0: keep all")
+    p.add_argument("--e57", help="also write the fused cloud as E57")
+    p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
+    p.add_argument("--report", help="directory for report.md with the overlap metrics and plots")
+    p.add_argument("--refine", action="store_true",
+                   help="also refine by multi-view ICP held to the tracker poses: written as "
+                        "<out>_icp.ply and reported apart, never replacing the tracker result")
+
+
+def _refine(fused, out: str, voxel: float) -> str:
+    """Refine, write ``<out>_icp.ply``, and say what moved and what the overlap metric gained."""
+    import numpy as np
+    from scancell.analysis.cloud_io import write_ply
+    from scancell.analysis.metrics import compare_clouds
+    from scancell.analysis.refine import refine
+
+    r = refine(fused.per_station)
+    path = Path(out).with_name(Path(out).stem + "_icp.ply")
+    pts = np.concatenate(list(r.per_station.values()))
+    if voxel > 0:
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        pts = np.asarray(pcd.voxel_down_sample(voxel).points)
+    write_ply(path, pts)
+    before = compare_clouds(fused.per_station).to_json()["translation_mm"]
+    after = compare_clouds(r.per_station).to_json()["translation_mm"]
+    lines = [f"{r.pairs} overlapping pairs; refined model: {path}", "",
+             f"overlap translation error mean {before['mean']:.4f} -> {after['mean']:.4f} mm, "
+             f"share < 0.6 mm {before['p_lt_0_6']:.2%} -> {after['p_lt_0_6']:.2%}", "",
+             "| station | correction (mm) | correction (deg) |", "|---|---|---|"]
+    lines += [f"| {n} | {r.translation_mm[n]:.4f} | {r.rotation_deg[n]:.5f} |"
+              for n in r.corrections]
+    print(f"ICP refinement: mean overlap error {before['mean']:.4f} -> {after['mean']:.4f} mm, "
+          f"largest correction {max(r.translation_mm.values()):.4f} mm -> {path}")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    from scancell.analysis.cloud_io import CloudFileError, write_ply
+    from scancell.analysis.export import ExportError, poisson_mesh, write_e57, write_mesh
+    from scancell.analysis.fusion import FusionError, fuse, load_station_folder
+    from scancell.analysis.metrics import MetricsError
+
+    t0 = time.perf_counter()
+    try:
+        if Path(args.source).suffix == ".mcap":
+            from scancell.recorder.reading import RecordingError
+            from scancell.workers.recorded_stations import recorded_stations
+
+            try:
+                stations, hand_eye, _ = recorded_stations(args.source)
+            except RecordingError as exc:
+                raise FusionError(str(exc)) from None
+        else:
+            stations, hand_eye = load_station_folder(args.source)
+        fused = fuse(stations, hand_eye, args.voxel)
+        write_ply(args.out, fused.points)
+        if args.e57:
+            write_e57(args.e57, fused.points)
+        if args.mesh:
+            write_mesh(args.mesh, poisson_mesh(fused.points))
+        extra = {}
+        if args.refine:
+            extra["Multi-view ICP refinement (an extra: not the tracker-based result)"] = \
+                _refine(fused, args.out, args.voxel)
+        if args.report:
+            from scancell.analysis.metrics import compare_clouds
+            from scancell.analysis.report import write_report
+
+            report = write_report(args.report, fused, compare_clouds(fused.per_station),
+                                  extra=extra)
+            print(f"report -> {report}")
+    except (FusionError, CloudFileError, ExportError, MetricsError) as exc:
+        return fail("fuse", str(exc))
+    extra = "".join(f", {f}" for f in (args.e57, args.mesh) if f)
+    print(f"{len(stations)} stations, {fused.merged_count} points merged -> {len(fused.points)} "
+          f"after {args.voxel:g} mm resampling -> {args.out}{extra} "
+          f"({time.perf_counter() - t0:.1f} s)")
+    return 0

@@ -1,0 +1,69 @@
+"""``scancell plan --part MESH --out plan.toml``: stations covering a part (see planner.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from scancell.cli._common import default_cell_config, fail
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--part", required=True,
+                   help="the part's surface as a mesh (PLY/STL/OBJ) in the tracker frame, mm "
+                        "(on the simulated cell: `scancell sim part --out part.ply`)")
+    p.add_argument("--out", required=True, help="plan TOML for `scancell ctl scan-part`")
+    p.add_argument("--cell", default=None,
+                   help="cell config with a [planner] table (or a [simulator]: its geometry); "
+                        "default: the packaged sim cell")
+    p.add_argument("--coverage", type=float, default=0.90,
+                   help="share of the measurable surface to cover (default 0.90: the last percent costs "
+                        "near-duplicate stations)")
+    p.add_argument("--overlap", type=float, default=0.25,
+                   help="overlap aimed at between neighbours, 0.10-0.40 (default 0.25)")
+    p.add_argument("--samples", type=int, default=6000, help="surface samples")
+    p.add_argument("--json", default=None, help="also write the planning report as JSON")
+
+
+def geometry_for(config: str | None):
+    """The cell's ``CellGeometry`` (its ``[planner]``, or its simulator's); raises ConfigError."""
+    from scancell.config import ConfigError, load_cell_config
+
+    cfg = load_cell_config(config or default_cell_config())
+    if cfg.geometry is None:
+        raise ConfigError(f"{cfg.path}: no [planner] table (robot base, scanner mount, SMR, "
+                          f"tracker position): see docs/commissioning.md")
+    return cfg.geometry
+
+
+def main(args: argparse.Namespace) -> int:
+    import open3d as o3d
+    from scancell.analysis.planner import Planner, PlanningError
+    from scancell.config import ConfigError
+
+    if not 0.10 <= args.overlap <= 0.40 or not 0 < args.coverage <= 1:
+        return fail("plan", "--overlap must be in [0.10, 0.40] and --coverage in (0, 1]")
+    part = Path(args.part)
+    if not part.is_file():
+        return fail("plan", f"{part}: no such mesh")
+    mesh = o3d.io.read_triangle_mesh(str(part))
+    t0 = time.perf_counter()
+    try:
+        planner = Planner(mesh, geometry_for(args.cell), samples=args.samples)
+        plan, report = planner.plan(args.coverage, args.overlap, name=part.stem)
+    except (PlanningError, ConfigError) as exc:
+        return fail("plan", str(exc))
+    Path(args.out).write_text(plan.to_toml())
+    r = report.to_json()
+    if args.json:
+        Path(args.json).write_text(json.dumps({**r, "neighbours": report.neighbours}, indent=2))
+    print(f"{r['stations']} stations -> {args.out} ({time.perf_counter() - t0:.0f} s)")
+    print(f"coverage {r['coverage']:.1%} of the surface the cell can measure; that is "
+          f"{r['reachable']:.1%} of the part (the rest: out of reach, or the tracker cannot see "
+          f"the SMR from there)")
+    print(f"nearest-neighbour overlap: min {r['neighbour_overlap_min']}, median "
+          f"{r['neighbour_overlap_median']}, max {r['neighbour_overlap_max']}; "
+          f"{r['stations_with_overlap_10_40']}/{r['stations']} stations within 10-40 %")
+    return 0

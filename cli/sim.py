@@ -1,0 +1,54 @@
+"""``scancell sim``: the simulated cell's tools: serve a device simulator, render a station,
+render calibration targets, export the part. The work is in ``scancell.sim.tools``."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="sim_command", required=True)
+    serve = sub.add_parser("serve", help="run a device simulator until SIGINT/SIGTERM")
+    dev = serve.add_subparsers(dest="device", required=True)
+    rob = dev.add_parser("robot", help="KAREL-style simple_message robot server")
+    rob.add_argument("--motion-port", type=int, default=11000)
+    rob.add_argument("--state-port", type=int, default=11002)
+    rob.add_argument("--byte-order", choices=["big", "little"], default="big")
+    trk = dev.add_parser("tracker", help="laser tracker speaking STLP over TCP or a pty")
+    trk.add_argument("--port", type=int, default=7000)
+    trk.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead")
+    axs = dev.add_parser("axis", help="CiA 402 rail drive (CANopen) served over socketcand/TCP")
+    axs.add_argument("--port", type=int, default=29536)
+    axs.add_argument("--node-id", type=int, default=5)
+    axs.add_argument("--counts-per-mm", type=float, default=1000.0)
+    for sp in (rob, trk, axs):
+        sp.add_argument("--host", default="127.0.0.1")
+        sp.add_argument("--seed", type=int, default=0)
+    r = sub.add_parser("render", help="render one station: DIR/left/00.png ..., "
+                                      "stereo_true.yaml, truth.ply")
+    r.add_argument("--joints-deg", help="J1,...,J6 in degrees (use --joints-deg=-10,... for "
+                                        "a negative first value)")
+    r.add_argument("--look-at", help="X,Y,Z world point to look at (IK), instead of joints")
+    r.add_argument("--standoff", type=float, default=650.0, help="mm, with --look-at")
+    r.add_argument("--part", default="car_rear", help="the simulated part (default car_rear)")
+    r.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--periods", default="70,64,59")
+    r.add_argument("--steps", type=int, default=3)
+    r.add_argument("--out", required=True)
+    tg = sub.add_parser("targets", help="render chessboard pairs for `scancell calibrate cameras`: "
+                                        "DIR/left/NN.png, DIR/right/NN.png, stereo_true.yaml")
+    tg.add_argument("--count", type=int, default=15)
+    tg.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
+    tg.add_argument("--seed", type=int, default=0)
+    tg.add_argument("--out", required=True)
+    pt = sub.add_parser("part", help="the simulated part's surface in the tracker frame (PLY, mm), "
+                                     "for `scancell plan --part`")
+    pt.add_argument("--part", default="car_rear", help="the simulated part (default car_rear)")
+    pt.add_argument("--out", required=True)
+
+
+def main(args: argparse.Namespace) -> int:
+    from scancell.sim.tools import run
+
+    return run(args)

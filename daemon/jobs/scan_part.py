@@ -1,0 +1,213 @@
+"""``cmd/job/scan_part``: the paper's measurement procedure over the stations of a plan.
+
+Per station (design.md): move (robot, and the external axis if the station has a position) →
+tracker P1 → coupled scan (``dev/<camera>/image`` frames, scan id ``<job>-<station>``) → J6 turns
+with P2, P3 → J6 back. Each station ends with ``scan/<station>/ecs`` (``scancell.StationEcs``: the
+three tracker points and their J6 angles), from which the fuse worker builds ``T_world_from_ecs``.
+
+A failing station fails the job with the station and the step named; an abort stops the robot
+and the axis at once. Either way, the stations already measured stay on the bus (and in the
+recording) and are listed in the final event.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from typing import Any
+
+import numpy as np
+from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
+from scancell.daemon.jobs.runner import JobContext, StepFailed
+from scancell.daemon.jobs.scan import scan, serving_device
+from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
+from scancell.devices.base import Axis, Camera, Projector, Robot, Tracker
+from scancell.model.cell_geometry import CellGeometry
+from scancell.protocols import messages
+from scancell.protocols.commands import CommandError
+from scancell.protocols.plan import Plan, PlanError, PlanStation, parse_plan
+
+VERB = "scan_part"
+
+
+def plan_from_request(req: dict[str, Any], geometry: CellGeometry | None = None,
+                      seed_rad: np.ndarray | None = None) -> Plan:
+    """The request's plan, stations given as scanner poses solved into joints."""
+    try:
+        plan = parse_plan(req.get("plan"), "request plan")
+    except PlanError as exc:
+        raise CommandError("invalid", str(exc)) from None
+    plan = solve_poses(plan, geometry, seed_rad)
+    only = req.get("stations")
+    if only:
+        missing = sorted(set(only) - {s.name for s in plan.stations})
+        if missing:
+            raise CommandError("invalid", f"stations {missing} are not in plan {plan.name!r}")
+        plan = Plan(plan.name, tuple(s for s in plan.stations if s.name in only), plan.speed,
+                    plan.j6_angles_deg, plan.tracker_repeats, plan.extra)
+    return plan
+
+
+def solve_poses(plan: Plan, geometry: CellGeometry | None, seed_rad: np.ndarray | None
+                ) -> Plan:
+    """Joints for every station given as ``mcs_pose_world``, by inverse kinematics on the robot
+    model with the cell's robot base (on the rail at the station's ``axis_mm``) and scanner
+    mount from ``geometry`` (the cell config's ``[planner]``, or the simulator's)."""
+    if all(s.mcs_pose_world is None for s in plan.stations):
+        return plan
+    from scancell.model.robot_model import IKError
+    from scipy.spatial.transform import Rotation
+
+    if geometry is None:
+        raise CommandError("invalid", "stations given as mcs_pose_world need the cell's robot "
+                                      "base and scanner mount: [planner] T_world_from_base, "
+                                      "T_flange_from_mcs in the cell config")
+    T_fm_inv = np.linalg.inv(geometry.T_flange_from_mcs)
+    seed = seed_rad
+    out = []
+    for st in plan.stations:
+        if st.mcs_pose_world is None:
+            out.append(st)
+            seed = np.radians(st.joints_deg)
+            continue
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", st.mcs_pose_world[3:], degrees=True).as_matrix()
+        T[:3, 3] = st.mcs_pose_world[:3]
+        base = geometry.base_at(st.axis_mm)
+        try:
+            q = geometry.robot.ik(np.linalg.inv(base) @ T @ T_fm_inv, seed)
+        except IKError as exc:
+            raise CommandError("out_of_range", f"station {st.name}: mcs_pose_world "
+                                               f"{list(st.mcs_pose_world)} not reachable: {exc}"
+                               ) from None
+        seed = q
+        out.append(PlanStation(st.name, tuple(float(v) for v in np.degrees(q)), st.axis_mm,
+                               st.mcs_pose_world, st.j6_sign))
+    return Plan(plan.name, tuple(out), plan.speed, plan.j6_angles_deg, plan.tracker_repeats,
+                plan.extra)
+
+
+def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
+    """Refuse the whole plan before any motion if one station is outside a limit."""
+    for s in plan.stations:
+        q = np.radians(s.joints_deg)
+        try:
+            robot.check_joints(q)
+            for turn in plan.j6_angles_deg:
+                q6 = q.copy()
+                q6[5] += np.radians(turn)
+                try:
+                    robot.check_joints(q6)
+                except CommandError:
+                    q6[5] -= 2 * np.radians(turn)  # the job may turn the other way
+                    robot.check_joints(q6)
+        except CommandError as exc:
+            raise CommandError("out_of_range", f"plan {plan.name!r}, station {s.name}: "
+                                               f"{exc.message}") from None
+        if s.axis_mm is not None:
+            if axis is None:
+                raise CommandError("invalid", f"station {s.name} has axis_mm but the cell has "
+                                              f"no axis")
+            lo, hi = axis.limits
+            if not lo <= s.axis_mm <= hi:
+                raise CommandError("out_of_range", f"station {s.name}: axis {s.axis_mm} mm "
+                                                   f"outside [{lo}, {hi}] mm")
+
+
+def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
+             geometry: CellGeometry | None = None) -> None:
+    """Refuse a bad plan when the job is asked for, not once it runs."""
+    plan = plan_from_request(req, geometry)
+    robot = serving_device(supervisors, req.get("robot"), Robot, VERB).device
+    needs_axis = any(s.axis_mm is not None for s in plan.stations)
+    axis = serving_device(supervisors, req.get("axis"), Axis, VERB).device if needs_axis else None
+    check_plan(plan, robot, axis)
+
+
+async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
+                    geometry: CellGeometry | None = None) -> dict[str, Any]:
+    req = ctx.request
+    plan = plan_from_request(req, geometry)
+    speed = float(req.get("speed", plan.speed))
+    repeats = int(req.get("tracker_repeats", plan.tracker_repeats))
+    turns = [float(a) for a in req.get("j6_angles_deg", plan.j6_angles_deg)]
+    robot_s = serving_device(supervisors, req.get("robot"), Robot, VERB)
+    tracker_s = serving_device(supervisors, req.get("tracker"), Tracker, VERB)
+    proj_s = serving_device(supervisors, req.get("projector"), Projector, VERB)
+    cams = req.get("cameras") or [s.name for s in supervisors.values()
+                                  if isinstance(s.device, Camera)][:2]
+    cam_s = [serving_device(supervisors, c, Camera, VERB) for c in cams]
+    needs_axis = any(s.axis_mm is not None for s in plan.stations)
+    axis_s = serving_device(supervisors, req.get("axis"), Axis, VERB) if needs_axis else None
+    robot: Robot = robot_s.device
+    tracker: Tracker = tracker_s.device
+    axis: Axis | None = axis_s.device if axis_s is not None else None
+    check_plan(plan, robot, axis)
+    n = len(plan.stations)
+    done: list[dict[str, Any]] = []
+    ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n)
+    t_start = time.monotonic()
+
+    async with contextlib.AsyncExitStack() as stack:
+        await hold_for_job(stack, ctx.job_id,
+                           [robot_s, tracker_s, proj_s, *cam_s, *([axis_s] if axis_s else [])])
+        try:
+            for i, st in enumerate(plan.stations):
+                eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
+                step = "move"
+
+                def event(step: str, msg: str, **extra: Any) -> None:
+                    ctx.event("running", step, msg, i, n, station=st.name,  # noqa: B023
+                              eta_s=None if eta is None else round(eta, 1), **extra)  # noqa: B023
+
+                try:
+                    event("move", f"station {st.name} ({i + 1}/{n}): moving")
+                    if st.axis_mm is not None and axis is not None:
+                        await axis.move_to(st.axis_mm)
+                    q0 = np.radians(st.joints_deg)
+                    await robot.move_joints(q0, speed)
+                    step = "p1"
+                    event("p1", f"station {st.name}: tracker P1")
+                    meta = {"job_id": ctx.job_id, "station": st.name}
+                    p, s = await averaged(tracker, repeats, {**meta, "ecs": 0, "j6_deg": 0.0})
+                    step = "scan"
+                    event("scan", f"station {st.name}: scanning")
+                    reply = await scan(supervisors, {
+                        "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
+                        "projector": proj_s.name, "cameras": [c.name for c in cam_s]},
+                        hold_locks=False)
+                    step = "ecs"
+                    ecs = await measure_ecs(
+                        robot, tracker, q0, [st.j6_sign * a for a in turns], speed, repeats, meta,
+                        lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 "  # noqa: B023
+                                                                   f"{turn:+.1f} deg"),
+                        p1=EcsPoint(0.0, p, s))
+                except asyncio.CancelledError:
+                    raise
+                except Exception as exc:
+                    why = exc.message if isinstance(exc, CommandError) else f"{exc}"
+                    raise StepFailed(st.name, step, why) from exc
+                record = {"job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"],
+                          "index": i, "total": n, "plan": plan.name,
+                          "points_mm": [[float(v) for v in e.point_mm] for e in ecs],
+                          "sigma_mm": [[float(v) for v in e.sigma_mm] for e in ecs],
+                          "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": repeats,
+                          "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
+                          "stamp_ns": messages.now_ns()}
+                ctx.bus.publish_json(ctx.bus.keys.station_ecs(st.name), record,
+                                     "scancell.StationEcs")
+                done.append({"station": st.name, "scan_id": reply["scan_id"]})
+                event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
+        except BaseException:
+            await _stop_motion(robot, axis)
+            raise
+    return {"plan": plan.name, "stations": done, "seconds": round(time.monotonic() - t_start, 1)}
+
+
+async def _stop_motion(robot: Robot, axis: Axis | None) -> None:
+    """Stop at once, even while the job task is being cancelled."""
+    for dev in (robot, axis):
+        if dev is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.shield(asyncio.wait_for(dev.stop(), 2.0))

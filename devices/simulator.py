@@ -1,0 +1,69 @@
+"""The embedded simulated cell as the daemon, the config and the workers see it: a
+:class:`Simulator` reached by name (``SIMULATOR``), never by import, as drivers are reached
+through ``devices/registry.py``. Runtime code therefore never imports ``scancell.sim``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+#: ``module:Class`` of the simulator a config's ``[simulator]`` table starts.
+SIMULATOR = "scancell.sim.host:SimHost"
+
+
+class BallPlacer(Protocol):
+    """Who puts the hand-eye calibration ball in front of the scanner."""
+
+    async def place(self, i: int, target_mcs: np.ndarray) -> np.ndarray:
+        """Place ball ``i`` near ``target_mcs`` (scanner frame, mm); return its rough position
+        in ``world`` (mm), for pointing the tracker."""
+        ...
+
+    async def remove(self) -> None: ...
+
+
+class Simulator(Protocol):
+    """A simulated cell started from a ``[simulator]`` table; its servers speak the real
+    devices' protocols on sockets, so the daemon's drivers cannot tell it from hardware."""
+
+    def __init__(self, options: dict[str, Any]) -> None: ...
+
+    @staticmethod
+    def check_options(options: dict[str, Any]) -> str | None:
+        """The first problem with a ``[simulator]`` table, as ``"key: message"``, or None."""
+        ...
+
+    @staticmethod
+    def planner_table(options: dict[str, Any]) -> dict[str, Any]:
+        """The simulated cell's geometry as a ``[planner]`` table (what a real cell states)."""
+        ...
+
+    @staticmethod
+    def truth(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+        """The true-distance function (world points, mm -> mm) of the simulated part."""
+        ...
+
+    def start(self, timeout_s: float = 60.0) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def ball_placer(self) -> BallPlacer:
+        """The simulated world placing the calibration ball, as an operator would."""
+        ...
+
+
+class SimulatorUnavailable(RuntimeError):
+    pass
+
+
+def load_simulator() -> type[Simulator]:
+    """Import the simulator class by name; raises SimulatorUnavailable if it cannot be."""
+    module, _, attr = SIMULATOR.partition(":")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise SimulatorUnavailable(f"the simulator {SIMULATOR!r} cannot be loaded: {exc}") from exc

@@ -1,0 +1,403 @@
+"""The simulated cell: world model, sensors and ground truth.
+
+World = the laser tracker's frame (tracker at the origin, z up), mm. The tracker stands on its
+tripod behind the robot with its head 1.2 m above the floor (world z = -1200 mm is the floor).
+The robot base stands at ``T_world_from_rail0`` moved by the linear rail (external axis, along
+world y); the part is in front of the robot (+x), facing it. The scanner is rigidly mounted on
+the flange at the true hand-eye ``T_flange_from_mcs``; the SMR sits on the scanner base, off the
+J6 axis so that J6 rotations move it on a circle, its opening facing backwards along the
+scanner's axis (towards the tracker) so that those rotations keep it in the tracker's sight.
+
+Everything random comes from generators seeded by ``seed``: the same seed and the same sequence
+of calls give identical images and measurements.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import open3d as o3d
+from scancell.model.ecs import ecs_from_points
+from scancell.model.patterns import FringeSequence
+from scancell.model.robot_model import RobotModel
+from scancell.model.transforms import apply_T, look_at_flange, make_T, rot_x, rot_y
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+from scancell.sim import parts
+from scancell.sim.optics import PinholeModel, StereoRig, default_rig
+from scancell.sim.render_kernels import pattern_dn, projector_terms, quantise
+from scancell.sim.scene import Scene, SceneObject
+from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+def rig_bisector(rig: StereoRig) -> np.ndarray:
+    """Unit vector in MCS halfway between the two cameras' optical axes (the scanner's axis)."""
+    z_left = np.array([0.0, 0.0, 1.0])
+    z_right = rig.T_mcs_from_right[:3, 2]
+    return (z_left + z_right) / np.linalg.norm(z_left + z_right)
+
+
+def default_mount(rig: StereoRig) -> np.ndarray:
+    """True hand-eye ``T_flange_from_mcs``: the rig's bisector along the flange z axis, 180 mm in
+    front of the flange, with a few tenths of a degree of mounting error on purpose."""
+    # rig frame seen from MCS: midway between the cameras, z along the bisector
+    right_origin = rig.T_mcs_from_right[:3, 3]
+    bis = rig_bisector(rig)
+    x = right_origin / np.linalg.norm(right_origin)
+    x = x - bis * np.dot(x, bis)
+    x /= np.linalg.norm(x)
+    y = np.cross(bis, x)
+    T_mcs_from_rig = make_T(np.stack([x, y, bis], axis=1), right_origin / 2)
+    T_flange_from_rig = make_T(_rot_z(0.4) @ rot_y(-0.7) @ rot_x(1.3), [1.2, -0.8, 180.0])
+    return T_flange_from_rig @ np.linalg.inv(T_mcs_from_rig)
+
+
+@dataclass
+class SimCellConfig:
+    seed: int = 0
+    camera_scale: float = 1.0  # 1 = 2448 x 2048; tests use 8 (306 x 256)
+    part: str | None = "car_rear"
+    T_world_from_part: np.ndarray = field(default_factory=lambda: make_T(t=[3300.0, 0.0, -100.0]))
+    T_world_from_rail0: np.ndarray = field(default_factory=lambda: make_T(t=[1800.0, 0.0, -1200.0]))
+    rail_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    rail_limits_mm: tuple[float, float] = (-1500.0, 1500.0)
+    joint_repeatability_deg: float = 0.002  # 1 sigma per joint (~±0.07 mm at the flange)
+    j6_repeatability_deg: float = 0.003  # extra 1 sigma on J6 (the ECS rotations)
+    j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG  # J6 turns for P2 and P3
+    smr_in_mcs_mm: np.ndarray = field(default_factory=lambda: np.array([276.0, 95.0, -140.0]))
+    #: None: backwards along the rig's bisector (how the nest is machined into the housing)
+    smr_opening_in_mcs: np.ndarray | None = None
+    albedo: float = 0.6
+    ambient: float = 0.08  # ambient irradiance relative to the projector's full white
+    exposure: float = 1.3  # DN = 255 * exposure * radiance
+    noise_dn: float = 1.0  # camera read noise, 1 sigma
+    psf_sigma_px: float = 0.6  # lens blur of the cameras
+    tracker: TrackerSpec = field(default_factory=TrackerSpec)
+    home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
+
+
+@dataclass
+class CameraGeometry:
+    """Per-pixel result of one ray cast from one camera at one pose; shared by all patterns."""
+
+    hit: np.ndarray  # (H, W) bool
+    points_cam: np.ndarray  # (H, W, 3) hit points in the camera frame, NaN where no hit
+    proj_x: np.ndarray  # (H, W) projector column, NaN where not lit
+    base_dn: np.ndarray  # (H, W) DN from ambient light
+    fringe_dn: np.ndarray  # (H, W) DN per unit projector intensity (0 where shadowed)
+
+
+class SimCell:
+    def __init__(self, cfg: SimCellConfig | None = None, rig: StereoRig | None = None) -> None:
+        self.cfg = cfg or SimCellConfig()
+        full_rig = rig or default_rig()
+        self.rig = full_rig if self.cfg.camera_scale == 1 else full_rig.scaled(self.cfg.camera_scale)
+        self.robot = RobotModel()
+        self.T_flange_from_mcs = default_mount(full_rig)
+        self.smr_opening_in_mcs = (-rig_bisector(full_rig) if self.cfg.smr_opening_in_mcs is None
+                                   else np.asarray(self.cfg.smr_opening_in_mcs, float))
+        self._rng = np.random.default_rng([self.cfg.seed, 1])
+        self.tracker = TrackerModel(self.cfg.tracker, np.random.default_rng([self.cfg.seed, 2]))
+        self._frame = 0
+        self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
+        self.q = self.q_commanded.copy()
+        self.rail_mm = 0.0
+        self.sequence = FringeSequence()
+        self.pattern = -1  # -1: projector dark
+        self.scene = Scene()
+        if self.cfg.part:
+            self.scene.add(SceneObject(self.cfg.part, parts.PARTS[self.cfg.part](),
+                                       self.cfg.T_world_from_part, self.cfg.albedo))
+        self._body = self.scene.add(SceneObject("scanner_body", parts.scanner_body(), np.eye(4),
+                                                visible_to_cameras=False))
+        self._rays: dict[str, np.ndarray] = {}
+        self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
+        self._scene_version = 0
+        self.timings: dict[str, float] = {}
+        self._update_body()
+
+    # ------------------------------------------------------------------ poses (ground truth)
+    @property
+    def T_world_from_base(self) -> np.ndarray:
+        T = self.cfg.T_world_from_rail0.copy()
+        T[:3, 3] += self.cfg.rail_axis * self.rail_mm
+        return T
+
+    def T_world_from_flange(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_base @ self.robot.fk(self.q if q_rad is None else q_rad)
+
+    def T_world_from_mcs(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_flange(q_rad) @ self.T_flange_from_mcs
+
+    def T_world_from_camera(self, camera: str, q_rad: np.ndarray | None = None) -> np.ndarray:
+        T = self.T_world_from_mcs(q_rad)
+        if camera == "left":
+            return T
+        if camera == "right":
+            return T @ self.rig.T_mcs_from_right
+        if camera == "projector":
+            return T @ self.rig.T_mcs_from_projector
+        raise KeyError(f"no camera {camera!r}: use 'left', 'right' or 'projector'")
+
+    def smr_center_world(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return apply_T(self.T_world_from_mcs(q_rad), self.cfg.smr_in_mcs_mm[None])[0]
+
+    def smr_opening_world(self, q_rad: np.ndarray | None = None) -> np.ndarray:
+        return self.T_world_from_mcs(q_rad)[:3, :3] @ self.smr_opening_in_mcs
+
+    def mcs_pose_looking_at(self, target_world: np.ndarray, standoff_mm: float = 650.0,
+                            view_dir: np.ndarray | None = None) -> np.ndarray:
+        """``T_world_from_mcs`` that puts ``target_world`` on the rig's bisector (the flange z
+        axis), ``standoff_mm`` in front of the midpoint between the cameras, looking along
+        ``view_dir`` (default world +x) with the baseline horizontal."""
+        v = np.array([1.0, 0, 0]) if view_dir is None else np.asarray(view_dir, float)
+        T_fm = self.T_flange_from_mcs
+        rig_mid_in_flange = T_fm[:3, 3] + T_fm[:3, :3] @ (self.rig.T_mcs_from_right[:3, 3] / 2)
+        T_world_from_flange = look_at_flange(target_world, v, standoff_mm, rig_mid_in_flange)
+        return T_world_from_flange @ T_fm
+
+    def start_joints(self, down_deg: float = 20.0) -> np.ndarray:
+        """Joints (rad) with the scanner looking at the part's centre from ``down_deg`` above the
+        horizontal: the part is in view, the SMR faces the tracker, and a calibration ball in
+        front of the scanner is seen by the tracker below the scanner's housing."""
+        t = np.radians(down_deg)
+        return self.ik_for_mcs(self.mcs_pose_looking_at(
+            self.cfg.T_world_from_part[:3, 3], view_dir=np.array([np.cos(t), 0.0, -np.sin(t)])))
+
+    def ik_for_mcs(self, T_world_from_mcs: np.ndarray, seed_rad: np.ndarray | None = None
+                   ) -> np.ndarray:
+        """Joints (rad) that put MCS at ``T_world_from_mcs`` (raises IKError)."""
+        T_base_from_flange = (np.linalg.inv(self.T_world_from_base) @ T_world_from_mcs
+                              @ np.linalg.inv(self.T_flange_from_mcs))
+        return self.robot.ik(T_base_from_flange, self.q if seed_rad is None else seed_rad)
+
+    def j6_turned(self, q_rad: np.ndarray, turn_deg: float) -> np.ndarray:
+        q = np.array(q_rad, float)
+        q[5] += np.radians(turn_deg)
+        return q
+
+    def true_T_world_from_ecs(self, q_rad: np.ndarray | None = None,
+                              j6_angles_deg: tuple[float, float] | None = None) -> np.ndarray:
+        """ECS at a station, from noise-free SMR centres at J6 = q6, q6 + a1, q6 + a2."""
+        q = self.q_commanded if q_rad is None else np.asarray(q_rad, float)
+        a1, a2 = j6_angles_deg or self.cfg.j6_angles_deg
+        p = [self.smr_center_world(self.j6_turned(q, a)) for a in (0.0, a1, a2)]
+        return ecs_from_points(*p)
+
+    def true_T_ecs_from_mcs(self, j6_angles_deg: tuple[float, float] | None = None) -> np.ndarray:
+        """The true hand-eye in the paper's sense (constant for given J6 turn angles)."""
+        q = np.radians(np.asarray(self.cfg.home_deg, float))
+        return (np.linalg.inv(self.true_T_world_from_ecs(q, j6_angles_deg))
+                @ self.T_world_from_mcs(q))
+
+    def planner_table(self) -> dict:
+        """This cell's geometry as a ``[planner]`` table (what a real cell's config states)."""
+        T_fm = self.T_flange_from_mcs
+        rig_mid = T_fm[:3, 3] + T_fm[:3, :3] @ (self.rig.T_mcs_from_right[:3, 3] / 2)
+        return {"T_world_from_base": self.cfg.T_world_from_rail0.tolist(),  # rail at 0
+                "T_flange_from_mcs": T_fm.tolist(), "rig_mid_in_flange_mm": rig_mid.tolist(),
+                "smr_in_mcs_mm": self.cfg.smr_in_mcs_mm.tolist(),
+                "smr_opening_in_mcs": self.smr_opening_in_mcs.tolist(),
+                "tracker_world_mm": self.tracker.position.tolist(),
+                "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
+                "rail_axis": self.cfg.rail_axis.tolist(),
+                "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0]}
+
+    def part_mesh_world(self) -> o3d.geometry.TriangleMesh:
+        """The part's true surface in ``world`` (mm)."""
+        if not self.cfg.part:
+            raise ValueError("this cell has no part")
+        mesh = parts.PARTS[self.cfg.part]()
+        mesh.transform(self.cfg.T_world_from_part)
+        return mesh
+
+    def surface_distance(self, points_world: np.ndarray) -> np.ndarray:
+        """Unsigned distance (mm) of world points to the true surface of the part."""
+        if not self.cfg.part:
+            raise ValueError("this cell has no part")
+        return self.scene.distance(points_world, [self.cfg.part])
+
+    # ------------------------------------------------------------------ actuators
+    def move_joints(self, q_rad: np.ndarray) -> None:
+        """Arrive at ``q_rad`` with the configured repeatability. A joint that does not travel
+        (less than 0.01 deg, e.g. commanded to its own reported position) holds where it is
+        (``self.q``): only the joints that move land with fresh repeatability noise."""
+        q = np.asarray(q_rad, float).copy()
+        if not self.robot.within_limits(q):
+            raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
+        noise = self._rng.normal(0, np.radians(self.cfg.joint_repeatability_deg), 6)
+        noise[5] += self._rng.normal(0, np.radians(self.cfg.j6_repeatability_deg))
+        moved = np.abs(q - self.q) > np.radians(0.01)
+        self.q_commanded = q
+        self.q = np.where(moved, q + noise, self.q)
+        self._update_body()
+
+    def move_rail(self, position_mm: float) -> None:
+        lo, hi = self.cfg.rail_limits_mm
+        if not lo <= position_mm <= hi:
+            raise ValueError(f"rail position {position_mm} mm outside [{lo}, {hi}]")
+        self.rail_mm = float(position_mm)
+        self._update_body()
+
+    def _update_body(self) -> None:
+        self._body.T_world_from_object = self.T_world_from_mcs()
+
+    # ------------------------------------------------------------------ objects
+    def place_ball(self, center_world: np.ndarray, with_stand: bool = True) -> None:
+        """Put the calibration SMR on a stand at ``center_world``, opening towards the tracker."""
+        self.remove_ball()
+        c = np.asarray(center_world, float)
+        z = (self.tracker.position - c) / np.linalg.norm(self.tracker.position - c)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0, 0])
+        T_ball = make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
+        self.scene.add(SceneObject("ball", parts.smr(), T_ball, 0.75))
+        if with_stand:
+            self.scene.add(SceneObject("ball_stand", parts.ball_stand(), make_T(t=c), 0.3))
+        self._scene_version += 1
+
+    def remove_ball(self) -> None:
+        before = len(self.scene.objects)
+        self.scene.remove("ball")
+        self.scene.remove("ball_stand")
+        if len(self.scene.objects) != before:
+            self._scene_version += 1
+
+    def add_object(self, obj: SceneObject) -> None:
+        self.scene.add(obj)
+        self._scene_version += 1
+
+    def remove_object(self, name: str) -> None:
+        self.scene.remove(name)
+        self._scene_version += 1
+
+    def ball_center_world(self) -> np.ndarray:
+        return self.scene.get("ball").T_world_from_object[:3, 3].copy()
+
+    # ------------------------------------------------------------------ tracker
+    def _reflector(self, target: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+        """Centre, opening direction and self-occluding object names of a tracker target."""
+        if target == "scanner":
+            return self.smr_center_world(), self.smr_opening_world(), ()
+        if target == "ball":
+            try:
+                T = self.scene.get("ball").T_world_from_object
+            except KeyError:
+                raise BeamBreak("no calibration ball in the cell") from None
+            return T[:3, 3], T[:3, 2], ("ball",)  # the ball does not occlude its own beam
+        raise KeyError(f"unknown tracker target {target!r}: use 'scanner' or 'ball'")
+
+    def beam_check(self, target: str = "scanner") -> None:
+        """Raise BeamBreak unless the tracker can lock on ``target``; draws no noise."""
+        c, o, exclude = self._reflector(target)
+        self.tracker.beam_check(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
+
+    def measure_smr(self, target: str = "scanner") -> TrackerReading:
+        """Tracker measurement of the scanner's SMR or of the calibration ball; BeamBreak if the
+        beam cannot reach it."""
+        c, o, exclude = self._reflector(target)
+        return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
+
+    # ------------------------------------------------------------------ rendering
+    def camera_model(self, camera: str) -> PinholeModel:
+        return {"left": self.rig.left, "right": self.rig.right}[camera]
+
+    def _pixel_rays(self, camera: str) -> np.ndarray:
+        if camera not in self._rays:
+            self._rays[camera] = self.camera_model(camera).pixel_rays().astype(np.float32)
+        return self._rays[camera]
+
+    def geometry(self, camera: str) -> CameraGeometry:
+        """Ray cast, projector mapping, shadowing and shading of one camera at the current pose
+        (cached: the patterns of one pose reuse it)."""
+        T_wc = self.T_world_from_camera(camera)
+        key = T_wc.round(9).tobytes()
+        cached = self._geom_cache.get(camera)
+        if cached and cached[0] == key and cached[1] == self._scene_version:
+            return cached[2]
+        geom = self._compute_geometry(camera, T_wc)
+        self._geom_cache[camera] = (key, self._scene_version, geom)
+        return geom
+
+    def _compute_geometry(self, camera: str, T_wc: np.ndarray) -> CameraGeometry:
+        cfg = self.cfg
+        clock = time.perf_counter
+        t0 = clock()
+        rays = self._pixel_rays(camera)
+        t1 = clock()
+        h, w, _ = rays.shape
+        dirs = rays.reshape(-1, 3)
+        hits = self.scene.cast(T_wc[:3, 3], dirs @ T_wc[:3, :3].T.astype(np.float32))
+        t2 = clock()
+        T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
+        proj = self.rig.projector
+        eps = 0.05
+        proj_x, cos_p, dist, shadow_rays, tfar = projector_terms(
+            dirs, hits.t, hits.normal, T_wc[:3, :3], T_wc[:3, 3], T_pc[:3, :3], T_pc[:3, 3],
+            proj.K, proj.brown_conrady5, proj.width, proj.height, eps)
+        t3 = clock()
+        cand = np.flatnonzero(np.isfinite(proj_x))
+        if cand.size:
+            shadow = self.scene.occluded_rays(shadow_rays[cand], tfar[cand])
+            proj_x[cand[shadow]] = np.nan
+        t4 = clock()
+        lit = np.isfinite(proj_x)
+        # object index -1 (no hit) picks the appended albedo 0
+        albedo = np.array([o.albedo for o in self.scene.objects] + [0.0],
+                          np.float32)[hits.object_index]
+        d0 = np.float32(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0]))
+        gain = np.float32(255.0 * cfg.exposure)
+        fringe = np.where(lit, gain * albedo * np.clip(cos_p, 0, 1) * (d0 / np.maximum(dist, 1.0))
+                          ** 2, np.float32(0.0))
+        base = gain * albedo * np.float32(cfg.ambient)
+        hit = np.isfinite(hits.t)
+        pts_cam = np.multiply(dirs, np.where(hit, hits.t, np.nan)[:, None], dtype=np.float64)
+        self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
+                        "shadow": t4 - t3, "shading": clock() - t4}
+        return CameraGeometry(hit.reshape(h, w), pts_cam.reshape(h, w, 3),
+                              proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w))
+
+    def load_sequence(self, sequence: FringeSequence) -> int:
+        self.sequence = sequence
+        return len(sequence)
+
+    def show(self, k: int) -> None:
+        if not -1 <= k < len(self.sequence):
+            raise IndexError(f"pattern {k} outside the loaded sequence of {len(self.sequence)}")
+        self.pattern = k
+
+    def render(self, camera: str, pattern: int | None = None, brightness: float = 1.0
+               ) -> np.ndarray:
+        """8-bit image of ``camera`` under projector pattern ``pattern`` (default: the one shown;
+        -1 dark, -2 full white); ``brightness`` scales the signal (exposure time and gain)."""
+        g = self.geometry(camera)
+        k = self.pattern if pattern is None else pattern
+        seq = self.sequence
+        if k >= 0:
+            j, n = seq.split(k)
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, 0,
+                            seq.periods[j] / self.rig.projector.width, 2 * np.pi * n / seq.steps,
+                            seq.A, seq.B, brightness)
+        else:
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, k, 0.0, 0.0, 0.0, 0.0, brightness)
+        if self.cfg.psf_sigma_px > 0:
+            dn = cv2.GaussianBlur(dn, (0, 0), self.cfg.psf_sigma_px)
+        rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
+        self._frame += 1
+        return quantise(dn, rng.standard_normal(dn.shape, np.float32), self.cfg.noise_dn)
+
+    def render_sequence(self, camera: str) -> list[np.ndarray]:
+        """All patterns of the loaded sequence for one camera (one ray cast)."""
+        return [self.render(camera, k) for k in range(len(self.sequence))]
+
+    def true_points(self, camera: str = "left") -> np.ndarray:
+        """True surface points (N, 3) seen by ``camera``, in that camera's frame (mm)."""
+        g = self.geometry(camera)
+        return g.points_cam[g.hit]

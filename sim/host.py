@@ -1,0 +1,270 @@
+"""The embedded simulated cell: one SimCell and its protocol servers in a thread of their own.
+
+A cell config's ``[simulator]`` table starts it inside the daemon before the devices connect:
+
+- ``[simulator.robot]``: the KAREL-style simple_message server (motion/state ports);
+- ``[simulator.tracker]``: the STLP tracker server on TCP;
+- ``[simulator.axis]``: the CiA 402 drive on a virtual CAN channel, served over socketcand;
+- the world itself, for the in-process ``sim_camera`` and ``sim_projector`` drivers.
+
+The servers run on their own event loop so the daemon's drivers reach them through real
+sockets exactly as they would reach hardware.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import jsonschema
+import numpy as np
+from scancell.sim.ball_placer import SimBallPlacer
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.parts import PARTS
+from scancell.sim.world import SimWorld, register, unregister
+
+log = logging.getLogger(__name__)
+
+_PORT = {"type": "integer", "minimum": 0, "maximum": 65535}
+_HOST = {"type": "string"}
+SIMULATOR_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "world": {"type": "string"},
+        "seed": {"type": "integer"},
+        "camera_scale": {"type": "number", "minimum": 1},
+        "part": {"enum": [*PARTS, ""]},
+        "look_at_part": {"type": "boolean"},
+        "robot": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "motion_port": _PORT, "state_port": _PORT,
+            "byte_order": {"enum": ["big", "little"]},
+            "state_hz": {"type": "number", "exclusiveMinimum": 0}}},
+        "tracker": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "port": _PORT}},
+        "axis": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "port": _PORT, "node_id": {"type": "integer", "minimum": 1,
+                                                     "maximum": 127},
+            "counts_per_mm": {"type": "number", "exclusiveMinimum": 0},
+            "can_channel": {"type": "string"}}},
+    },
+    "additionalProperties": False,
+}
+
+
+def check_options(options: dict[str, Any]) -> str | None:
+    """The first problem with a ``[simulator]`` table, as ``"key: message"``, or None."""
+    errors = sorted(jsonschema.Draft202012Validator(SIMULATOR_SCHEMA).iter_errors(options),
+                    key=lambda e: list(e.path))
+    if not errors:
+        return None
+    e = errors[0]
+    return f"{'.'.join(str(p) for p in e.path) or '(table)'}: {e.message}"
+
+
+_SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "axis": ("port",)}
+
+
+def sim_cell(options: dict[str, Any]) -> SimCell:
+    """The simulated cell a ``[simulator]`` table describes (its geometry is the ground truth a
+    worker compares against)."""
+    return SimCell(SimCellConfig(seed=int(options.get("seed", 0)),
+                                 camera_scale=float(options.get("camera_scale", 1.0)),
+                                 part=options.get("part", "car_rear") or None))
+
+
+def truth_from_config(path: str) -> Callable[[np.ndarray], np.ndarray]:
+    """The true-distance function of the part of the simulated cell a config file describes;
+    raises ValueError naming the file (no such config, no ``[simulator]``)."""
+    from scancell.config import ConfigError, load_cell_config
+
+    try:
+        cfg = load_cell_config(path)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
+    if cfg.simulator is None:
+        raise ValueError(f"{path} has no [simulator]: no ground truth")
+    return truth_from_simulator(cfg.simulator)
+
+
+def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+    """The true-distance function (world points, mm -> mm) of the part of the simulated cell a
+    ``[simulator]`` table describes (from a config file, or recorded in an MCAP file)."""
+    return sim_cell(options).surface_distance
+
+
+def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:
+    """Overrides moving every simulator server of a raw cell config to ``port_for(old)`` and
+    every device option that pointed at the old port (an integer option equal to it, or a URL
+    ending in ``:<old>``) with it. Used by tests and the demo to run on free ports."""
+    sim = raw.get("simulator") or {}
+    moved: dict[int, int] = {}
+    out: dict[str, Any] = {"simulator": {}, "devices": {}}
+    for server, keys in _SERVER_PORTS.items():
+        for key in keys:
+            if server in sim:
+                old = int(sim[server].get(key, 0))
+                moved[old] = port_for(old)
+                out["simulator"].setdefault(server, {})[key] = moved[old]
+    for name, table in (raw.get("devices") or {}).items():
+        for key, value in table.items():
+            if isinstance(value, int) and not isinstance(value, bool) and value in moved:
+                out["devices"].setdefault(name, {})[key] = moved[value]
+            elif isinstance(value, str):
+                head, sep, tail = value.rpartition(":")
+                if sep and tail.isdigit() and int(tail) in moved:
+                    out["devices"].setdefault(name, {})[key] = f"{head}:{moved[int(tail)]}"
+    return out
+
+
+def flatten_overrides(overrides: dict[str, Any], prefix: str = "") -> list[str]:
+    """Nested overrides -> ``--set`` arguments (``table.key=value``)."""
+    args: list[str] = []
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            args += flatten_overrides(value, f"{prefix}{key}.")
+        else:
+            args.append(f"{prefix}{key}={value}")
+    return args
+
+
+class SimHost:
+    """The embedded simulated cell (``scancell.devices.simulator.Simulator``): a world and its
+    protocol servers on an event loop of their own."""
+
+    check_options = staticmethod(check_options)
+    truth = staticmethod(truth_from_simulator)
+
+    @staticmethod
+    def planner_table(options: dict[str, Any]) -> dict[str, Any]:
+        return sim_cell(options).planner_table()
+
+    def __init__(self, options: dict[str, Any]) -> None:
+        problem = check_options(options)
+        if problem:
+            raise ValueError(f"[simulator] {problem}")
+        self.options = options
+        self.world: SimWorld | None = None
+        self.endpoints: dict[str, Any] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, daemon=True, name="sim-host")
+        self._servers: dict[str, Any] = {}  # "robot" | "tracker" | "axis" -> running server
+        self._drive: Any = None
+
+    # ---------------------------------------------------------------- control
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Build the world and start the servers; raise if any cannot start."""
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise TimeoutError(f"simulated cell did not start within {timeout_s} s")
+        if self._error is not None:
+            self._thread.join(5.0)
+            raise self._error
+
+    def run(self, coro: Any, timeout_s: float = 10.0) -> Any:
+        """Run a coroutine on the simulators' event loop (tests: kill or restart a server)."""
+        if self._loop is None:
+            raise RuntimeError("simulated cell not running")
+        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout_s)
+
+    def server(self, kind: str) -> Any:
+        """The running server object of ``kind`` ("robot", "tracker" or "axis")."""
+        try:
+            return self._servers[kind]
+        except KeyError:
+            raise KeyError(f"no {kind} simulator in this cell") from None
+
+    def ball_placer(self) -> SimBallPlacer:
+        if self.world is None:
+            raise RuntimeError("simulated cell not running")
+        return SimBallPlacer(self.world, int(self.options.get("seed", 0)))
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join(10.0)
+
+    # ---------------------------------------------------------------- thread
+    def _main(self) -> None:
+        try:
+            asyncio.run(self._run())
+        except BaseException as exc:  # reported to start()
+            self._error = exc
+            self._ready.set()
+
+    def _build_world(self) -> SimWorld:
+        o = self.options
+        cell = sim_cell(o)
+        if o.get("look_at_part", True) and cell.cfg.part:
+            cell.move_joints(cell.start_joints())
+        return SimWorld(str(o.get("world", "default")), cell)
+
+    async def _run(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        world = self._build_world()
+        register(world)
+        self.world = world
+        try:
+            try:
+                await self._start_servers(world)
+            except BaseException:
+                await self._close_servers()
+                raise
+            log.info("simulated cell %r running: %s", world.name, self.endpoints)
+            self._ready.set()
+            await self._stop.wait()
+            await self._close_servers()
+        finally:
+            unregister(world.name)
+
+    async def _start_servers(self, world: SimWorld) -> None:
+        o = self.options
+        if "robot" in o:
+            from scancell.sim.robot_server import KarelRobotServer
+
+            r = o["robot"]
+            robot = KarelRobotServer(world.cell, r.get("host", "127.0.0.1"),
+                                     int(r.get("motion_port", 11000)),
+                                     int(r.get("state_port", 11002)),
+                                     r.get("byte_order", "big"), float(r.get("state_hz", 30.0)))
+            await robot.start()
+            self._servers["robot"] = robot
+            self.endpoints["robot"] = {"motion_port": robot.motion_port,
+                                       "state_port": robot.state_port}
+        if "tracker" in o:
+            from scancell.sim.tracker_server import TcpTrackerServer
+
+            t = o["tracker"]
+            tracker = TcpTrackerServer(world.cell, t.get("host", "127.0.0.1"), int(t.get("port", 7000)))
+            await tracker.start()
+            self._servers["tracker"] = tracker
+            self.endpoints["tracker"] = {"port": tracker.port}
+        if "axis" in o:
+            from scancell.sim.axis_server import SimulatedDrive, SocketcandServer
+
+            a = o["axis"]
+            channel = str(a.get("can_channel", f"scancell-{world.name}-{id(self)}"))
+            self._drive = SimulatedDrive(world.cell, int(a.get("node_id", 5)),
+                                         float(a.get("counts_per_mm", 1000.0)))
+            self._drive.connect("virtual", channel)
+            server = SocketcandServer(channel, a.get("host", "127.0.0.1"), int(a.get("port", 29536)))
+            await server.start()
+            self._servers["axis"] = server
+            self.endpoints["axis"] = {"port": server.port, "node_id": self._drive.node.id}
+
+    async def _close_servers(self) -> None:
+        for server in reversed(list(self._servers.values())):
+            try:
+                await server.close()
+            except Exception as exc:
+                log.warning("closing %s: %s", type(server).__name__, exc)
+        self._servers.clear()
+        if self._drive is not None:
+            self._drive.close()
+            self._drive = None

@@ -1,0 +1,129 @@
+"""Triangle meshes of the simulated cell's objects, each in its own frame (mm).
+
+- ``car_rear``: a car-body-rear-like panel of 1400 (y) x 500 (z) x 400 (x) mm: smooth double
+  curvature, flanks curving back 400 mm, a feature-line crease, and a 12 mm deep licence-plate
+  recess with steep walls. It faces -x (the viewer stands at negative x).
+- ``flat``: a 300 x 300 mm plate facing -x (VDI/VDE 2634-2 flatness artefact).
+- ``dumbbell``: two 30 mm spheres, 200 mm apart on a bar (sphere-spacing artefact).
+- ``smr``: a 38.1 mm (1.5") SMR whose corner-cube opening (approximated by a cone to the
+  centre, 35° half-angle) faces +z of its frame.
+- ``scanner_body``: the scanner housing in MCS.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scancell.model.ecs import SMR_RADIUS_MM
+
+SMR_OPENING_HALF_ANGLE_DEG = 35.0
+
+
+def _mesh(vertices: np.ndarray, triangles: np.ndarray) -> o3d.geometry.TriangleMesh:
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, float)),
+                                  o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)))
+    m.compute_triangle_normals()
+    return m
+
+
+def heightfield(ys: np.ndarray, zs: np.ndarray, depth: np.ndarray) -> o3d.geometry.TriangleMesh:
+    """Surface x = depth[iz, iy] over the (y, z) grid, wound so normals face -x."""
+    Y, Z = np.meshgrid(ys, zs)
+    verts = np.stack([depth.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    ny = len(ys)
+    iz, iy = np.meshgrid(np.arange(len(zs) - 1), np.arange(ny - 1), indexing="ij")
+    a = (iz * ny + iy).ravel()
+    b, c, d = a + 1, a + ny, a + ny + 1
+    tris = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
+    return _mesh(verts, tris)
+
+
+def car_rear_depth(Y: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """Depth x (mm, 0 ... 400) of the car-rear surface at (y, z)."""
+    half_w, depth = 700.0, 400.0
+    b = 1.0 - np.clip(np.abs(Y) / half_w, 0, 1) ** 6  # flat middle, flanks curve back
+    crease = -120.0
+    up = np.clip((Z - crease) / 370.0, 0, None)
+    c = np.where(Z > crease, 1.0 - 0.5 * up ** 1.5, 1.0 - 0.04 * ((crease - Z) / 130.0) ** 2)
+    x = depth * (1.0 - b * c) + 30.0 * (Y / half_w) ** 2 * b
+    plate = (np.abs(Y) < 260) & (Z > -235) & (Z < -135)
+    return np.where(plate, x + 12.0, x)
+
+
+def car_rear(spacing_mm: float = 4.0) -> o3d.geometry.TriangleMesh:
+    ys = np.arange(-700.0, 700.0 + 1e-9, spacing_mm)
+    zs = np.arange(-250.0, 250.0 + 1e-9, spacing_mm)
+    # put grid lines on the licence-plate walls so they stay steep
+    ys = np.unique(np.concatenate([ys, [-260.0 - 0.2, -260.0 + 0.2, 260.0 - 0.2, 260.0 + 0.2]]))
+    zs = np.unique(np.concatenate([zs, [-235.2, -234.8, -135.2, -134.8]]))
+    Y, Z = np.meshgrid(ys, zs)
+    return heightfield(ys, zs, car_rear_depth(Y, Z))
+
+
+def flat(size_mm: float = 300.0, thickness_mm: float = 20.0) -> o3d.geometry.TriangleMesh:
+    """Front face at x = 0 facing -x, centred on the origin."""
+    m = o3d.geometry.TriangleMesh.create_box(thickness_mm, size_mm, size_mm)
+    m.translate([0.0, -size_mm / 2, -size_mm / 2])
+    m.compute_triangle_normals()
+    return m
+
+
+def sphere(radius_mm: float, resolution: int = 96) -> o3d.geometry.TriangleMesh:
+    m = o3d.geometry.TriangleMesh.create_sphere(radius_mm, resolution)
+    m.compute_triangle_normals()
+    return m
+
+
+def dumbbell(radius_mm: float = 15.0, spacing_mm: float = 200.0) -> o3d.geometry.TriangleMesh:
+    """Two spheres on the y axis at +-spacing/2 and a thin bar behind them (+x)."""
+    a = sphere(radius_mm).translate([0, -spacing_mm / 2, 0])
+    b = sphere(radius_mm).translate([0, spacing_mm / 2, 0])
+    bar = o3d.geometry.TriangleMesh.create_cylinder(3.0, spacing_mm - 2 * radius_mm, 24)
+    bar.rotate(o3d.geometry.get_rotation_matrix_from_xyz([np.pi / 2, 0, 0]), center=[0, 0, 0])
+    bar.translate([radius_mm + 5.0, 0, 0])
+    m = a + b + bar
+    m.compute_triangle_normals()
+    return m
+
+
+def smr(radius_mm: float = SMR_RADIUS_MM,
+        opening_half_angle_deg: float = SMR_OPENING_HALF_ANGLE_DEG,
+        resolution: int = 96) -> o3d.geometry.TriangleMesh:
+    """A sphere with its corner-cube opening towards +z: the cap is replaced by a cone to the
+    centre, so a scanner looking into the opening sees points inside the ball."""
+    m = sphere(radius_mm, resolution)
+    v = np.asarray(m.vertices)
+    t = np.asarray(m.triangles)
+    cos_open = np.cos(np.radians(opening_half_angle_deg))
+    centroid_dir = v[t].mean(axis=1)
+    centroid_dir /= np.linalg.norm(centroid_dir, axis=1, keepdims=True)
+    keep = centroid_dir[:, 2] < cos_open
+    n_rim = resolution * 2
+    ang = np.linspace(0, 2 * np.pi, n_rim, endpoint=False)
+    s = np.sin(np.radians(opening_half_angle_deg))
+    rim = radius_mm * np.stack([s * np.cos(ang), s * np.sin(ang), np.full_like(ang, cos_open)], 1)
+    base = len(v)
+    verts = np.concatenate([v, rim, [[0.0, 0.0, 0.0]]])
+    apex = base + n_rim
+    i = np.arange(n_rim)
+    cone = np.stack([base + i, base + (i + 1) % n_rim, np.full(n_rim, apex)], 1)
+    return _mesh(verts, np.concatenate([t[keep], cone]))
+
+
+def ball_stand(height_mm: float = 150.0) -> o3d.geometry.TriangleMesh:
+    """A post under an SMR whose centre is the frame origin (the post hangs down -z)."""
+    post = o3d.geometry.TriangleMesh.create_cylinder(6.0, height_mm, 24)
+    post.translate([0, 0, -SMR_RADIUS_MM - height_mm / 2])
+    post.compute_triangle_normals()
+    return post
+
+
+def scanner_body() -> o3d.geometry.TriangleMesh:
+    """Housing behind the lenses, in MCS (left camera at the origin, right camera ~ +293 mm x)."""
+    m = o3d.geometry.TriangleMesh.create_box(420.0, 110.0, 150.0)
+    m.translate([-60.0, -55.0, -165.0])
+    m.compute_triangle_normals()
+    return m
+
+
+PARTS = {"car_rear": car_rear, "flat": flat, "dumbbell": dumbbell}

@@ -1,0 +1,143 @@
+"""Rendered images of a planar chessboard for camera calibration, with the true corner positions.
+
+The board lies in the z = 0 plane of its frame; inner corner (i, j) is at (i·s, j·s, 0).
+Images are point-sampled, blurred by the camera PSF, given read noise and quantised to 8 bits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scancell.model.transforms import make_T
+from scancell.sim.optics import PinholeModel, StereoRig
+from scipy.spatial.transform import Rotation
+
+
+@dataclass(frozen=True)
+class Chessboard:
+    cols: int = 9  # inner corners along x
+    rows: int = 7  # inner corners along y
+    square_mm: float = 20.0
+
+    def object_points(self) -> np.ndarray:
+        """(cols*rows, 3) inner corners, row-major (x fastest), as OpenCV lists them."""
+        j, i = np.mgrid[0 : self.rows, 0 : self.cols]
+        return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * self.square_mm
+
+
+@dataclass
+class TargetView:
+    left: np.ndarray
+    right: np.ndarray
+    T_left_from_target: np.ndarray
+    corners_left: np.ndarray  # (N, 2) true pixel positions
+    corners_right: np.ndarray
+
+
+def _box_filtered_checker(x: np.ndarray, y: np.ndarray, s: float) -> np.ndarray:
+    """Share of each pixel's footprint that is black (0..1), the checker averaged over the
+    pixel (ramp across each edge), so corners land where they are and not on the pixel grid."""
+    def ramp(coord: np.ndarray) -> np.ndarray:
+        g0, g1 = np.gradient(np.nan_to_num(coord))
+        footprint = np.maximum(np.abs(g0) + np.abs(g1), 1e-6)  # mm per pixel along this axis
+        cell = np.floor(coord / s)
+        to_edge = s / 2 - np.abs(np.mod(coord, s) - s / 2)
+        sign = np.where(np.mod(cell, 2) == 0, 1.0, -1.0)
+        return sign * np.clip(to_edge / (footprint / 2), 0.0, 1.0)
+
+    return (1.0 + ramp(x) * ramp(y)) / 2
+
+
+def render_board(cam: PinholeModel, rays: np.ndarray, T_cam_from_target: np.ndarray,
+                 board: Chessboard, rng: np.random.Generator, noise_dn: float = 1.0,
+                 psf_sigma_px: float = 0.6) -> np.ndarray:
+    R, p0 = T_cam_from_target[:3, :3], T_cam_from_target[:3, 3]
+    n = R[:, 2]
+    denom = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p0 @ n) / denom
+    hit = rays * t[..., None]
+    local = (hit - p0) @ R
+    s = board.square_mm
+    x, y = local[..., 0], local[..., 1]
+    on_board = (t > 0) & (x > -1.6 * s) & (x < (board.cols + 0.6) * s) & \
+        (y > -1.6 * s) & (y < (board.rows + 0.6) * s)
+    in_squares = (x > -s) & (x < board.cols * s) & (y > -s) & (y < board.rows * s)
+    black = _box_filtered_checker(x, y, s)
+    albedo = np.where(in_squares, 0.85 + (0.06 - 0.85) * black, 0.85)
+    cos_v = np.abs(denom)
+    dn = np.where(on_board, 235.0 * albedo * (0.55 + 0.45 * cos_v), 12.0)
+    if psf_sigma_px > 0:
+        dn = cv2.GaussianBlur(dn, (0, 0), psf_sigma_px)
+    dn = dn + rng.standard_normal(dn.shape) * noise_dn
+    return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+
+
+def target_poses(rig: StereoRig, board: Chessboard, n: int, seed: int = 0,
+                 distance_mm: tuple[float, float] = (560.0, 800.0),
+                 max_tilt_deg: float = 35.0) -> list[np.ndarray]:
+    """``n`` board poses in the left camera frame, fully visible in both cameras, spread over
+    the field, the depth range and tilts up to ``max_tilt_deg``."""
+    rng = np.random.default_rng([seed, 7])
+    obj = board.object_points()
+    centre = obj.mean(axis=0)
+    margin = 1.7 * board.square_mm
+    outline = np.array([[-margin, -margin, 0], [obj[:, 0].max() + margin, -margin, 0],
+                        [-margin, obj[:, 1].max() + margin, 0],
+                        [obj[:, 0].max() + margin, obj[:, 1].max() + margin, 0]])
+    T_right_from_left = np.linalg.inv(rig.T_mcs_from_right)
+    mid = rig.T_mcs_from_right[:3, 3] / 2
+    bisector = np.array([0.0, 0.0, 1.0]) + rig.T_mcs_from_right[:3, 2]
+    bisector /= np.linalg.norm(bisector)
+    poses: list[np.ndarray] = []
+    tries = 0
+    while len(poses) < n:
+        tries += 1
+        if tries > 200 * n:
+            raise RuntimeError(f"could only place {len(poses)} of {n} target poses in view")
+        tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
+        Rm = Rotation.from_euler("xyz", [tilt[0], tilt[1], rng.uniform(-20, 20)], degrees=True)
+        d = rng.uniform(*distance_mm)
+        # aim at a random point of the common field at depth d
+        aim = mid + bisector * d
+        aim[:2] += rng.uniform(-1, 1, 2) * d * np.array([0.09, 0.08])
+        R = Rotation.from_euler("x", 180, degrees=True).as_matrix() @ Rm.as_matrix()
+        T = make_T(R, aim - R @ centre)
+        ok = True
+        for cam, T_c in ((rig.left, np.eye(4)), (rig.right, T_right_from_left)):
+            P = (T_c @ T)[:3]
+            pts = outline @ P[:, :3].T + P[:, 3]
+            if np.any(pts[:, 2] <= 0):
+                ok = False
+                break
+            uv = cam.project(pts)
+            if np.any(uv < 2) or np.any(uv[:, 0] > cam.width - 3) or np.any(uv[:, 1] > cam.height - 3):
+                ok = False
+                break
+        if ok:
+            poses.append(T)
+    return poses
+
+
+def render_calibration_set(rig: StereoRig, n: int = 15, seed: int = 0,
+                           board: Chessboard | None = None, noise_dn: float = 1.0,
+                           psf_sigma_px: float = 0.6) -> list[TargetView]:
+    """Stereo views of the board at ``n`` poses with the true corners in both images."""
+    board = board or Chessboard()
+    rays_l, rays_r = rig.left.pixel_rays(), rig.right.pixel_rays()
+    T_right_from_left = np.linalg.inv(rig.T_mcs_from_right)
+    rng = np.random.default_rng([seed, 8])
+    obj = board.object_points()
+    views = []
+    for T in target_poses(rig, board, n, seed):
+        T_r = T_right_from_left @ T
+        views.append(TargetView(
+            render_board(rig.left, rays_l, T, board, rng, noise_dn, psf_sigma_px),
+            render_board(rig.right, rays_r, T_r, board, rng, noise_dn, psf_sigma_px),
+            T,
+            rig.left.project(obj @ T[:3, :3].T + T[:3, 3]),
+            rig.right.project(obj @ T_r[:3, :3].T + T_r[:3, 3]),
+        ))
+    return views

@@ -1,0 +1,93 @@
+"""Laser tracker measurement model: noise from a published-style spec, line of sight, acceptance.
+
+Uncertainty follows the ISO 10360-10 style MPE statements of current trackers:
+
+- ADM distance: MPE = ±(10 µm + 0.3 µm/m · R)
+- angular (transverse): MPE = ±(15 µm + 6 µm/m · R)
+
+with typical values = half the MPE (the convention of Leica, FARO and API data sheets, which state
+typical = MPE / 2). The model draws radial noise with sigma = typical ADM and two transverse
+components with sigma = typical angular, all configurable. The tracker is at the world origin.
+
+A point is given only when the beam reaches the SMR: the straight line from the tracker to the
+SMR centre must not hit any object (part, stand, scanner housing) before the ball, and the beam
+must fall inside the corner cube's acceptance cone (±30° around the opening for a 1.5" SMR);
+otherwise the measurement is a beam break, never a point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass
+
+import numpy as np
+from scancell.sim.scene import Scene
+
+
+@dataclass(frozen=True)
+class TrackerSpec:
+    adm_const_um: float = 10.0
+    adm_per_m_um: float = 0.3
+    angle_const_um: float = 15.0
+    angle_per_m_um: float = 6.0
+    typical_fraction: float = 0.5  # typical = half the MPE
+    acceptance_half_angle_deg: float = 30.0
+
+    def sigmas_mm(self, range_mm: float) -> tuple[float, float]:
+        """(radial, transverse) 1-sigma in mm at ``range_mm``."""
+        r_m = range_mm / 1000.0
+        radial = self.typical_fraction * (self.adm_const_um + self.adm_per_m_um * r_m) / 1000
+        trans = self.typical_fraction * (self.angle_const_um + self.angle_per_m_um * r_m) / 1000
+        return radial, trans
+
+
+class BeamBreak(Exception):
+    """The beam does not reach the reflector (occluded or outside its acceptance angle)."""
+
+
+@dataclass(frozen=True)
+class TrackerReading:
+    point_mm: np.ndarray
+    sigma_mm: np.ndarray  # per world axis
+    true_point_mm: np.ndarray
+
+
+class TrackerModel:
+    def __init__(self, spec: TrackerSpec | None = None, rng: np.random.Generator | None = None,
+                 position_mm: np.ndarray | None = None) -> None:
+        self.spec = spec or TrackerSpec()
+        self.rng = rng or np.random.default_rng(0)
+        self.position = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
+
+    def beam_check(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
+                   scene: Scene, exclude: Collection[str] = ()) -> None:
+        """Raise BeamBreak if the beam cannot lock on an SMR at ``center``."""
+        to_smr = center - self.position
+        dist = float(np.linalg.norm(to_smr))
+        u = to_smr / dist
+        cos_acc = float(np.dot(-u, opening_dir / np.linalg.norm(opening_dir)))
+        if cos_acc < np.cos(np.radians(self.spec.acceptance_half_angle_deg)):
+            angle = np.degrees(np.arccos(np.clip(cos_acc, -1, 1)))
+            raise BeamBreak(f"beam {angle:.1f} deg off the SMR axis (acceptance "
+                            f"+/-{self.spec.acceptance_half_angle_deg:.0f} deg)")
+        if scene.occluded(self.position, u[None], np.array([dist - radius_mm - 0.5]),
+                          exclude=exclude)[0]:
+            raise BeamBreak("beam occluded before the SMR")
+
+    def measure(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
+                scene: Scene, exclude: Collection[str] = ()) -> TrackerReading:
+        self.beam_check(center, opening_dir, radius_mm, scene, exclude)
+        to_smr = center - self.position
+        dist = float(np.linalg.norm(to_smr))
+        u = to_smr / dist
+        a = np.cross(u, [0.0, 0.0, 1.0])
+        if np.linalg.norm(a) < 1e-6:
+            a = np.cross(u, [1.0, 0.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(u, a)
+        s_r, s_t = self.spec.sigmas_mm(dist)
+        e = self.rng.normal(size=3)
+        point = center + u * s_r * e[0] + a * s_t * e[1] + b * s_t * e[2]
+        B = np.stack([u, a, b], axis=1)
+        cov = B @ np.diag([s_r**2, s_t**2, s_t**2]) @ B.T
+        return TrackerReading(point, np.sqrt(np.diag(cov)), center.copy())

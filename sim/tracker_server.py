@@ -1,0 +1,199 @@
+"""Tracker simulator speaking the scancell tracker line protocol over TCP or a pseudo-terminal,
+backed by the simulated cell's tracker model (noise, beam break on occlusion or acceptance)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import threading
+import time
+import tty
+
+import numpy as np
+from scancell.protocols import tracker_line as tl
+from scancell.sim.cell import SimCell
+from scancell.sim.tracker_model import BeamBreak
+
+
+class TrackerProtocolHandler:
+    """Answers one line at a time; ``events()`` reports beam changes since the last call."""
+
+    def __init__(self, cell: SimCell, serial_number: str = "SIM-0001") -> None:
+        self.cell = cell
+        self.serial_number = serial_number
+        self.target = "scanner"
+        self._locked: bool | None = None
+        self.env = (20.0, 1013.25, 45.0)
+
+    def _lock_state(self) -> tuple[bool, str]:
+        try:
+            self.cell.beam_check(self.target)
+            return True, ""
+        except BeamBreak as exc:
+            return False, str(exc)
+
+    def events(self) -> list[bytes]:
+        locked, reason = self._lock_state()
+        out = []
+        if self._locked is not None and locked != self._locked:
+            name, arg = ("BeamLocked", "SMR1.5") if locked else ("BeamBroken", reason)
+            out.append(tl.format_response(tl.EVENT_TAG, "event", name, (arg,)))
+        self._locked = locked
+        return out
+
+    def handle(self, line: str) -> list[bytes]:
+        try:
+            tag, name, args = tl.parse_command(line)
+        except tl.LineError as exc:
+            return [tl.error_response("00000", 2003, str(exc))]
+        n_args = {"Hello": 0, "Measure": 0, "Status": 0, "Environment": 0, "FindReflector": 3,
+                  "Abort": 0}
+        if name not in n_args:
+            return [tl.error_response(tag, 2001, f"unknown command {name!r}")]
+        if len(args) != n_args[name] or not all(isinstance(a, int | float) for a in args):
+            return [tl.error_response(tag, 2002, f"{name} takes {n_args[name]} numbers")]
+        ack = tl.format_response(tag, "ack")
+        done = tl.format_response(tag, "done")
+        if name == "Hello":
+            return [ack, tl.format_response(tag, "data", "Hello",
+                                            ("scancell sim tracker", "1.0", self.serial_number)),
+                    done]
+        if name == "Measure":
+            try:
+                r = self.cell.measure_smr(self.target)
+            except BeamBreak as exc:
+                return [ack, tl.error_response(tag, 1001, str(exc))]
+            x, y, z = (float(v) for v in r.point_mm)
+            sx, sy, sz = (float(v) for v in r.sigma_mm)
+            return [ack, tl.format_response(tag, "data", "Point",
+                                            (x, y, z, sx, sy, sz, time.time_ns())), done]
+        if name == "Status":
+            locked, _ = self._lock_state()
+            return [ack, tl.format_response(tag, "data", "Status", (int(locked), "SMR1.5")), done]
+        if name == "Environment":
+            return [ack, tl.format_response(tag, "data", "Env", self.env), done]
+        if name == "FindReflector":
+            p = np.asarray(args, float)
+            candidates = {"scanner": self.cell.smr_center_world()}
+            with contextlib.suppress(KeyError):
+                candidates["ball"] = self.cell.ball_center_world()
+            best = min(candidates, key=lambda k: np.linalg.norm(candidates[k] - p))
+            if np.linalg.norm(candidates[best] - p) > 100.0:
+                return [tl.error_response(tag, 1002, "no reflector within 100 mm")]
+            self.target = best
+            return [ack, tl.format_response(tag, "data", "Locked", ("SMR1.5",)), done]
+        return [ack, done]  # Abort: measurements here are instantaneous
+
+
+class TcpTrackerServer:
+    def __init__(self, cell: SimCell, host: str = "127.0.0.1", port: int = 0,
+                 event_period_s: float = 0.1) -> None:
+        self.handler = TrackerProtocolHandler(cell)
+        self.host, self._port = host, port
+        self.event_period_s = event_period_s
+        self._server: asyncio.base_events.Server | None = None
+        self._writers: set[asyncio.StreamWriter] = set()
+        self._events: asyncio.Task | None = None
+        self.stall = False  # tests: accept commands, never answer
+
+    @property
+    def port(self) -> int:
+        return self._server.sockets[0].getsockname()[1] if self._server else self._port
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(self._client, self.host, self._port)
+        self._events = asyncio.create_task(self._event_loop())
+
+    async def close(self) -> None:
+        if self._events:
+            self._events.cancel()
+        if self._server:
+            self._server.close()
+        for w in list(self._writers):
+            w.close()
+        if self._server:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+
+    def inject(self, raw: bytes) -> None:
+        """Tests: write raw bytes to every client."""
+        for w in self._writers:
+            w.write(raw)
+
+    async def _event_loop(self) -> None:
+        while True:
+            for line in self.handler.events():
+                self.inject(line)
+            await asyncio.sleep(self.event_period_s)
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._writers.add(writer)
+        splitter = tl.LineSplitter()
+        try:
+            while data := await reader.read(4096):
+                try:
+                    lines = splitter.feed(data)
+                except tl.LineError as exc:
+                    writer.write(tl.error_response("00000", 2003, str(exc)))
+                    continue
+                for line in lines:
+                    if self.stall:
+                        continue
+                    for out in self.handler.handle(line):
+                        writer.write(out)
+                await writer.drain()
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            self._writers.discard(writer)
+            writer.close()
+
+
+class PtyTrackerServer:
+    """The same protocol on a pseudo-terminal: connect a driver to ``self.path``."""
+
+    def __init__(self, cell: SimCell, event_period_s: float = 0.1) -> None:
+        self.handler = TrackerProtocolHandler(cell)
+        self.event_period_s = event_period_s
+        self.master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.path = os.ttyname(self._slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True, name="pty-tracker")
+        self._thread.start()
+
+    def _serve(self) -> None:
+        import select
+
+        splitter = tl.LineSplitter()
+        next_event = time.monotonic()
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.05)
+            out: list[bytes] = []
+            if ready:
+                try:
+                    data = os.read(self.master, 4096)
+                except OSError:
+                    return
+                try:
+                    for line in splitter.feed(data):
+                        out += self.handler.handle(line)
+                except tl.LineError as exc:
+                    out.append(tl.error_response("00000", 2003, str(exc)))
+            if time.monotonic() >= next_event:
+                out += self.handler.events()
+                next_event = time.monotonic() + self.event_period_s
+            for chunk in out:
+                try:
+                    os.write(self.master, chunk)
+                except OSError:
+                    return
+
+    def close(self) -> None:
+        """Close the terminal: to the driver, the serial port disappears."""
+        self._stop.set()
+        self._thread.join(1.0)
+        for fd in (self.master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)

@@ -1,0 +1,291 @@
+"""``scancell worker fuse``: stations into the tracker frame as they arrive, and a report per job.
+
+Inputs:
+- ``calib/hand_eye``: the calibration in force (latched) — ``T_ecs_from_mcs`` and the J6 angles
+  its ECS was built at;
+- ``scan/<station>/ecs``: the station's tracker points P1, P2, P3 (``scancell.StationEcs``);
+- ``scan/<station>/cloud``: the station's cloud in ``mcs_<station>``;
+- ``job/*/event``: the end of a ``scan_part`` job.
+
+Outputs:
+- ``tf/ecs_<station>`` and ``tf/mcs_<station>``: the frame tree ``world <- ecs_i <- mcs_i``;
+- ``fusion/cloud``: the growing fused cloud in ``world``, thinned to ``display_voxel_mm`` for a
+  viewer;
+- at the end of a job, ``fusion/report`` (``scancell.FusionReport``) and, with ``--out DIR``,
+  ``DIR/<job>/``: ``fused.ply``, ``fused.e57``, ``mesh.ply`` and ``report/report.md`` with
+  pictures.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.error_budget import budget, ecs_noise_effect
+from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
+from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment, EncodingError
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class JobStations:
+    job_id: str
+    ecs: dict[str, dict[str, Any]] = field(default_factory=dict)  # station -> StationEcs
+    clouds: dict[str, np.ndarray] = field(default_factory=dict)  # station -> MCS points
+    fused: dict[str, Station] = field(default_factory=dict)
+    display: dict[str, np.ndarray] = field(default_factory=dict)  # thinned world points
+    ended: str | None = None  # done | failed | aborted
+    #: The stations the job's final event says were measured (its samples travel on other keys
+    #: and may still be on their way).
+    announced: set[str] = field(default_factory=set)
+
+
+@dataclass
+class FuseSettings:
+    out_dir: Path | None = None
+    voxel_mm: float = 0.5
+    display_voxel_mm: float = 3.0
+    mesh: bool = True
+    cloud_wait_s: float = 120.0
+    #: A function (points world mm) -> distances to the true surface (mm), simulation only.
+    truth: Any = None
+
+
+class FuseWorker:
+    def __init__(self, bus: Any, settings: FuseSettings | None = None) -> None:
+        self.bus = bus
+        self.settings = settings or FuseSettings()
+        self.hand_eye: dict[str, Any] | None = None
+        self.jobs: dict[str, JobStations] = {}
+        self.reports: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        self._queue: queue.Queue[tuple[str, str] | None] = queue.Queue()
+        self._subs: list[Any] = []
+        self._thread = threading.Thread(target=self._run, daemon=True, name="fuse-worker")
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        self._thread.start()
+        k = self.bus.keys
+        for s in self.bus.fetch_latched(k.hand_eye, 1.0):
+            self._on_hand_eye(s)
+        self._subs = [self.bus.subscribe(k.hand_eye, self._on_hand_eye),
+                      self.bus.subscribe(k.station_ecs("*"), self._on_ecs),
+                      self.bus.subscribe(k.scan_cloud("*"), self._on_cloud),
+                      self.bus.subscribe(k.job_event("*"), self._on_event)]
+
+    def stop(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._queue.put(None)
+        self._thread.join(120)
+
+    def pending(self) -> int:
+        return self._queue.unfinished_tasks
+
+    # ---------------------------------------------------------------- bus callbacks
+    def _on_hand_eye(self, sample: Any) -> None:
+        body = sample.decode()
+        if body.get("T_ecs_from_mcs") is None:
+            return  # a failed calibration does not replace the one in force
+        try:
+            check_rigid(np.asarray(body["T_ecs_from_mcs"]), "calib/hand_eye T_ecs_from_mcs")
+        except FusionError as exc:
+            log.error("%s", exc)
+            return
+        with self._lock:
+            self.hand_eye = body
+
+    def _job(self, job_id: str) -> JobStations:
+        return self.jobs.setdefault(job_id, JobStations(job_id))
+
+    def _on_ecs(self, sample: Any) -> None:
+        e = sample.decode()
+        with self._lock:
+            self._job(e["job_id"]).ecs[e["station"]] = e
+        self._queue.put(("station", f"{e['job_id']}\0{e['station']}"))
+
+    def _on_cloud(self, sample: Any) -> None:
+        meta = sample.attachment.meta
+        scan_id, station = str(meta.get("scan_id", "")), str(meta.get("station", ""))
+        job_id = scan_id[: -len(station) - 1] if scan_id.endswith("-" + station) else None
+        if job_id is None or not job_id.startswith("scan_part-"):
+            return  # not a scan_part station (a hand-eye ball, a single scan)
+        try:
+            pts = messages.cloud_points(sample.decode()).astype(float)
+        except EncodingError as exc:
+            log.warning("%s: %s", sample.key, exc)
+            return
+        with self._lock:
+            self._job(job_id).clouds[station] = pts
+        self._queue.put(("station", f"{job_id}\0{station}"))
+
+    def _on_event(self, sample: Any) -> None:
+        e = sample.decode()
+        if e.get("kind") == "scan_part" and e.get("state") in ("done", "failed", "aborted"):
+            result = e.get("result") or {}
+            done = result.get("stations") or result.get("stations_done") or []
+            with self._lock:
+                job = self._job(e["job_id"])
+                job.ended = e["state"]
+                job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
+            self._queue.put(("end", e["job_id"]))
+
+    # ---------------------------------------------------------------- worker thread
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            try:
+                kind, arg = item
+                if kind == "station":
+                    self.add_station(*arg.split("\0"))
+                else:
+                    self.finish(arg)
+            except Exception:
+                log.exception("fuse worker: %s", item)
+            finally:
+                self._queue.task_done()
+
+    def add_station(self, job_id: str, station: str) -> Station | None:
+        """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in."""
+        with self._lock:
+            job = self._job(job_id)
+            ecs, cloud, he = job.ecs.get(station), job.clouds.get(station), self.hand_eye
+            if ecs is None or cloud is None or station in job.fused:
+                return None
+        if he is None:
+            log.error("station %s of %s: no hand-eye calibration on calib/hand_eye; not fused",
+                      station, job_id)
+            return None
+        frame = [0.0, *he.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
+        try:
+            T_world_from_ecs = ecs_for_frame(np.asarray(ecs["points_mm"]), ecs["j6_deg"], frame)
+        except DegenerateGeometry as exc:
+            log.error("station %s of %s: no ECS: %s", station, job_id, exc)
+            return None
+        T_ecs_from_mcs = np.asarray(he["T_ecs_from_mcs"])
+        noise = None
+        if ecs.get("sigma_mm") is not None and len(cloud):
+            noise = ecs_noise_effect(np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]),
+                                     ecs["j6_deg"], frame, T_ecs_from_mcs, cloud)
+        st = Station(station, cloud, T_world_from_ecs, noise)
+        thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
+        with self._lock:
+            job.fused[station] = st
+            job.display[station] = thinned
+            n_stations = len(job.fused)
+            shown = np.concatenate(list(job.display.values()))
+        now = messages.now_ns()
+        k = self.bus.keys
+        for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
+                                 (T_ecs_from_mcs, f"ecs_{station}", f"mcs_{station}")):
+            self.bus.publish(k.transform(child), messages.encode_proto(
+                messages.frame_transform(T, now, parent, child)))
+        self.bus.publish(k.fusion_cloud, messages.encode_proto(
+            messages.point_cloud(shown, now, "world")),
+            Attachment(now, n_stations, None, {"job_id": job_id, "stations": n_stations}))
+        log.info("job %s: station %s fused (%d stations, %d display points)", job_id, station,
+                 n_stations, len(shown))
+        return st
+
+    def finish(self, job_id: str) -> dict[str, Any] | None:
+        """At the end of a job: wait for the last clouds, then fuse, measure and report."""
+        deadline = time.monotonic() + self.settings.cloud_wait_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                job = self._job(job_id)
+                expected = set(job.ecs) | job.announced
+                waiting = sorted(expected - set(job.clouds)) + sorted(job.announced - set(job.ecs))
+            if not waiting:
+                break
+            time.sleep(0.2)
+        for station in sorted(job.ecs):
+            self.add_station(job_id, station)
+        with self._lock:
+            stations = list(job.fused.values())
+            he = self.hand_eye
+        if not stations or he is None:
+            body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
+                    "error": "no station could be fused" + ("" if he else ": no hand-eye")}
+            self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
+            return body
+        body = build_report(job_id, stations, np.asarray(he["T_ecs_from_mcs"]), he,
+                            self.settings, job.ended)
+        self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
+        self.reports.append(body)
+        return body
+
+
+def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarray,
+                 hand_eye: dict[str, Any], settings: FuseSettings,
+                 state: str | None) -> dict[str, Any]:
+    """Fused model, overlap metrics and (in simulation) the true error; files if out_dir."""
+    from scancell.analysis.metrics import MetricsError, compare_clouds
+
+    t0 = time.perf_counter()
+    fused = fuse(stations, T_ecs_from_mcs, settings.voxel_mm)
+    body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
+                            "points_merged": fused.merged_count, "points": len(fused.points),
+                            "hand_eye_job": hand_eye.get("job_id"),
+                            "hand_eye_rms_mm": hand_eye.get("rms_mm")}
+    metrics = None
+    try:
+        metrics = compare_clouds(fused.per_station) if len(stations) > 1 else None
+    except MetricsError as exc:
+        body["metrics_error"] = str(exc)
+    if metrics is not None:
+        m = metrics.to_json()
+        body.update(translation_mm=m["translation_mm"], rotation_deg=m["rotation_deg"],
+                    pairs=m["pairs"])
+    truth = None
+    if settings.truth is not None:
+        d = np.abs(settings.truth(fused.points))
+        truth = d
+        body["true_error_mm"] = {"mean": float(d.mean()), "std": float(d.std()),
+                                 "max": float(d.max()), "p95": float(np.percentile(d, 95))}
+    body["error_budget"] = budget(
+        {st.name: st.ecs_noise_mm for st in stations if st.ecs_noise_mm is not None},
+        body.get("translation_mm", {}).get("mean"), body.get("true_error_mm", {}).get("mean"),
+        hand_eye.get("rms_mm"))
+    if settings.out_dir is not None:
+        body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
+                                      settings.mesh)
+    body["seconds"] = round(time.perf_counter() - t0, 2)
+    return body
+
+
+def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | None,
+                  body: dict[str, Any], mesh: bool) -> dict[str, str]:
+    from scancell.analysis.cloud_io import write_ply
+    from scancell.analysis.export import poisson_mesh, write_e57, write_mesh
+    from scancell.analysis.report import write_report
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {"ply": str(folder / "fused.ply"), "e57": str(folder / "fused.e57")}
+    write_ply(files["ply"], fused.points,
+              {"true_error_mm": truth.astype(np.float32)} if truth is not None else None)
+    write_e57(files["e57"], fused.points)
+    if mesh:
+        files["mesh"] = str(folder / "mesh.ply")
+        write_mesh(files["mesh"], poisson_mesh(fused.points))
+    if metrics is not None:
+        files["report"] = str(write_report(folder / "report", fused, metrics,
+                                           f"scancell fusion report: {body['job_id']}",
+                                           extra={"true_error_mm": body.get("true_error_mm")},
+                                           error_budget=body.get("error_budget"),
+                                           truth=truth))
+    (folder / "summary.json").write_text(json.dumps(body, indent=2))
+    return files

@@ -1,0 +1,50 @@
+"""The stations of a recorded ``scan_part`` session, ready for :func:`scancell.analysis.fusion.fuse`:
+each station's cloud (``scan/<station>/cloud``), its ECS from the recorded tracker points
+(``scan/<station>/ecs``) and the hand-eye calibration in force (``calib/hand_eye``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.fusion import FusionError, Station
+from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
+from scancell.protocols import messages
+from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+from scancell.recorder.reading import samples
+
+
+def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict[str, Any]]:
+    """Raises FusionError naming what the recording lacks."""
+    hand_eye: dict[str, Any] | None = None
+    ecs: dict[str, dict[str, Any]] = {}
+    clouds: dict[str, np.ndarray] = {}
+    for s in samples(path, ["calib/hand_eye", "scan/*/ecs", "scan/*/cloud"]):
+        if s.key.endswith("/calib/hand_eye"):
+            body = json.loads(s.payload)
+            if body.get("T_ecs_from_mcs") is not None:
+                hand_eye = body
+        elif s.key.endswith("/ecs"):
+            e = json.loads(s.payload)
+            ecs[e["scan_id"]] = e
+        else:
+            clouds[str(s.attachment.meta.get("scan_id"))] = messages.cloud_points(
+                s.decode()).astype(float)
+    if hand_eye is None:
+        raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")
+    if not ecs:
+        raise FusionError(f"{path}: no scan_part stations (scan/<station>/ecs) in the recording")
+    frame = [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
+    stations = []
+    for scan_id, e in sorted(ecs.items(), key=lambda kv: kv[1].get("index", 0)):
+        if scan_id not in clouds:
+            raise FusionError(f"{path}: station {e['station']}: no cloud for scan {scan_id} "
+                              f"(was a scan worker running? try `scancell reprocess`)")
+        try:
+            T = ecs_for_frame(np.asarray(e["points_mm"]), e["j6_deg"], frame)
+        except DegenerateGeometry as exc:
+            raise FusionError(f"{path}: station {e['station']}: {exc}") from None
+        stations.append(Station(e["station"], clouds[scan_id], T))
+    return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye

@@ -1,0 +1,188 @@
+"""``scancell worker scan``: reassembles scans from the bus, decodes them, publishes the clouds.
+
+Input: ``dev/*/image`` frames whose attachment meta is a ``scancell.ScanFrameMeta`` (``cmd/scan``
+publishes them). Output per scan: ``scan/<station>/cloud`` (foxglove.PointCloud, frame
+``mcs_<station>``: the scanner frame at that station,
+mm, fields x, y, z, quality, intensity) and ``scan/<station>/result`` (``scancell.ScanResult``).
+The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scancell.analysis.phase import DecodeError
+from scancell.analysis.scanner import ScanDecoder, ScanResult
+from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
+from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment, EncodingError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PendingScan:
+    scan_id: str
+    station: str
+    sequence: FringeSequence
+    patterns: int
+    frames: dict[str, dict[int, np.ndarray]] = field(default_factory=lambda: {"left": {}, "right": {}})
+    first_seen: float = field(default_factory=time.monotonic)
+    stamp_ns: int = 0
+
+    def complete(self) -> bool:
+        return all(len(self.frames[r]) == self.patterns for r in ("left", "right"))
+
+    def missing(self) -> str:
+        return "; ".join(f"{r}: patterns {sorted(set(range(self.patterns)) - set(f))}"
+                         for r, f in self.frames.items() if len(f) < self.patterns)
+
+
+class ScanAssembler:
+    """Collects frames by scan id; a scan is handed out once every pattern of both roles is in."""
+
+    def __init__(self, max_age_s: float = 120.0) -> None:
+        self.max_age_s = max_age_s
+        self.pending: dict[str, PendingScan] = {}
+
+    def add(self, meta: dict[str, Any], image: np.ndarray, stamp_ns: int) -> PendingScan | None:
+        try:
+            scan_id, role, k = str(meta["scan_id"]), str(meta["role"]), int(meta["pattern"])
+            seq = FringeSequence(tuple(float(p) for p in meta["periods"]), int(meta["steps"]))
+            n = int(meta["patterns"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"frame meta is not a ScanFrameMeta: {exc}") from None
+        if role not in ("left", "right") or not 0 <= k < n or n != len(seq):
+            raise ValueError(f"scan {scan_id}: bad role {role!r} or pattern {k} of {n}")
+        scan = self.pending.setdefault(scan_id, PendingScan(scan_id, str(meta.get("station", "0")),
+                                                            seq, n))
+        scan.frames[role][k] = image
+        if k == 0 and role == "left":
+            scan.stamp_ns = stamp_ns
+        if scan.complete():
+            return self.pending.pop(scan_id)
+        return None
+
+    def expire(self) -> list[PendingScan]:
+        now = time.monotonic()
+        old = [s for s in self.pending.values() if now - s.first_seen > self.max_age_s]
+        for s in old:
+            del self.pending[s.scan_id]
+        return old
+
+
+def result_message(scan: PendingScan, result: ScanResult | None, error: str | None) -> dict[str, Any]:
+    body: dict[str, Any] = {"scan_id": scan.scan_id, "station": scan.station, "ok": error is None,
+                            "error": error}
+    if result is not None:
+        body.update(points=len(result.cloud),
+                    valid_share={"left": round(result.left.valid_share, 4),
+                                 "right": round(result.right.valid_share, 4)},
+                    timings_s={k: round(v, 4) for k, v in result.timings.items()})
+    return body
+
+
+class ScanWorker:
+    """Subscribes on ``bus``, decodes complete scans in a worker thread, publishes results."""
+
+    def __init__(self, bus: Any, calib: StereoCalibration, projector_width: int = PROJECTOR_WIDTH) -> None:
+        self.bus = bus
+        self.calib = calib
+        self.projector_width = projector_width
+        self.assembler = ScanAssembler()
+        self._decoders: dict[FringeSequence, ScanDecoder] = {}
+        self._queue: queue.Queue[PendingScan | None] = queue.Queue()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="scan-worker")
+        self._sub: Any = None
+        self._calib_pub: Any = None
+        self.done = 0
+
+    def start(self) -> None:
+        self._thread.start()
+        self._calib_pub = self.bus.latched(self.bus.keys.stereo)
+        self._calib_pub.publish(messages.encode_json(
+            {**self.calib.to_json(), "projector_width": self.projector_width},
+            "scancell.StereoCalibration"))
+        self._sub = self.bus.subscribe(self.bus.keys.dev("*", "image"), self._on_frame,
+                                       lambda key, exc: log.warning("%s: %s", key, exc))
+
+    def stop(self) -> None:
+        if self._sub is not None:
+            self._sub.undeclare()
+        if self._calib_pub is not None:
+            self._calib_pub.close()
+        self._queue.put(None)
+        self._thread.join(30)
+
+    def pending(self) -> int:
+        """Scans queued or being decoded."""
+        return self._queue.unfinished_tasks
+
+    def _on_frame(self, sample: Any) -> None:
+        meta = sample.attachment.meta
+        if "scan_id" not in meta:
+            return  # a live image, not part of a scan
+        try:
+            image = messages.image_array(sample.decode())
+            with self._lock:
+                complete = self.assembler.add(meta, image, sample.attachment.stamp_ns)
+                expired = self.assembler.expire()
+        except (ValueError, EncodingError) as exc:
+            log.warning("%s: dropped frame: %s", sample.key, exc)
+            return
+        for scan in expired:
+            log.error("scan %s (station %s) incomplete after %.0f s, dropped: %s", scan.scan_id,
+                      scan.station, self.assembler.max_age_s, scan.missing())
+            self._publish_result(scan, None, f"incomplete: {scan.missing()}")
+        if complete is not None:
+            self._queue.put(complete)
+
+    def decoder(self, seq: FringeSequence) -> ScanDecoder:
+        if seq not in self._decoders:
+            self._decoders[seq] = ScanDecoder(self.calib, seq, self.projector_width)
+        return self._decoders[seq]
+
+    def process(self, scan: PendingScan) -> ScanResult | None:
+        left = [scan.frames["left"][k] for k in range(scan.patterns)]
+        right = [scan.frames["right"][k] for k in range(scan.patterns)]
+        try:
+            result = self.decoder(scan.sequence).decode(left, right)
+        except (DecodeError, CalibrationError) as exc:
+            log.error("scan %s (station %s): %s", scan.scan_id, scan.station, exc)
+            self._publish_result(scan, None, str(exc))
+            return None
+        c = result.cloud
+        msg = messages.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
+                                   f"mcs_{scan.station}",
+                                   {"quality": c.quality, "intensity": c.intensity})
+        meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c)}
+        self.bus.publish(self.bus.keys.scan_cloud(scan.station), messages.encode_proto(msg),
+                         Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
+        self._publish_result(scan, result, None)
+        log.info("scan %s station %s: %d points in %.2f s", scan.scan_id, scan.station, len(c),
+                 result.timings["total"])
+        return result
+
+    def _publish_result(self, scan: PendingScan, result: ScanResult | None, error: str | None) -> None:
+        self.bus.publish_json(self.bus.keys.scan_result(scan.station),
+                              result_message(scan, result, error), "scancell.ScanResult")
+
+    def _run(self) -> None:
+        while True:
+            scan = self._queue.get()
+            if scan is None:
+                return
+            try:
+                self.process(scan)
+            except Exception:
+                log.exception("scan %s: unexpected error", scan.scan_id)
+            self.done += 1
+            self._queue.task_done()
