@@ -8,7 +8,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.scancell-installed
 
-.PHONY: demo test lint bench setup clean
+.PHONY: demo test test-fast lint bench setup clean
 
 setup: $(STAMP)
 
@@ -22,11 +22,18 @@ $(STAMP): pyproject.toml deploy/install-system-deps.sh
 demo: $(STAMP)
 	$(VENV)/bin/scancell demo
 
+# ruff, then the layer contracts of pyproject.toml [tool.importlinter] (README "Layout").
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
 
+# Every tier: unit, process and e2e (markers in pyproject.toml).
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile
+
+# The unit tier alone: in-process tests, no sockets to other processes (about a minute).
+test-fast: lint
+	$(PY) -m pytest -q -n 2 -m unit
 
 bench: $(STAMP)
 	sh deploy/install-system-deps.sh --bench || echo "no CloudCompare: bench_metrics runs without its reference"

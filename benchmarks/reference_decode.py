@@ -106,3 +106,63 @@ def triangulate(rows, xl, xr, rect) -> np.ndarray:
     p = np.stack([(xl - rect.cx1) * z / rect.f, (rows - rect.cy) * z / rect.f, z], 1)
     good = d > 0
     return (p[good] @ rect.R1)
+
+
+def read_calibration(path: str) -> dict[str, np.ndarray]:
+    """The stereo.yaml keys (OpenCV FileStorage) the decode needs."""
+    import cv2
+
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    out = {k: fs.getNode(k).mat() for k in ("K1", "D1", "K2", "D2", "R", "T")}
+    out["size"] = np.array([int(fs.getNode("image_width").real()),
+                            int(fs.getNode("image_height").real())])
+    fs.release()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python reference_decode.py --calib stereo.yaml --images DIR --out cloud.ply``: the
+    whole decode as a process, the plain way (numpy and OpenCV only, no scancell), for
+    bench_cli_startup.py to set ``scancell decode`` against."""
+    import argparse
+    import time
+
+    import cv2
+
+    p = argparse.ArgumentParser()
+    p.add_argument("--calib", required=True)
+    p.add_argument("--images", required=True)
+    p.add_argument("--out", required=True)
+    a = p.parse_args(argv)
+    t0 = time.perf_counter()
+    c = read_calibration(a.calib)
+    images = {}
+    for role in ("left", "right"):
+        files = sorted((f for f in __import__("pathlib").Path(a.images, role).iterdir()
+                        if f.suffix == ".png"))
+        images[role] = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+    size = (int(c["size"][0]), int(c["size"][1]))
+    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(c["K1"], c["D1"], c["K2"], c["D2"], size, c["R"],
+                                                c["T"].reshape(3, 1), flags=0, alpha=-1)
+    maps1 = cv2.initUndistortRectifyMap(c["K1"], c["D1"], R1, P1, size, cv2.CV_32FC1)
+    maps2 = cv2.initUndistortRectifyMap(c["K2"], c["D2"], R2, P2, size, cv2.CV_32FC1)
+    rl = remap(decode(images["left"]), *maps1)
+    rr = remap(decode(images["right"]), *maps2)
+    rows, xl, xr = match(rl, rr, max_step=3.0)
+    f, cx1, cy, cx2 = P1[0, 0], P1[0, 2], P1[1, 2], P2[0, 2]
+    baseline = float(np.linalg.norm(c["T"]))
+    d = (xl - cx1) - (xr - cx2)
+    good = d > 0
+    z = f * baseline / d[good]
+    pts = np.stack([(xl[good] - cx1) * z / f, (rows[good] - cy) * z / f, z], 1) @ R1
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
+              "property float x\nproperty float y\nproperty float z\nend_header\n")
+    with open(a.out, "wb") as fh:
+        fh.write(header.encode())
+        fh.write(pts.astype("<f4").tobytes())
+    print(f"{len(pts)} points -> {a.out} in {time.perf_counter() - t0:.2f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -128,7 +128,7 @@ class Daemon:
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
                                                                  self.simulator),
-            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.planner),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,
@@ -250,7 +250,7 @@ class Daemon:
         }
 
     async def _cmd_scan_part(self, request: dict[str, Any]) -> dict[str, Any]:
-        scan_part_precheck(request, self.supervisors, self.cfg.planner)
+        scan_part_precheck(request, self.supervisors, self.cfg.geometry)
         return await self.jobs.start("scan_part", request)
 
     async def _cmd_estop(self, request: dict[str, Any]) -> dict[str, Any]:
