@@ -43,12 +43,12 @@ def _free_port() -> int:
 def role_pub(ep: str, camera: str, fps: float, seconds: float) -> None:
     import numpy as np
     from scancell.bus import Bus, BusConfig
-    from scancell.protocols import messages
+    from scancell.protocols import foxglove_schemas as fg
 
     bus = Bus.open(BusConfig(mode="client", connect=(ep,)), CELL, wait_s=20)
     rng = np.random.default_rng(hash(camera) % 1000)
     img = rng.integers(0, 255, (H, W), dtype=np.uint8)  # incompressible, like sensor noise
-    enc = messages.encode_proto(messages.raw_image(img, 0, camera))
+    enc = fg.encode_proto(fg.raw_image(img, 0, camera))
     key = bus.keys.dev(camera, "image")
     time.sleep(1.0)
     t0 = time.monotonic()

@@ -138,8 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     c = read_calibration(a.calib)
     images = {}
     for role in ("left", "right"):
-        files = sorted((f for f in __import__("pathlib").Path(a.images, role).iterdir()
-                        if f.suffix == ".png"))
+        files = sorted(f for f in __import__("pathlib").Path(a.images, role).iterdir()
+                        if f.suffix == ".png")
         images[role] = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
     size = (int(c["size"][0]), int(c["size"][1]))
     R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(c["K1"], c["D1"], c["K2"], c["D2"], size, c["R"],

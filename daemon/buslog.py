@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from scancell.bus import Bus
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 
 
 class BusLogHandler(logging.Handler):
@@ -15,8 +15,8 @@ class BusLogHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            msg = messages.log_message(record.levelname, self.format(record), record.name,
+            msg = fg.log_message(record.levelname, self.format(record), record.name,
                                        int(record.created * 1e9))
-            self.bus.publish(self.bus.keys.daemon_log, messages.encode_proto(msg))
+            self.bus.publish(self.bus.keys.daemon_log, fg.encode_proto(msg))
         except Exception:  # the bus may be closing; never let logging raise
             self.handleError(record)

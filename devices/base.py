@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
 from scancell.protocols.encoding import Attachment, Encoded
@@ -230,7 +231,7 @@ class Robot(Device):
     async def poll_telemetry(self) -> None:
         q = await self.joints()
         t = messages.now_ns()
-        self.emit("joints", messages.encode_proto(messages.joint_states(
+        self.emit("joints", fg.encode_proto(fg.joint_states(
             list(self.joint_names), q, t)), t)
 
     @operation("robot.joints")
@@ -392,8 +393,8 @@ class Camera(Device):
         return n
 
     def publish_frame(self, frame: Frame, meta: dict[str, Any] | None = None) -> None:
-        msg = messages.raw_image(frame.image, frame.stamp_ns, self.name)
-        self.emit("image", messages.encode_proto(msg), frame.stamp_ns, frame.device_stamp_ns,
+        msg = fg.raw_image(frame.image, frame.stamp_ns, self.name)
+        self.emit("image", fg.encode_proto(msg), frame.stamp_ns, frame.device_stamp_ns,
                   {**frame.meta, **(meta or {})})
 
     @operation("camera.configure")

@@ -9,7 +9,6 @@ import json
 from functools import cache
 from typing import Any
 
-import jsonschema
 from scancell.protocols.messages import json_schema
 
 REPLY_SCHEMA = "scancell.CommandReply"
@@ -49,7 +48,9 @@ def request_schema_name(verb: str) -> str:
 
 
 @cache
-def _validator(schema_name: str) -> jsonschema.protocols.Validator:
+def _validator(schema_name: str):
+    import jsonschema
+
     schema = json_schema(schema_name)
     cls = jsonschema.validators.validator_for(schema)
     cls.check_schema(schema)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zenoh
 from scancell.bus import Bus, BusConfig, BusSample, NoDaemon
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import Attachment
 
 
@@ -33,7 +33,7 @@ def test_publish_subscribe_carries_encoding_schema_and_stamp(bus_pair):
     img = (np.arange(12, dtype=np.uint8).reshape(3, 4))
     att = Attachment(1_700_000_000_000_000_000, 7, 42, {"station": 2, "pattern": 5})
     a.publish(a.keys.dev("cam_left", "image"),
-              messages.encode_proto(messages.raw_image(img, att.stamp_ns, "cam_left")), att)
+              fg.encode_proto(fg.raw_image(img, att.stamp_ns, "cam_left")), att)
     a.publish_json(a.keys.dev("tracker", "point"), {"point_mm": [1, 2, 3]}, "scancell.TrackerPoint")
     deadline = time.monotonic() + 5
     while len(got) < 2 and time.monotonic() < deadline:
@@ -43,7 +43,7 @@ def test_publish_subscribe_carries_encoding_schema_and_stamp(bus_pair):
     im = by_key["cam_left"]
     assert (im.mime, im.schema) == ("application/protobuf", "foxglove.RawImage")
     assert im.attachment == att
-    np.testing.assert_array_equal(messages.image_array(im.decode()), img)
+    np.testing.assert_array_equal(fg.image_array(im.decode()), img)
     pt = by_key["tracker"]
     assert pt.encoding == "application/json;scancell.TrackerPoint"
     assert pt.decode() == {"point_mm": [1, 2, 3]} and pt.attachment.seq == 0

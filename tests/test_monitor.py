@@ -13,7 +13,7 @@ import pytest
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.workers.monitor import Monitor, MonitorSettings
 
 from .conftest import free_port
@@ -60,9 +60,9 @@ def test_a_foxglove_client_sees_the_cell_live_and_thinned(make_daemon, client):
                   port=free_port())
     mon.start()
     try:
-        img = messages.encode_proto(messages.raw_image(
+        img = fg.encode_proto(fg.raw_image(
             np.random.default_rng(0).integers(0, 255, (2048, 2448), dtype=np.uint8), 1, "cam"))
-        cloud = messages.encode_proto(messages.point_cloud(
+        cloud = fg.encode_proto(fg.point_cloud(
             np.random.default_rng(1).normal(size=(300_000, 3)), 1, "world"))
 
         async def feed_and_watch():

@@ -9,6 +9,7 @@ import pytest
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.commands import (
     CommandError,
@@ -62,23 +63,23 @@ def test_split_encoding():
                                          (np.uint8, (2, 3, 3))])
 def test_raw_image_round_trip(dtype, shape):
     img = np.arange(np.prod(shape)).reshape(shape).astype(dtype)
-    enc = messages.encode_proto(messages.raw_image(img, 5, "cam_left"))
+    enc = fg.encode_proto(fg.raw_image(img, 5, "cam_left"))
     assert enc.encoding == "application/protobuf;foxglove.RawImage"
     back = messages.decode(enc.payload, enc.encoding)
     assert back.frame_id == "cam_left" and back.timestamp.ToNanoseconds() == 5
-    np.testing.assert_array_equal(messages.image_array(back), img)
+    np.testing.assert_array_equal(fg.image_array(back), img)
 
 
 def test_point_cloud_round_trip_with_fields():
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(100, 3)) * 500
     q = rng.random(100)
-    enc = messages.encode_proto(messages.point_cloud(pts, 7, "mcs", {"quality": q}))
+    enc = fg.encode_proto(fg.point_cloud(pts, 7, "mcs", {"quality": q}))
     back = messages.decode(enc.payload, enc.encoding)
-    np.testing.assert_allclose(messages.cloud_points(back), pts, rtol=1e-6, atol=1e-4)
-    np.testing.assert_allclose(messages.cloud_fields(back)["quality"], q, rtol=1e-6)
+    np.testing.assert_allclose(fg.cloud_points(back), pts, rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(fg.cloud_fields(back)["quality"], q, rtol=1e-6)
     with pytest.raises(EncodingError):
-        messages.point_cloud(pts, 7, "mcs", {"quality": q[:5]})
+        fg.point_cloud(pts, 7, "mcs", {"quality": q[:5]})
 
 
 def test_frame_transform_round_trip():
@@ -87,17 +88,17 @@ def test_frame_transform_round_trip():
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
     T[:3, 3] = [100.0, -2.5, 3000.0]
-    msg = messages.frame_transform(T, 1, "world", "ecs_1")
+    msg = fg.frame_transform(T, 1, "world", "ecs_1")
     back = messages.decode(msg.SerializeToString(), "application/protobuf;foxglove.FrameTransform")
     assert (back.parent_frame_id, back.child_frame_id) == ("world", "ecs_1")
-    np.testing.assert_allclose(messages.transform_matrix(back), T, atol=1e-9)
+    np.testing.assert_allclose(fg.transform_matrix(back), T, atol=1e-9)
 
 
 def test_joint_states_and_log():
-    js = messages.joint_states(["J1", "J2"], np.array([0.1, -0.2]), 3)
+    js = fg.joint_states(["J1", "J2"], np.array([0.1, -0.2]), 3)
     back = messages.decode(js.SerializeToString(), "application/protobuf;foxglove.JointStates")
     assert [j.position for j in back.joints] == pytest.approx([0.1, -0.2])
-    lg = messages.log_message("WARNING", "hello", "scancell", 9)
+    lg = fg.log_message("WARNING", "hello", "scancell", 9)
     assert messages.decode(lg.SerializeToString(), "application/protobuf;foxglove.Log").level == 3
 
 

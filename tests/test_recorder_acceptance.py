@@ -20,7 +20,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scancell.analysis.cloud_io import read_ply
 from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.bus import Bus, BusConfig
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.recorder.reading import info, samples
 from scancell.recorder.replay import replay
 from scancell.sim.world import get_world
@@ -45,7 +45,7 @@ def _closed(path) -> bool:
 
 
 def _live_clouds(path) -> dict[str, np.ndarray]:
-    return {s.attachment.meta["scan_id"]: messages.cloud_points(s.decode())
+    return {s.attachment.meta["scan_id"]: fg.cloud_points(s.decode())
             for s in samples(path, ["scan/*/cloud"])}
 
 
@@ -160,7 +160,7 @@ def test_record_kill_recover_replay_reprocess(make_daemon, client, cell, endpoin
     replay_he: list[dict] = []
     hesub = wbus.subscribe(wbus.keys.hand_eye, lambda s: replay_he.append(s.decode()))
     csub = wbus.subscribe(wbus.keys.scan_cloud("*"), lambda s: replay_clouds.__setitem__(
-        s.attachment.meta["scan_id"], messages.cloud_points(s.decode())))
+        s.attachment.meta["scan_id"], fg.cloud_points(s.decode())))
     fresh_scan.start()
     fresh_cal.start()
     try:

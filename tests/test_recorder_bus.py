@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 from mcap.reader import make_reader
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.recorder.reading import info, samples
 from scancell.recorder.recorder import Recorder, RecorderSettings, settings_with
@@ -94,7 +95,7 @@ def test_a_full_queue_drops_loudly_and_is_counted_in_the_file(bus_pair, tmp_path
     rec._handle = slow_handle
     rec.start()
     time.sleep(0.3)
-    img = messages.encode_proto(messages.raw_image(np.zeros((1000, 1000), np.uint8), 1, "c"))
+    img = fg.encode_proto(fg.raw_image(np.zeros((1000, 1000), np.uint8), 1, "c"))
     key = b.keys.dev("cam_left", "image")
     try:
         for _ in range(10):

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 from scancell.bus import Bus, BusConfig
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import Attachment
 from scancell.recorder.reading import info, samples
 from scancell.recorder.session_file import SessionFile
@@ -130,7 +130,7 @@ def test_a_full_disk_is_reported_and_the_recorder_process_lives_on(make_daemon, 
                             preexec_fn=_limit_file_size)
     try:
         assert "recording cell" in proc.stdout.readline()
-        img = messages.encode_proto(messages.raw_image(np.zeros((500, 1000), np.uint8), 1, "c"))
+        img = fg.encode_proto(fg.raw_image(np.zeros((500, 1000), np.uint8), 1, "c"))
         for _ in range(10):  # 5 MB of images
             client.bus.publish(client.bus.keys.dev("cam_left", "image"), img)
             time.sleep(0.1)
@@ -149,4 +149,4 @@ def test_a_full_disk_is_reported_and_the_recorder_process_lives_on(make_daemon, 
     assert out.returncode == 0, out.stderr
     kept = [s for s in samples(tmp_path / "r.mcap", ["dev/cam_left/image"])]
     assert 1 <= len(kept) < 10
-    assert messages.image_array(kept[0].decode()).shape == (500, 1000)
+    assert fg.image_array(kept[0].decode()).shape == (500, 1000)

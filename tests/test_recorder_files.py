@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import Attachment
 from scancell.recorder.reading import RecordingError, info, samples, topic_matches
 from scancell.recorder.recover import recover
@@ -23,7 +23,7 @@ P = "scancell/c1"
 
 def _image(k: int) -> bytes:
     img = np.full((48, 64), k, np.uint8)
-    return messages.encode_proto(messages.raw_image(img, 1000 + k, "cam_left")).payload
+    return fg.encode_proto(fg.raw_image(img, 1000 + k, "cam_left")).payload
 
 
 def _point(k: float) -> bytes:
@@ -53,7 +53,7 @@ def test_a_session_reads_back_sample_for_sample_with_attachments(tmp_path):
     assert img.schema == "foxglove.RawImage" and img.mime == "application/protobuf"
     assert img.attachment == Attachment(1001, 1, 5001, {"scan_id": "s-1", "station": "3",
                                                         "role": "left", "pattern": 1})
-    assert messages.image_array(img.decode())[0, 0] == 1
+    assert fg.image_array(img.decode())[0, 0] == 1
     assert got[3].attachment == Attachment(3001, 1) and got[3].log_time_ns == 2001
     i = info(tmp_path / "a.mcap")
     assert i.cell == "c1" and i.messages == 6 and i.attachments == ["calib/stereo.json"]

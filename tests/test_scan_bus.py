@@ -17,7 +17,7 @@ from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.model.patterns import FringeSequence
 from scancell.model.transforms import apply_T
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.sim.world import get_world
 
 from .conftest import sim_cell_raw, wait_until
@@ -65,7 +65,7 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
         assert result["ok"] and result["scan_id"] == reply["scan_id"], result
         msg = clouds[0].decode()
         assert msg.frame_id == "mcs_s1" and clouds[0].schema == "foxglove.PointCloud"
-        bus_points = messages.cloud_points(msg)
+        bus_points = fg.cloud_points(msg)
         assert len(bus_points) == result["points"] > 1000
 
         # the frames on the bus carry everything needed to reassemble the scan ...
@@ -75,7 +75,7 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
         by_role: dict[str, dict[int, np.ndarray]] = {"left": {}, "right": {}}
         for f in scan_frames:
             m = f.attachment.meta
-            by_role[m["role"]][m["pattern"]] = messages.image_array(f.decode())
+            by_role[m["role"]][m["pattern"]] = fg.image_array(f.decode())
         # ... and `scancell decode` on those frames gives the very same cloud
         decoder = ScanDecoder(StereoCalibration.read(tmp_path / "stereo.yaml"), FringeSequence())
         local = decoder.decode([by_role["left"][k] for k in range(9)],

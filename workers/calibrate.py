@@ -26,6 +26,7 @@ from scancell.analysis.fit import FitError, detect_sphere
 from scancell.analysis.handeye import HandEyeError, Pair, solve_hand_eye
 from scancell.analysis.pair_table import write_pairs
 from scancell.model.ecs import SMR_RADIUS_MM, DegenerateGeometry, ecs_from_circle, ecs_from_points
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import EncodingError
 
@@ -136,7 +137,7 @@ class CalibrateWorker:
     def _on_cloud(self, sample: Any) -> None:
         scan_id = sample.attachment.meta.get("scan_id", "")
         try:
-            pts = messages.cloud_points(sample.decode()).astype(float)
+            pts = fg.cloud_points(sample.decode()).astype(float)
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
@@ -220,8 +221,8 @@ class CalibrateWorker:
         for station in sorted({str(s.get("station", "")) for s in job.balls.values()} - {""}):
             for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
                                      (T_ecs_from_mcs, f"ecs_{station}", f"mcs_{station}")):
-                self.bus.publish(k.transform(child), messages.encode_proto(
-                    messages.frame_transform(T, now, parent, child)))
+                self.bus.publish(k.transform(child), fg.encode_proto(
+                    fg.frame_transform(T, now, parent, child)))
 
     def _publish(self, body: dict[str, Any], latch: bool = True) -> None:
         """A failure is published but not latched: the calibration in force stays."""

@@ -31,6 +31,7 @@ import numpy as np
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
@@ -123,7 +124,7 @@ class FuseWorker:
         if job_id is None or not job_id.startswith("scan_part-"):
             return  # not a scan_part station (a hand-eye ball, a single scan)
         try:
-            pts = messages.cloud_points(sample.decode()).astype(float)
+            pts = fg.cloud_points(sample.decode()).astype(float)
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
@@ -192,10 +193,10 @@ class FuseWorker:
         k = self.bus.keys
         for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
                                  (T_ecs_from_mcs, f"ecs_{station}", f"mcs_{station}")):
-            self.bus.publish(k.transform(child), messages.encode_proto(
-                messages.frame_transform(T, now, parent, child)))
-        self.bus.publish(k.fusion_cloud, messages.encode_proto(
-            messages.point_cloud(shown, now, "world")),
+            self.bus.publish(k.transform(child), fg.encode_proto(
+                fg.frame_transform(T, now, parent, child)))
+        self.bus.publish(k.fusion_cloud, fg.encode_proto(
+            fg.point_cloud(shown, now, "world")),
             Attachment(now, n_stations, None, {"job_id": job_id, "stations": n_stations}))
         log.info("job %s: station %s fused (%d stations, %d display points)", job_id, station,
                  n_stations, len(shown))

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from scancell.bus.protocol import BusSample
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import JSON, EncodingError
 
@@ -42,12 +43,12 @@ def thin(sample: BusSample, settings: MonitorSettings) -> bytes:
         import cv2
 
         msg = sample.decode()
-        img = messages.image_array(msg)
+        img = fg.image_array(msg)
         if img.shape[1] > settings.max_image_width:
             f = settings.max_image_width / img.shape[1]
             img = cv2.resize(img, (settings.max_image_width, max(1, round(img.shape[0] * f))),
                              interpolation=cv2.INTER_AREA)
-            small = messages.raw_image(img, msg.timestamp.ToNanoseconds(), msg.frame_id)
+            small = fg.raw_image(img, msg.timestamp.ToNanoseconds(), msg.frame_id)
             return small.SerializeToString()
     elif sample.schema == "foxglove.PointCloud":
         msg = sample.decode()

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis.fusion import FusionError, Station
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.recorder.reading import samples
 
@@ -30,7 +30,7 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
             e = json.loads(s.payload)
             ecs[e["scan_id"]] = e
         else:
-            clouds[str(s.attachment.meta.get("scan_id"))] = messages.cloud_points(
+            clouds[str(s.attachment.meta.get("scan_id"))] = fg.cloud_points(
                 s.decode()).astype(float)
     if hand_eye is None:
         raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")

@@ -29,7 +29,7 @@ from typing import Any
 from scancell.bus.local import LocalBus
 from scancell.bus.protocol import BusSample
 from scancell.model.patterns import PROJECTOR_WIDTH
-from scancell.protocols import messages
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import EncodingError
 from scancell.recorder.reading import RecordingError, info, samples, topic_matches
 
@@ -92,8 +92,8 @@ class _Outputs:
         meta = s.attachment.meta
         try:
             msg = s.decode()
-            f = messages.cloud_fields(msg)
-            pts = messages.cloud_points(msg)
+            f = fg.cloud_fields(msg)
+            pts = fg.cloud_points(msg)
         except EncodingError as exc:
             log.error("%s: %s", s.key, exc)
             return

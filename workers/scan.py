@@ -21,6 +21,7 @@ from scancell.analysis.phase import DecodeError
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
 from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
+from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 
@@ -131,7 +132,7 @@ class ScanWorker:
         if "scan_id" not in meta:
             return  # a live image, not part of a scan
         try:
-            image = messages.image_array(sample.decode())
+            image = fg.image_array(sample.decode())
             with self._lock:
                 complete = self.assembler.add(meta, image, sample.attachment.stamp_ns)
                 expired = self.assembler.expire()
@@ -160,11 +161,11 @@ class ScanWorker:
             self._publish_result(scan, None, str(exc))
             return None
         c = result.cloud
-        msg = messages.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
+        msg = fg.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
                                    f"mcs_{scan.station}",
                                    {"quality": c.quality, "intensity": c.intensity})
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c)}
-        self.bus.publish(self.bus.keys.scan_cloud(scan.station), messages.encode_proto(msg),
+        self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
                          Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
         self._publish_result(scan, result, None)
         log.info("scan %s station %s: %d points in %.2f s", scan.scan_id, scan.station, len(c),
