@@ -15,6 +15,7 @@ from typing import Any
 
 from scancell.bus import Bus, BusConfig, NoDaemon
 from scancell.protocols.commands import CommandError
+from scancell.protocols.keys import DEFAULT_CELL
 
 __all__ = ["CellClient", "CommandError", "NoDaemon"]
 
@@ -22,7 +23,7 @@ __all__ = ["CellClient", "CommandError", "NoDaemon"]
 class CellClient:
     """A zenoh session bound to one cell's command keys."""
 
-    def __init__(self, cell: str = "sim", connect: str | list[str] | None = None,
+    def __init__(self, cell: str = DEFAULT_CELL, connect: str | list[str] | None = None,
                  bus_config: BusConfig | None = None, timeout_s: float = 130.0,
                  connect_wait_s: float = 3.0) -> None:
         self.cell = cell

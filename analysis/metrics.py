@@ -86,16 +86,6 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
     return p
 
 
-def pair_metrics(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str] = ("A", "B"),
-                 normals_a: np.ndarray | None = None, normals_b: np.ndarray | None = None
-                 ) -> PairMetrics:
-    """The paper's translation and rotation errors of cloud ``a`` against cloud ``b``."""
-    grid_b = CellGrid(b, radius)
-    na = normals(a, radius) if normals_a is None else normals_a
-    nb = normals(b, radius, grid_b) if normals_b is None else normals_b
-    return _pair(a, b, radius, names, na, nb, grid_b)
-
-
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
           nb: np.ndarray, grid_b: CellGrid) -> PairMetrics:
     dist, j = nearest_within(grid_b, a, radius)

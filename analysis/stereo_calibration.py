@@ -43,14 +43,6 @@ class StereoCalibration:
     def baseline_mm(self) -> float:
         return float(np.linalg.norm(self.T))
 
-    @property
-    def T_left_from_right(self) -> np.ndarray:
-        """Pose of the right camera in MCS (the left camera frame), 4x4, mm."""
-        T = np.eye(4)
-        T[:3, :3] = self.R.T
-        T[:3, 3] = -self.R.T @ self.T
-        return T
-
     def check_image_size(self, width: int, height: int, where: str = "images") -> None:
         if (width, height) != tuple(self.image_size):
             raise CalibrationError(

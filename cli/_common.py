@@ -15,9 +15,8 @@ import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
-#: The cell a client talks to when neither ``--cell`` nor ``$SCANCELL_CELL`` names one; also
-#: the packaged config ``scancell daemon`` runs without ``--config`` (deploy/cells/sim.toml).
-DEFAULT_CELL = "sim"
+from scancell.protocols.keys import DEFAULT_CELL
+
 ENV_CELL = "SCANCELL_CELL"
 
 

@@ -21,13 +21,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from scancell.bus.protocol import BusLike
     from scancell.workers.monitor import Monitor, MonitorSettings
 
     settings = MonitorSettings(tuple(args.topics), args.max_hz, args.max_image_width,
                                args.max_cloud_points)
     monitors: list[Any] = []
 
-    def make(bus: Any) -> Monitor:
+    def make(bus: BusLike) -> Monitor:
         monitors.append(Monitor(bus, settings, args.host, args.port))
         return monitors[0]
 

@@ -12,6 +12,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
+from scancell.daemon.jobs.devices import stop_motion
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.base import OperationSpec
 from scancell.devices.errors import ConnectionLost, DeviceError
@@ -28,7 +29,6 @@ log = logging.getLogger(__name__)
 Handler = Callable[[dict[str, Any]], Awaitable[Any]]
 
 #: Operations after whose timeout or abort the device is told to stop.
-MOTION_OPS = {"move_joints", "move_to", "home"}
 
 
 @dataclass(frozen=True)
@@ -126,23 +126,18 @@ class CommandRouter:
         except DeviceError as exc:
             raise CommandError(exc.code, f"{verb}: {exc}") from None
         except CommandError as exc:
-            if spec.name in MOTION_OPS and exc.code == "timeout":
-                await self._stop_device(sup)
+            if spec.motion and exc.code == "timeout":
+                await self._stop_after(sup, "a timed-out")
             raise
         except asyncio.CancelledError:
-            if spec.name in MOTION_OPS:
-                await self._stop_device(sup)
+            if spec.motion:
+                await self._stop_after(sup, "an aborted")
             raise
 
-    async def _stop_device(self, sup: DeviceSupervisor) -> None:
-        stop = getattr(sup.device, "stop", None)
-        if stop is None:
-            return
-        try:
-            await asyncio.wait_for(stop(), 2.0)
-            log.warning("device %s: stopped after an aborted or timed-out motion", sup.name)
-        except Exception as exc:
-            log.error("device %s: stop after aborted motion failed: %s", sup.name, exc)
+    @staticmethod
+    async def _stop_after(sup: DeviceSupervisor, what: str) -> None:
+        if not await stop_motion([sup.device]):
+            log.warning("device %s: stopped after %s motion", sup.name, what)
 
     @staticmethod
     async def _with_timeout(verb: str, coro: Awaitable[Any], timeout: float) -> Any:

@@ -19,6 +19,7 @@ import zenoh
 from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
+from scancell.daemon.jobs.devices import stop_motion
 from scancell.daemon.jobs.hand_eye import calibrate_hand_eye
 from scancell.daemon.jobs.home import home
 from scancell.daemon.jobs.runner import JobRunner
@@ -27,7 +28,7 @@ from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
 from scancell.daemon.jobs.scan_part import scan_part
 from scancell.daemon.router import CellVerb, CommandRouter
 from scancell.daemon.supervisor import DeviceSupervisor
-from scancell.devices.base import Device
+from scancell.devices.base import Axis, Device, Robot
 from scancell.devices.registry import load_driver
 from scancell.devices.simulator import Simulator, load_simulator
 from scancell.protocols import messages
@@ -174,11 +175,7 @@ class Daemon:
         return 0
 
     async def _stop_motion(self) -> None:
-        movers = [d for d in self.devices.values() if d.kind in ("robot", "axis")]
-        for dev in movers:
-            if self.supervisors[dev.name].serving:
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(dev.stop(), 1.0)
+        await stop_motion((s.device for s in self.supervisors.values() if s.serving), 1.0)
 
     # ---------------------------------------------------------------- bus plumbing
     def _emitter(self, name: str):
@@ -256,12 +253,9 @@ class Daemon:
     async def _cmd_estop(self, request: dict[str, Any]) -> dict[str, Any]:
         """Never waits for a lock or a job: stop() goes straight to every robot and axis, and
         the running job is cancelled (its task stops the devices again on its way out)."""
-        movers = [d for d in self.devices.values() if d.kind in ("robot", "axis")]
+        movers = [d for d in self.devices.values() if isinstance(d, Robot | Axis)]
         job = self.jobs.cancel_now()
-        results = await asyncio.gather(*(asyncio.wait_for(d.stop(), 2.0) for d in movers),
-                                       return_exceptions=True)
-        failed = {d.name: f"{type(r).__name__}: {r}" for d, r in zip(movers, results, strict=True)
-                  if isinstance(r, BaseException)}
+        failed = await stop_motion(movers)
         log.warning("ESTOP (%s): stopped %s, aborted job %s%s", request.get("reason", "no reason"),
                     [d.name for d in movers if d.name not in failed], job,
                     f", could not reach {failed}" if failed else "")

@@ -51,16 +51,19 @@ class OperationSpec:
     timeout_s: float
     #: Exclusive operations wait for the device link; others (stop, health) never queue.
     exclusive: bool = True
+    #: A motion: stopped when the command times out or is aborted.
+    motion: bool = False
 
 
-def operation(schema: str, timeout_s: float = 10.0,
-              exclusive: bool = True) -> Callable[[Callable], Callable]:
+def operation(schema: str, timeout_s: float = 10.0, exclusive: bool = True,
+              motion: bool = False) -> Callable[[Callable], Callable]:
     """Mark ``async def op_<name>(self, request) -> dict`` as a daemon command whose request is
-    validated against the JSON Schema ``scancell.cmd.<schema>``."""
+    validated against the JSON Schema ``scancell.cmd.<schema>``. ``motion=True``: the device
+    moves, and the daemon stops it if the command times out or is aborted."""
 
     def mark(fn: Callable) -> Callable:
         name = fn.__name__.removeprefix("op_")
-        fn.__scancell_operation__ = OperationSpec(name, schema, timeout_s, exclusive)
+        fn.__scancell_operation__ = OperationSpec(name, schema, timeout_s, exclusive, motion)
         return fn
 
     return mark
@@ -239,7 +242,7 @@ class Robot(Device):
         q = await self.joints()
         return {"joints_deg": _f(np.degrees(q)), "joints_rad": _f(q)}
 
-    @operation("robot.move_joints", timeout_s=120.0)
+    @operation("robot.move_joints", timeout_s=120.0, motion=True)
     async def op_move_joints(self, request: dict[str, Any]) -> dict[str, Any]:
         if "joints_rad" in request:
             q = np.asarray(request["joints_rad"], dtype=float)
@@ -477,7 +480,7 @@ class Axis(Device):
         """Acknowledge a drive fault and make the axis ready to move again."""
         raise CommandError("invalid", f"{self.name}: this axis driver has no fault reset")
 
-    @operation("axis.move_to", timeout_s=120.0)
+    @operation("axis.move_to", timeout_s=120.0, motion=True)
     async def op_move_to(self, request: dict[str, Any]) -> dict[str, Any]:
         await self.move_to(float(request["position"]), float(request.get("speed", 0.5)))
         return {"position": await self.position(), "units": self.units}
@@ -486,7 +489,7 @@ class Axis(Device):
     async def op_position(self, request: dict[str, Any]) -> dict[str, Any]:
         return {"position": await self.position(), "units": self.units}
 
-    @operation("axis.home", timeout_s=120.0)
+    @operation("axis.home", timeout_s=120.0, motion=True)
     async def op_home(self, request: dict[str, Any]) -> dict[str, Any]:
         await self.home()
         return {"position": await self.position(), "units": self.units}

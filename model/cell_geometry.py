@@ -1,5 +1,5 @@
 """What the planner and the scan job need to know of a cell: robot base, scanner mount, SMR,
-tracker position, rail (mm, frames as in design.md). A cell config states it in ``[planner]``;
+tracker position, rail (mm, frames as in README "Units and frames"). A cell config states it in ``[planner]``;
 the simulated cell supplies its own."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ class GeometryError(ValueError):
 
 @dataclass(frozen=True)
 class CellGeometry:
-    """What the planner needs to know of the cell (mm, frames as in design.md)."""
+    """What the planner needs to know of the cell (mm, frames as in README "Units and frames")."""
 
     T_world_from_base: np.ndarray
     T_flange_from_mcs: np.ndarray

@@ -1,6 +1,6 @@
 """Homogeneous transforms (4x4, mm) and rotations, as every layer uses them.
 
-Names follow design.md: ``T_<to>_from_<from>`` maps ``<from>`` coordinates into ``<to>``.
+Names follow README "Units and frames": ``T_<to>_from_<from>`` maps ``<from>`` coordinates into ``<to>``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Zenoh key expressions of a cell, all under ``scancell/<cell>/`` (design.md)."""
+"""Zenoh key expressions of a cell, all under ``scancell/<cell>/`` (README "Processes and data flow")."""
 
 from __future__ import annotations
 
@@ -6,6 +6,9 @@ import re
 from dataclasses import dataclass
 
 ROOT = "scancell"
+#: The cell a client talks to when it names none (``--cell``, ``$SCANCELL_CELL``): the
+#: packaged simulated cell, ``deploy/cells/sim.toml``.
+DEFAULT_CELL = "sim"
 _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 

@@ -12,6 +12,7 @@ with a real topic; :mod:`scancell.recorder.reading` folds them back into their s
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,30 @@ from scancell.protocols.encoding import (
 META_SUFFIX = "#meta"
 META_SCHEMA = "scancell.SampleAttachment"
 PROFILE = "scancell"
+
+log = logging.getLogger(__name__)
+
+#: mcap's Writer takes one compression for the whole file (``Writer(compression=...)``, mcap
+#: 1.x) and has no public way to change it between chunks, though the MCAP format records a
+#: compression per chunk. The only way to keep images uncompressed beside compressed JSON is
+#: the Writer's private ``__compression`` attribute, which its ``__finalize_chunk`` reads for
+#: each new chunk. ``test_recorder_files`` checks that the attribute still exists and that each
+#: chunk carries the compression we asked for; if a release drops it, the file is written with
+#: one compression throughout (a warning says so) instead of failing.
+_PRIVATE_COMPRESSION = "_Writer__compression"
+
+
+def can_mix_chunk_compression(writer: Writer) -> bool:
+    if hasattr(writer, _PRIVATE_COMPRESSION):
+        return True
+    log.warning("this mcap release has no per-chunk compression: images will be compressed too")
+    return False
+
+
+def set_chunk_compression(writer: Writer, compression: CompressionType) -> None:
+    """The compression of the chunks ``writer`` starts from now on (see above)."""
+    setattr(writer, _PRIVATE_COMPRESSION, compression)
+
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
@@ -72,6 +97,8 @@ class SessionFile:
         self._channels: dict[tuple[str, str, str], int] = {}
         self._last_flush = time.monotonic()
         self._chunk_compressed = True
+        #: Images go into uncompressed chunks (fast), the rest compressed, when mcap lets us.
+        self._mixed_chunks = can_mix_chunk_compression(self._writer)
         self.messages = 0
         self.bytes = 0
         self.closed = False
@@ -126,13 +153,11 @@ class SessionFile:
 
     def _add(self, cid: int, log_time: int, data: bytes, publish_time: int, seq: int,
              compressed: bool) -> None:
-        if compressed != self._chunk_compressed:
+        if compressed != self._chunk_compressed and self._mixed_chunks:
             self._writer.flush()  # close the chunk in progress under its own compression
             self._chunk_compressed = compressed
-            # The mcap Writer has one compression per file; MCAP allows one per chunk. Switching
-            # it between chunks is the only way to mix, and tests check each chunk's field.
-            self._writer._Writer__compression = (  # type: ignore[attr-defined]
-                COMPRESSIONS[self.settings.compression] if compressed else CompressionType.NONE)
+            set_chunk_compression(self._writer, COMPRESSIONS[self.settings.compression]
+                                  if compressed else CompressionType.NONE)
         self._writer.add_message(cid, log_time, data, publish_time, seq & 0xFFFFFFFF)
         self.messages += 1
         self.bytes += len(data)

@@ -94,12 +94,6 @@ class SimulatedDrive:
             self._homing = False
 
     # ---------------------------------------------------------------- kinematics
-    @property
-    def position_counts(self) -> int:
-        with self._lock:
-            self._update()
-            return round(self.cell.rail_mm * self.counts_per_mm + self._offset)
-
     def _tick_loop(self, tick_s: float) -> None:
         while not self._stop.wait(tick_s):
             with self._lock:

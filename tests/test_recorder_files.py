@@ -96,6 +96,24 @@ def test_image_chunks_are_uncompressed_and_the_rest_compressed(tmp_path):
                 if isinstance(r, Chunk)} == {"zstd"}
 
 
+def test_mcap_still_lets_the_compression_change_between_chunks(tmp_path, caplog):
+    """Mixed chunk compression leans on mcap's private Writer attribute (session_file.py says
+    why): this fails the day an mcap release renames it, and the fallback writes one
+    compression throughout with a warning, never a broken file."""
+    import io
+
+    from mcap.writer import Writer
+    from scancell.recorder import session_file
+
+    assert session_file.can_mix_chunk_compression(Writer(io.BytesIO()))
+
+    class Renamed:  # an mcap Writer without the attribute
+        pass
+
+    assert not session_file.can_mix_chunk_compression(Renamed())
+    assert "images will be compressed too" in caplog.text
+
+
 def test_bad_settings_and_bad_files_are_named(tmp_path):
     with pytest.raises(ValueError, match="compression"):
         FileSettings(compression="gzip")

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -25,10 +24,12 @@ import numpy as np
 from scancell.analysis.fit import FitError, detect_sphere
 from scancell.analysis.handeye import HandEyeError, Pair, solve_hand_eye
 from scancell.analysis.pair_table import write_pairs
+from scancell.bus.protocol import BusLike, Latched
 from scancell.model.ecs import SMR_RADIUS_MM, DegenerateGeometry, ecs_from_circle, ecs_from_points
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import EncodingError
+from scancell.workers.base import ThreadedWorker
 
 log = logging.getLogger(__name__)
 
@@ -86,21 +87,21 @@ def store(root: Path, body: dict[str, Any], pairs: list[Pair]) -> Path:
     return path
 
 
-class CalibrateWorker:
-    def __init__(self, bus: Any, store_dir: Path | None, cloud_wait_s: float = 120.0) -> None:
-        self.bus = bus
+class CalibrateWorker(ThreadedWorker[str]):
+    """Collects a hand-eye job's samples and ball clouds; solves it once the job is done."""
+
+    thread_name = "calibrate-worker"
+
+    def __init__(self, bus: BusLike, store_dir: Path | None, cloud_wait_s: float = 120.0) -> None:
+        super().__init__(bus)
         self.store_dir = store_dir
         self.cloud_wait_s = cloud_wait_s
         self.jobs: dict[str, JobData] = {}
         self.results: list[dict[str, Any]] = []
         self._lock = threading.Lock()
-        self._queue: queue.Queue[str | None] = queue.Queue()
-        self._subs: list[Any] = []
-        self._latched: Any = None
-        self._thread = threading.Thread(target=self._run, daemon=True, name="calibrate-worker")
+        self._latched: Latched | None = None
 
-    def start(self) -> None:
-        self._thread.start()
+    def on_start(self) -> None:
         k = self.bus.keys
         self._latched = self.bus.latched(k.hand_eye)
         active = self.store_dir / "hand_eye" / "active.json" if self.store_dir else None
@@ -109,17 +110,13 @@ class CalibrateWorker:
                 self._publish(json.loads(active.read_text()))
             except ValueError as exc:
                 log.error("%s: not JSON (%s); no active hand-eye published", active, exc)
-        self._subs = [self.bus.subscribe(k.hand_eye + "/sample", self._on_sample),
-                      self.bus.subscribe(k.scan_cloud("*"), self._on_cloud),
-                      self.bus.subscribe(k.job_event("*"), self._on_event)]
+        self.subscribe(k.hand_eye + "/sample", self._on_sample)
+        self.subscribe(k.scan_cloud("*"), self._on_cloud)
+        self.subscribe(k.job_event("*"), self._on_event)
 
-    def stop(self) -> None:
-        for s in self._subs:
-            s.undeclare()
+    def on_stop(self) -> None:
         if self._latched is not None:
             self._latched.close()
-        self._queue.put(None)
-        self._thread.join(30)
 
     def _job(self, job_id: str) -> JobData:
         return self.jobs.setdefault(job_id, JobData(job_id))
@@ -135,20 +132,17 @@ class CalibrateWorker:
                 job.balls[s["id"]] = s
 
     def _on_cloud(self, sample: Any) -> None:
-        scan_id = sample.attachment.meta.get("scan_id", "")
+        meta = sample.attachment.meta
+        if meta.get("job_kind") != "calibrate_hand_eye" or not meta.get("job_id"):
+            return  # not a ball of a hand-eye job
+        scan_id = str(meta.get("scan_id", ""))
         try:
             pts = fg.cloud_points(sample.decode()).astype(float)
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
-        with self._lock:
-            for job in self.jobs.values():
-                if scan_id.startswith(job.job_id):
-                    job.clouds[scan_id] = pts
-                    return
-            # the cloud may come before the job's sample: keep it under its job prefix
-            job_id = scan_id.rsplit("-", 1)[0]
-            self._job(job_id).clouds[scan_id] = pts
+        with self._lock:  # the cloud may come before the job's first sample
+            self._job(str(meta["job_id"])).clouds[scan_id] = pts
 
     def _on_event(self, sample: Any) -> None:
         e = sample.decode()
@@ -161,23 +155,12 @@ class CalibrateWorker:
                 job = self._job(e["job_id"])
                 job.expected_ecs = int(result.get("ecs_points", 0))
                 job.expected = int(result.get("balls", job.expected))
-            self._queue.put(e["job_id"])
+            self.submit(e["job_id"])
         else:
             log.warning("job %s %s: no calibration", e["job_id"], e["state"])
 
-    def _run(self) -> None:
-        while True:
-            job_id = self._queue.get()
-            if job_id is None:
-                return
-            try:
-                self._process_when_complete(job_id)
-            finally:
-                self._queue.task_done()
-
-    def pending(self) -> int:
-        """Jobs queued or being computed."""
-        return self._queue.unfinished_tasks
+    def handle(self, job_id: str) -> None:
+        self._process_when_complete(job_id)
 
     def _process_when_complete(self, job_id: str) -> None:
         deadline = time.monotonic() + self.cloud_wait_s

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,11 +29,13 @@ from typing import Any
 import numpy as np
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
+from scancell.bus.protocol import BusLike
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+from scancell.workers.base import ThreadedWorker
 
 log = logging.getLogger(__name__)
 
@@ -63,37 +64,30 @@ class FuseSettings:
     truth: Any = None
 
 
-class FuseWorker:
-    def __init__(self, bus: Any, settings: FuseSettings | None = None) -> None:
-        self.bus = bus
+class FuseWorker(ThreadedWorker[tuple[str, str]]):
+    """Fuses each scan_part station as its cloud and ECS arrive; at the job's end writes the
+    model, the mesh, the E57 and the report."""
+
+    thread_name = "fuse-worker"
+    join_timeout_s = 120.0
+
+    def __init__(self, bus: BusLike, settings: FuseSettings | None = None) -> None:
+        super().__init__(bus)
         self.settings = settings or FuseSettings()
         self.hand_eye: dict[str, Any] | None = None
         self.jobs: dict[str, JobStations] = {}
         self.reports: list[dict[str, Any]] = []
         self._lock = threading.Lock()
-        self._queue: queue.Queue[tuple[str, str] | None] = queue.Queue()
-        self._subs: list[Any] = []
-        self._thread = threading.Thread(target=self._run, daemon=True, name="fuse-worker")
 
     # ---------------------------------------------------------------- lifecycle
-    def start(self) -> None:
-        self._thread.start()
+    def on_start(self) -> None:
         k = self.bus.keys
         for s in self.bus.fetch_latched(k.hand_eye, 1.0):
             self._on_hand_eye(s)
-        self._subs = [self.bus.subscribe(k.hand_eye, self._on_hand_eye),
-                      self.bus.subscribe(k.station_ecs("*"), self._on_ecs),
-                      self.bus.subscribe(k.scan_cloud("*"), self._on_cloud),
-                      self.bus.subscribe(k.job_event("*"), self._on_event)]
-
-    def stop(self) -> None:
-        for s in self._subs:
-            s.undeclare()
-        self._queue.put(None)
-        self._thread.join(120)
-
-    def pending(self) -> int:
-        return self._queue.unfinished_tasks
+        self.subscribe(k.hand_eye, self._on_hand_eye)
+        self.subscribe(k.station_ecs("*"), self._on_ecs)
+        self.subscribe(k.scan_cloud("*"), self._on_cloud)
+        self.subscribe(k.job_event("*"), self._on_event)
 
     # ---------------------------------------------------------------- bus callbacks
     def _on_hand_eye(self, sample: Any) -> None:
@@ -115,14 +109,13 @@ class FuseWorker:
         e = sample.decode()
         with self._lock:
             self._job(e["job_id"]).ecs[e["station"]] = e
-        self._queue.put(("station", f"{e['job_id']}\0{e['station']}"))
+        self.submit(("station", f"{e['job_id']}\0{e['station']}"))
 
     def _on_cloud(self, sample: Any) -> None:
         meta = sample.attachment.meta
-        scan_id, station = str(meta.get("scan_id", "")), str(meta.get("station", ""))
-        job_id = scan_id[: -len(station) - 1] if scan_id.endswith("-" + station) else None
-        if job_id is None or not job_id.startswith("scan_part-"):
+        if meta.get("job_kind") != "scan_part" or not meta.get("job_id"):
             return  # not a scan_part station (a hand-eye ball, a single scan)
+        job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
             pts = fg.cloud_points(sample.decode()).astype(float)
         except EncodingError as exc:
@@ -130,7 +123,7 @@ class FuseWorker:
             return
         with self._lock:
             self._job(job_id).clouds[station] = pts
-        self._queue.put(("station", f"{job_id}\0{station}"))
+        self.submit(("station", f"{job_id}\0{station}"))
 
     def _on_event(self, sample: Any) -> None:
         e = sample.decode()
@@ -141,24 +134,15 @@ class FuseWorker:
                 job = self._job(e["job_id"])
                 job.ended = e["state"]
                 job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
-            self._queue.put(("end", e["job_id"]))
+            self.submit(("end", e["job_id"]))
 
     # ---------------------------------------------------------------- worker thread
-    def _run(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is None:
-                return
-            try:
-                kind, arg = item
-                if kind == "station":
-                    self.add_station(*arg.split("\0"))
-                else:
-                    self.finish(arg)
-            except Exception:
-                log.exception("fuse worker: %s", item)
-            finally:
-                self._queue.task_done()
+    def handle(self, item: tuple[str, str]) -> None:
+        kind, arg = item
+        if kind == "station":
+            self.add_station(*arg.split("\0"))
+        else:
+            self.finish(arg)
 
     def add_station(self, job_id: str, station: str) -> Station | None:
         """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in."""

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scancell.bus.protocol import BusSample
+from scancell.bus.protocol import BusLike, BusSample
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import JSON, EncodingError
@@ -62,7 +62,7 @@ def thin(sample: BusSample, settings: MonitorSettings) -> bytes:
 
 
 class Monitor:
-    def __init__(self, bus: Any, settings: MonitorSettings | None = None, host: str = "127.0.0.1",
+    def __init__(self, bus: BusLike, settings: MonitorSettings | None = None, host: str = "127.0.0.1",
                  port: int = 8765) -> None:
         self.bus = bus
         self.settings = settings or MonitorSettings()

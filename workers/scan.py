@@ -10,7 +10,6 @@ The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -20,10 +19,12 @@ import numpy as np
 from scancell.analysis.phase import DecodeError
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
+from scancell.bus.protocol import BusLike, Latched
 from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
+from scancell.workers.base import ThreadedWorker
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,9 @@ class PendingScan:
     frames: dict[str, dict[int, np.ndarray]] = field(default_factory=lambda: {"left": {}, "right": {}})
     first_seen: float = field(default_factory=time.monotonic)
     stamp_ns: int = 0
+    #: The job that took the scan and its kind (None: a plain cmd/scan).
+    job_id: str | None = None
+    job_kind: str | None = None
 
     def complete(self) -> bool:
         return all(len(self.frames[r]) == self.patterns for r in ("left", "right"))
@@ -62,8 +66,9 @@ class ScanAssembler:
             raise ValueError(f"frame meta is not a ScanFrameMeta: {exc}") from None
         if role not in ("left", "right") or not 0 <= k < n or n != len(seq):
             raise ValueError(f"scan {scan_id}: bad role {role!r} or pattern {k} of {n}")
-        scan = self.pending.setdefault(scan_id, PendingScan(scan_id, str(meta.get("station", "0")),
-                                                            seq, n))
+        scan = self.pending.setdefault(scan_id, PendingScan(
+            scan_id, str(meta.get("station", "0")), seq, n, job_id=meta.get("job_id"),
+            job_kind=meta.get("job_kind")))
         scan.frames[role][k] = image
         if k == 0 and role == "left":
             scan.stamp_ns = stamp_ns
@@ -90,42 +95,33 @@ def result_message(scan: PendingScan, result: ScanResult | None, error: str | No
     return body
 
 
-class ScanWorker:
+class ScanWorker(ThreadedWorker[PendingScan]):
     """Subscribes on ``bus``, decodes complete scans in a worker thread, publishes results."""
 
-    def __init__(self, bus: Any, calib: StereoCalibration, projector_width: int = PROJECTOR_WIDTH) -> None:
-        self.bus = bus
+    thread_name = "scan-worker"
+
+    def __init__(self, bus: BusLike, calib: StereoCalibration,
+                 projector_width: int = PROJECTOR_WIDTH) -> None:
+        super().__init__(bus)
         self.calib = calib
         self.projector_width = projector_width
         self.assembler = ScanAssembler()
         self._decoders: dict[FringeSequence, ScanDecoder] = {}
-        self._queue: queue.Queue[PendingScan | None] = queue.Queue()
         self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="scan-worker")
-        self._sub: Any = None
-        self._calib_pub: Any = None
+        self._calib_pub: Latched | None = None
         self.done = 0
 
-    def start(self) -> None:
-        self._thread.start()
+    def on_start(self) -> None:
         self._calib_pub = self.bus.latched(self.bus.keys.stereo)
         self._calib_pub.publish(messages.encode_json(
             {**self.calib.to_json(), "projector_width": self.projector_width},
             "scancell.StereoCalibration"))
-        self._sub = self.bus.subscribe(self.bus.keys.dev("*", "image"), self._on_frame,
-                                       lambda key, exc: log.warning("%s: %s", key, exc))
+        self.subscribe(self.bus.keys.dev("*", "image"), self._on_frame,
+                       lambda key, exc: log.warning("%s: %s", key, exc))
 
-    def stop(self) -> None:
-        if self._sub is not None:
-            self._sub.undeclare()
+    def on_stop(self) -> None:
         if self._calib_pub is not None:
             self._calib_pub.close()
-        self._queue.put(None)
-        self._thread.join(30)
-
-    def pending(self) -> int:
-        """Scans queued or being decoded."""
-        return self._queue.unfinished_tasks
 
     def _on_frame(self, sample: Any) -> None:
         meta = sample.attachment.meta
@@ -144,7 +140,7 @@ class ScanWorker:
                       scan.station, self.assembler.max_age_s, scan.missing())
             self._publish_result(scan, None, f"incomplete: {scan.missing()}")
         if complete is not None:
-            self._queue.put(complete)
+            self.submit(complete)
 
     def decoder(self, seq: FringeSequence) -> ScanDecoder:
         if seq not in self._decoders:
@@ -164,7 +160,8 @@ class ScanWorker:
         msg = fg.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
                                    f"mcs_{scan.station}",
                                    {"quality": c.quality, "intensity": c.intensity})
-        meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c)}
+        meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c),
+                "job_id": scan.job_id, "job_kind": scan.job_kind}
         self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
                          Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
         self._publish_result(scan, result, None)
@@ -176,14 +173,8 @@ class ScanWorker:
         self.bus.publish_json(self.bus.keys.scan_result(scan.station),
                               result_message(scan, result, error), "scancell.ScanResult")
 
-    def _run(self) -> None:
-        while True:
-            scan = self._queue.get()
-            if scan is None:
-                return
-            try:
-                self.process(scan)
-            except Exception:
-                log.exception("scan %s: unexpected error", scan.scan_id)
+    def handle(self, scan: PendingScan) -> None:
+        try:
+            self.process(scan)
+        finally:
             self.done += 1
-            self._queue.task_done()

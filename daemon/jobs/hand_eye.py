@@ -14,9 +14,10 @@ import contextlib
 from typing import Any
 
 import numpy as np
+from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.jobs.scan import scan, serving_device
+from scancell.daemon.jobs.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Camera, Projector, Robot, Tracker
 from scancell.devices.simulator import BallPlacer, Simulator
@@ -83,7 +84,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                 reply = await scan(supervisors, {"station": f"he{i:02d}", "scan_id":
                                                  f"{ctx.job_id}-{sid}", "projector": proj_s.name,
                                                  "cameras": [c.name for c in cam_s]},
-                             hold_locks=False)
+                             hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind)
                 await tracker.find_reflector(approx)
                 point, sigma = await averaged(tracker, repeats,
                                               {"job_id": ctx.job_id, "ball": sid})

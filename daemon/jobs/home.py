@@ -6,8 +6,8 @@ import contextlib
 from typing import Any
 
 import numpy as np
+from scancell.daemon.jobs.devices import serving_device, stop_motion
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.jobs.scan import serving_device
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot
 from scancell.protocols.commands import CommandError
@@ -33,7 +33,6 @@ async def home(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 ctx.event("running", "axis", f"homing {a.name}")
                 await a.device.home()
         except BaseException:
-            with contextlib.suppress(Exception):
-                await robot.stop()
+            await stop_motion([robot, *(a.device for a in axes)])
             raise
     return {"joints_deg": [float(v) for v in q_deg], "axes_homed": [a.name for a in axes]}

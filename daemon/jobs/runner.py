@@ -13,6 +13,7 @@ import uuid
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from scancell.bus.protocol import BusLike
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
 
@@ -57,7 +58,7 @@ class JobContext:
 
 
 class JobRunner:
-    def __init__(self, bus: Any, jobs: dict[str, JobBody]) -> None:
+    def __init__(self, bus: BusLike, jobs: dict[str, JobBody]) -> None:
         self.bus = bus
         self.jobs = jobs
         self.current: tuple[JobContext, asyncio.Task] | None = None

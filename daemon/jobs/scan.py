@@ -12,29 +12,19 @@ import time
 import uuid
 from typing import Any
 
+from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
 
 
-def serving_device(supervisors: dict[str, DeviceSupervisor], name: str | None, kind: type,
-                   verb: str) -> DeviceSupervisor:
-    """The connected device ``name`` of ``kind`` (``None``: the cell's first of that kind)."""
-    what = kind.__name__.lower()
-    have = [n for n, s in supervisors.items() if isinstance(s.device, kind)]
-    if not have or (name is not None and name not in have):
-        raise CommandError("unknown_device", f"{verb}: no {what}"
-                                             f"{f' named {name!r}' if name else ''} (have: {have})")
-    sup = supervisors[name if name is not None else have[0]]
-    if not sup.serving:
-        raise CommandError("device_unavailable", f"{verb}: {sup.name} is {sup.status.state}")
-    return sup
-
-
 async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],
-               hold_locks: bool = True) -> dict[str, Any]:
-    """``hold_locks=False``: the caller (a job) already holds the scanner's devices."""
+               hold_locks: bool = True, job_id: str | None = None,
+               job_kind: str | None = None) -> dict[str, Any]:
+    """``hold_locks=False``: the caller (a job) already holds the scanner's devices. A job
+    names itself (``job_id``, ``job_kind``): every frame's meta carries both, so the workers
+    know whose scan it is without reading it from the scan id."""
     station = str(request.get("station", "0"))
     scan_id = str(request.get("scan_id") or f"{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:6]}")
     cam_names = list(request.get("cameras", ["cam_left", "cam_right"]))
@@ -63,6 +53,7 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
         cam: Camera = sup.device
         for k, frame in enumerate(acq.frames[cam.name]):
             cam.publish_frame(frame, {"scan_id": scan_id, "station": station, "role": role,
+                                      "job_id": job_id, "job_kind": job_kind,
                                       "pattern": k, "patterns": n, "steps": spec["steps"],
                                       "periods": spec["periods"],
                                       "trigger_count": frame.trigger_count})

@@ -1,6 +1,6 @@
 """``cmd/job/scan_part``: the paper's measurement procedure over the stations of a plan.
 
-Per station (design.md): move (robot, and the external axis if the station has a position) →
+Per station (README "Measurement jobs"): move (robot, and the external axis if the station has a position) →
 tracker P1 → coupled scan (``dev/<camera>/image`` frames, scan id ``<job>-<station>``) → J6 turns
 with P2, P3 → J6 back. Each station ends with ``scan/<station>/ecs`` (``scancell.StationEcs``: the
 three tracker points and their J6 angles), from which the fuse worker builds ``T_world_from_ecs``.
@@ -18,9 +18,10 @@ import time
 from typing import Any
 
 import numpy as np
+from scancell.daemon.jobs.devices import serving_device, stop_motion
 from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext, StepFailed
-from scancell.daemon.jobs.scan import scan, serving_device
+from scancell.daemon.jobs.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Camera, Projector, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
@@ -176,7 +177,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     reply = await scan(supervisors, {
                         "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
                         "projector": proj_s.name, "cameras": [c.name for c in cam_s]},
-                        hold_locks=False)
+                        hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind)
                     step = "ecs"
                     ecs = await measure_ecs(
                         robot, tracker, q0, [st.j6_sign * a for a in turns], speed, repeats, meta,
@@ -200,14 +201,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 done.append({"station": st.name, "scan_id": reply["scan_id"]})
                 event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
         except BaseException:
-            await _stop_motion(robot, axis)
+            await stop_motion([robot, axis])
             raise
     return {"plan": plan.name, "stations": done, "seconds": round(time.monotonic() - t_start, 1)}
 
-
-async def _stop_motion(robot: Robot, axis: Axis | None) -> None:
-    """Stop at once, even while the job task is being cancelled."""
-    for dev in (robot, axis):
-        if dev is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.shield(asyncio.wait_for(dev.stop(), 2.0))

@@ -1,0 +1,43 @@
+"""What every job and command does with the cell's devices: find a serving one of a kind, and
+stop whatever moves."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Iterable
+
+from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.devices.base import Axis, Device, Robot
+from scancell.protocols.commands import CommandError
+
+log = logging.getLogger(__name__)
+
+
+def serving_device(supervisors: dict[str, DeviceSupervisor], name: str | None, kind: type,
+                   verb: str) -> DeviceSupervisor:
+    """The connected device ``name`` of ``kind`` (``None``: the cell's first of that kind)."""
+    what = kind.__name__.lower()
+    have = [n for n, s in supervisors.items() if isinstance(s.device, kind)]
+    if not have or (name is not None and name not in have):
+        raise CommandError("unknown_device", f"{verb}: no {what}"
+                                             f"{f' named {name!r}' if name else ''} (have: {have})")
+    sup = supervisors[name if name is not None else have[0]]
+    if not sup.serving:
+        raise CommandError("device_unavailable", f"{verb}: {sup.name} is {sup.status.state}")
+    return sup
+
+
+async def stop_motion(devices: Iterable[Device | None], timeout_s: float = 2.0) -> dict[str, str]:
+    """Stop every robot and axis among ``devices`` at once, in parallel, even while the calling
+    task is being cancelled. Returns ``{name: why}`` of those that could not be reached."""
+    movers = [d for d in devices if isinstance(d, Robot | Axis)]
+    if not movers:
+        return {}
+    results = await asyncio.shield(asyncio.gather(
+        *(asyncio.wait_for(d.stop(), timeout_s) for d in movers), return_exceptions=True))
+    failed = {d.name: f"{type(r).__name__}: {r}" for d, r in zip(movers, results, strict=True)
+              if isinstance(r, BaseException)}
+    for name, why in failed.items():
+        log.error("device %s: stop failed: %s", name, why)
+    return failed

@@ -1,0 +1,80 @@
+"""The lifecycle every queue-driven bus worker shares: subscriptions feed a queue from zenoh's
+threads, one worker thread handles the items in order, ``stop`` drains nothing and joins."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+from scancell.bus.protocol import BusLike, BusSample, Subscription
+
+log = logging.getLogger(__name__)
+
+Item = TypeVar("Item")
+_STOP = object()
+
+
+class ThreadedWorker(Generic[Item]):
+    """Subclasses subscribe in :meth:`on_start` (through :meth:`subscribe`), put work with
+    :meth:`submit` from their callbacks and do it in :meth:`handle`, on the worker thread."""
+
+    #: The worker thread's name, e.g. ``"scan-worker"``.
+    thread_name = "worker"
+    #: How long ``stop`` waits for the item being handled (s).
+    join_timeout_s = 30.0
+
+    def __init__(self, bus: BusLike) -> None:
+        self.bus = bus
+        self._queue: queue.Queue[Any] = queue.Queue()
+        self._subs: list[Subscription] = []
+        self._thread = threading.Thread(target=self._run, daemon=True, name=self.thread_name)
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        self._thread.start()
+        self.on_start()
+
+    def stop(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._subs.clear()
+        self.on_stop()
+        self._queue.put(_STOP)
+        self._thread.join(self.join_timeout_s)
+
+    def pending(self) -> int:
+        """Items queued or being handled."""
+        return self._queue.unfinished_tasks
+
+    # ---------------------------------------------------------------- for subclasses
+    def on_start(self) -> None:
+        """Declare subscriptions and publishers (the thread is already running)."""
+
+    def on_stop(self) -> None:
+        """Close what ``on_start`` opened besides subscriptions."""
+
+    def subscribe(self, key_expr: str, callback: Callable[[BusSample], None],
+                  on_error: Callable[[str, Exception], None] | None = None) -> None:
+        self._subs.append(self.bus.subscribe(key_expr, callback, on_error))
+
+    def submit(self, item: Item) -> None:
+        self._queue.put(item)
+
+    def handle(self, item: Item) -> None:
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- thread
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is _STOP:
+                    return
+                self.handle(item)
+            except Exception:
+                log.exception("%s: unexpected error on %r", self.thread_name, item)
+            finally:
+                self._queue.task_done()
