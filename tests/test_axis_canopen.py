@@ -40,6 +40,7 @@ def socketcand_axis(server: SocketcandServer, **extra) -> CanopenAxis:
                                 **extra})
 
 
+@pytest.mark.process
 def test_move_home_and_position_follow_the_rail_over_socketcand():
     async def body():
         async with drive_and_server() as (cell, _drive, server, _):
@@ -64,6 +65,7 @@ def test_move_home_and_position_follow_the_rail_over_socketcand():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_virtual_bus_in_process_and_current_position_homing():
     async def body():
         async with drive_and_server() as (cell, _drive, _server, channel):
@@ -83,6 +85,7 @@ def test_virtual_bus_in_process_and_current_position_homing():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_limits_checked_before_any_frame_and_drive_fault_then_reset():
     async def body():
         async with drive_and_server() as (cell, drive, server, _):
@@ -107,6 +110,7 @@ def test_limits_checked_before_any_frame_and_drive_fault_then_reset():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_stop_halts_mid_move():
     async def body():
         async with drive_and_server() as (cell, _drive, server, _):
@@ -127,6 +131,7 @@ def test_stop_halts_mid_move():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_server_killed_gives_connection_lost_and_nothing_listening_fails_fast():
     async def body():
         async with drive_and_server() as (_cell, _drive, server, _):
@@ -148,6 +153,7 @@ def test_server_killed_gives_connection_lost_and_nothing_listening_fails_fast():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_wrong_node_and_not_a_drive():
     async def body():
         async with drive_and_server() as (_cell, _drive, server, _):
@@ -159,6 +165,7 @@ def test_wrong_node_and_not_a_drive():
     asyncio.run(body())
 
 
+@pytest.mark.process
 def test_socketcand_garbage_is_skipped_and_the_link_keeps_working():
     async def body():
         async with drive_and_server() as (_cell, _drive, server, _):
@@ -181,6 +188,7 @@ def test_socketcand_garbage_is_skipped_and_the_link_keeps_working():
     asyncio.run(body())
 
 
+@pytest.mark.unit
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=60))
 def test_fuzz_socketcand_send_parser_raises_only_value_error(text):
@@ -189,6 +197,7 @@ def test_fuzz_socketcand_send_parser_raises_only_value_error(text):
         assert 0 <= len(msg.data) <= 8
 
 
+@pytest.mark.unit
 @given(st.integers(0, 0xFFFF))
 def test_every_statusword_has_a_state(sw):
     assert cia402.state_of(sw) in (*cia402.STATES, "UNKNOWN")

@@ -26,6 +26,7 @@ def _collect(bus: Bus, key: str):
     return sub, got, errors, ev
 
 
+@pytest.mark.process
 def test_publish_subscribe_carries_encoding_schema_and_stamp(bus_pair):
     a, b = bus_pair
     sub, got, _, _ = _collect(b, a.keys.dev("*", "*"))
@@ -49,6 +50,7 @@ def test_publish_subscribe_carries_encoding_schema_and_stamp(bus_pair):
     assert pt.decode() == {"point_mm": [1, 2, 3]} and pt.attachment.seq == 0
 
 
+@pytest.mark.process
 def test_sample_without_metadata_goes_to_on_error(bus_pair):
     a, b = bus_pair
     sub, got, errors, _ = _collect(b, a.keys.dev("*", "*"))
@@ -64,6 +66,7 @@ def test_sample_without_metadata_goes_to_on_error(bus_pair):
     assert [k.rsplit("/", 1)[-1] for k, _ in errors] == ["y", "z"]
 
 
+@pytest.mark.process
 def test_call_without_daemon_raises_no_daemon_quickly(bus_pair):
     _, b = bus_pair
     t0 = time.monotonic()
@@ -72,6 +75,7 @@ def test_call_without_daemon_raises_no_daemon_quickly(bus_pair):
     assert time.monotonic() - t0 < 5
 
 
+@pytest.mark.process
 def test_unreachable_listen_endpoint_is_a_clear_error(endpoint, cell):
     a = Bus.open(BusConfig(listen=(endpoint,)), cell)
     try:
@@ -81,6 +85,7 @@ def test_unreachable_listen_endpoint_is_a_clear_error(endpoint, cell):
         a.close()
 
 
+@pytest.mark.process
 def test_client_default_reads_environment(monkeypatch):
     monkeypatch.setenv("SCANCELL_CONNECT", "tcp/127.0.0.1:1,tcp/127.0.0.1:2")
     assert BusConfig.client_default().connect == ("tcp/127.0.0.1:1", "tcp/127.0.0.1:2")

@@ -47,6 +47,7 @@ async def scanner(world: SimWorld):
             await d.close()
 
 
+@pytest.mark.unit
 def test_coupled_sequence_frame_k_is_pattern_k_for_both_cameras(world):
     async def body():
         async with scanner(world) as (left, right, projector):
@@ -68,6 +69,7 @@ def test_coupled_sequence_frame_k_is_pattern_k_for_both_cameras(world):
     asyncio.run(body())
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("fault, message", [("drop", "no frame for pattern 0"),
                                             ("double", "extra frame")])
 def test_broken_trigger_coupling_is_detected(world, fault, message):
@@ -84,6 +86,7 @@ def test_broken_trigger_coupling_is_detected(world, fault, message):
     asyncio.run(body())
 
 
+@pytest.mark.unit
 def test_trigger_out_disconnected_and_software_and_exposure(world):
     async def body():
         async with scanner(world) as (left, _right, projector):
@@ -108,6 +111,7 @@ def test_trigger_out_disconnected_and_software_and_exposure(world):
     asyncio.run(body())
 
 
+@pytest.mark.unit
 def test_sim_camera_without_world_is_connection_lost():
     cam = SimCamera("cam", {"world": "nowhere", "camera": "left"})
     with pytest.raises(ConnectionLost, match="no simulated world 'nowhere'"):
@@ -127,6 +131,7 @@ def image_sequence(tmp_path, world):
     return tmp_path, imgs
 
 
+@pytest.mark.unit
 def test_opencv_reads_an_image_sequence_in_order(image_sequence):
     folder, imgs = image_sequence
 
@@ -158,6 +163,7 @@ def test_opencv_reads_an_image_sequence_in_order(image_sequence):
     asyncio.run(body())
 
 
+@pytest.mark.unit
 def test_opencv_missing_source_and_garbage_file(tmp_path):
     async def body():
         with pytest.raises(ConnectionLost, match="cannot open"):
@@ -182,6 +188,7 @@ def test_opencv_missing_source_and_garbage_file(tmp_path):
 pylon = pytest.importorskip("pypylon.pylon", reason="scancell[basler] not installed")
 
 
+@pytest.mark.unit
 def test_basler_emulation_software_trigger_exposure_and_image_files(image_sequence):
     folder, imgs = image_sequence
 
@@ -209,6 +216,7 @@ def test_basler_emulation_software_trigger_exposure_and_image_files(image_sequen
     asyncio.run(body())
 
 
+@pytest.mark.unit
 def test_basler_unknown_serial_names_what_was_found():
     async def body():
         with pytest.raises(ConnectionLost, match="0815-0000"):

@@ -10,6 +10,7 @@ from scancell.config import ConfigError, load_cell_config
 from scancell.deploy import cell_config_path
 
 
+@pytest.mark.unit
 def test_packaged_configs_load():
     cfg = load_cell_config(default_cell_config())
     assert cfg.cell and cfg.devices
@@ -24,6 +25,7 @@ def _write(tmp_path: Path, text: str) -> Path:
     return p
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("text,expected", [
     ("[cell\nname='x'", "not valid TOML"),
     ("[cell]\nname='x'\n[robots]\n", "robots: unknown table"),
@@ -45,11 +47,13 @@ def test_errors_name_file_key_and_problem(tmp_path, text, expected):
     assert expected in str(ei.value)
 
 
+@pytest.mark.unit
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read cell config"):
         load_cell_config(tmp_path / "nope.toml")
 
 
+@pytest.mark.unit
 def test_driver_options_checked_against_driver_schema(tmp_path, monkeypatch):
     from scancell.devices import mock
 
@@ -60,6 +64,7 @@ def test_driver_options_checked_against_driver_schema(tmp_path, monkeypatch):
         load_cell_config(path)
 
 
+@pytest.mark.unit
 def test_bus_tls_and_auth_reach_zenoh_config():
     from scancell.bus import BusConfig
 

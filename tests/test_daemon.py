@@ -23,6 +23,7 @@ def _err(client, verb, request=None, payload=None):
     return ei.value
 
 
+@pytest.mark.process
 def test_status_and_devices_list_everything(make_daemon, client):
     make_daemon()
     wait_until(lambda: all(s["state"] == "connected"
@@ -36,6 +37,7 @@ def test_status_and_devices_list_everything(make_daemon, client):
     assert sorted(client.alive()) == sorted(st["devices"])
 
 
+@pytest.mark.process
 def test_operations_publish_timestamped_measurements(make_daemon, client):
     make_daemon()
     got: list[BusSample] = []
@@ -76,6 +78,7 @@ def test_operations_publish_timestamped_measurements(make_daemon, client):
     assert by_stream["robot/status"][0].decode()["state"] == "connected"
 
 
+@pytest.mark.process
 def test_bad_requests_get_clear_errors_and_daemon_keeps_serving(make_daemon, client):
     make_daemon()
     wait_until(lambda: client.status()["devices"]["robot"]["state"] == "connected")
@@ -114,6 +117,7 @@ def test_bad_requests_get_clear_errors_and_daemon_keeps_serving(make_daemon, cli
     assert client.status()["devices"]["robot"]["state"] == "connected"
 
 
+@pytest.mark.process
 def test_timeout_answers_and_stops_the_motion(make_daemon, client):
     raw = copy.deepcopy(MOCK_CELL)
     raw["devices"]["robot"]["max_speed_deg_s"] = 10.0
@@ -129,6 +133,7 @@ def test_timeout_answers_and_stops_the_motion(make_daemon, client):
     assert 0 < q1 < 90 and q1 == pytest.approx(q2), "robot kept moving after the timeout"
 
 
+@pytest.mark.process
 def test_cut_link_reconnects_with_backoff_while_others_serve(make_daemon, client):
     make_daemon()
     wait_until(lambda: client.status()["devices"]["tracker"]["state"] == "connected")
@@ -167,6 +172,7 @@ class DropsDuringMove(MockRobot):
         raise ConnectionLost("socket closed by peer")
 
 
+@pytest.mark.process
 def test_driver_bugs_and_drops_never_take_the_daemon_down(make_daemon, client, monkeypatch):
     from scancell.devices import registry
 
@@ -187,6 +193,7 @@ def test_driver_bugs_and_drops_never_take_the_daemon_down(make_daemon, client, m
                what="robot2 reconnected")
 
 
+@pytest.mark.process
 def test_shutdown_aborts_running_command(make_daemon, client):
     raw = copy.deepcopy(MOCK_CELL)
     raw["devices"]["robot"]["max_speed_deg_s"] = 5.0

@@ -56,6 +56,7 @@ def daemon_proc(tmp_path: Path, cell: str, endpoint: str):
         proc.wait()
 
 
+@pytest.mark.process
 def test_ctl_status_reconnect_and_sigterm(daemon_proc, cell, endpoint):
     def status():
         out = _scancell("ctl", "--json-out", "status", endpoint=endpoint, cell=cell)
@@ -95,12 +96,14 @@ def test_ctl_status_reconnect_and_sigterm(daemon_proc, cell, endpoint):
     assert "daemon shutting down" in log
 
 
+@pytest.mark.process
 def test_ctl_without_daemon_exits_nonzero(cell, endpoint):
     out = _scancell("ctl", "status", endpoint=endpoint, cell=cell)
     assert out.returncode != 0
     assert "no daemon answered" in out.stderr or "cannot open" in out.stderr
 
 
+@pytest.mark.process
 def test_daemon_bad_config_exits_2(tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[cell]\nname='x'\n[devices.robot]\ndriver='nope'\n")

@@ -12,6 +12,7 @@ import pytest
 pytestmark = pytest.mark.timeout(900)
 
 
+@pytest.mark.e2e
 def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     out = subprocess.run([sys.executable, "-m", "scancell", "demo", "--quick"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=880)

@@ -28,6 +28,7 @@ def stations():
     return cell, out
 
 
+@pytest.mark.unit
 def test_true_transforms_put_every_point_on_the_part(stations):
     cell, st = stations
     T_true = cell.true_T_ecs_from_mcs()
@@ -38,6 +39,7 @@ def test_true_transforms_put_every_point_on_the_part(stations):
     assert out["pairs"][0]["n"] > 100 and out["translation_mm"]["mean"] < 0.02
 
 
+@pytest.mark.unit
 def test_a_wrong_hand_eye_shows_as_the_expected_error(stations):
     cell, st = stations
     T = cell.true_T_ecs_from_mcs().copy()
@@ -47,6 +49,7 @@ def test_a_wrong_hand_eye_shows_as_the_expected_error(stations):
     assert 0.2 < d.mean() < 0.3  # seen along each surface normal, which the view nearly follows
 
 
+@pytest.mark.unit
 def test_resampling_thins_and_transforms_are_checked(stations):
     cell, st = stations
     fused = fuse(st, cell.true_T_ecs_from_mcs(), voxel_mm=2.0)
@@ -55,6 +58,7 @@ def test_resampling_thins_and_transforms_are_checked(stations):
         check_rigid(np.diag([1000.0, 1000.0, 1000.0, 1.0]), "T")
 
 
+@pytest.mark.process
 def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     cell, st = stations
     for s in st:
@@ -99,6 +103,7 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     assert r.returncode == 2 and "recording" in r.stderr
 
 
+@pytest.mark.unit
 def test_multi_view_icp_undoes_a_station_error_and_reports_it_apart(stations):
     """One station 0.4 mm off (a bad tracker shot): ICP held to the tracker prior pulls it back
     toward the part; the correction is reported, the tracker result stays as it was."""
@@ -121,6 +126,7 @@ def test_multi_view_icp_undoes_a_station_error_and_reports_it_apart(stations):
         refine({"a": moved["s1"]})
 
 
+@pytest.mark.unit
 def test_error_budget_follows_the_tracker_noise(stations):
     """The ECS share scales with the tracker's sigma and is zero without noise; the budget
     names what dominates."""

@@ -54,6 +54,7 @@ def _ask(session: zenoh.Session, key: str, payload: bytes, timeout_s: float) -> 
     return None
 
 
+@pytest.mark.process
 @settings(max_examples=5000, deadline=None, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
                                  HealthCheck.data_too_large])
@@ -81,6 +82,7 @@ def test_every_queryable_answers_every_request(daemon, client, data):
         assert reply["error"]["code"] != "internal", (verb, payload, reply)
 
 
+@pytest.mark.process
 def test_the_daemon_serves_on_after_a_burst_of_garbage(daemon, client):
     """1200 malformed requests in a row, wildcard queries among them, then a healthy daemon."""
     s = client.bus.session
@@ -94,6 +96,7 @@ def test_the_daemon_serves_on_after_a_burst_of_garbage(daemon, client):
     assert client.call("device/robot/joints")["joints_deg"]
 
 
+@pytest.mark.process
 def test_a_device_held_by_a_job_answers_busy_at_once(daemon, client):
     """Found by the fuzz: a move for a robot a waiting job holds used to wait out the move's
     120 s timeout behind the job."""

@@ -24,6 +24,7 @@ def _all_connected(client) -> bool:
     return all(s["state"] == "connected" for s in client.status()["devices"].values())
 
 
+@pytest.mark.e2e
 def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell, endpoint,
                                                       tmp_path):
     d = make_daemon(sim_cell_raw(camera_scale=4))
@@ -83,6 +84,7 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
         assert worker.wait(20) == 0, worker.stderr.read()
 
 
+@pytest.mark.e2e
 def test_job_abort_keeps_the_daemon_serving(make_daemon, client):
     make_daemon(sim_cell_raw(camera_scale=16))
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
@@ -96,6 +98,7 @@ def test_job_abort_keeps_the_daemon_serving(make_daemon, client):
         client.call("job/confirm", {})
 
 
+@pytest.mark.e2e
 def test_real_cell_job_waits_for_the_operator_each_ball(make_daemon, client):
     """No simulator: the job asks for each ball to be placed and confirmed (mock devices)."""
     from .conftest import MOCK_CELL

@@ -27,12 +27,14 @@ def pairs(n: int = 15, noise: float = 0.01, seed: int = 1) -> list[Pair]:
             for i in range(n)]
 
 
+@pytest.mark.unit
 def test_exact_pairs_give_the_transform_back():
     r = solve_hand_eye(pairs(noise=0.0))
     assert np.allclose(r.T_ecs_from_mcs, TRUE_T, atol=1e-9)
     assert r.rms_mm < 1e-9 and not r.excluded
 
 
+@pytest.mark.unit
 def test_noisy_pairs_error_within_the_reported_uncertainty():
     r = solve_hand_eye(pairs(noise=0.01))
     rot = rotation_angle_arcsec(r.T_ecs_from_mcs[:3, :3] @ TRUE_T[:3, :3].T)
@@ -42,6 +44,7 @@ def test_noisy_pairs_error_within_the_reported_uncertainty():
     assert set(r.leave_one_out_mm) == {p.id for p in pairs()}
 
 
+@pytest.mark.unit
 def test_planted_outliers_are_excluded_with_their_reason():
     p = pairs()
     p[4] = Pair("b4", p[4].ecs + np.array([0, 2.0, 0]), p[4].mcs)  # a typo in the table
@@ -54,6 +57,7 @@ def test_planted_outliers_are_excluded_with_their_reason():
     assert solve_hand_eye(p, robust=False).rms_mm > 0.2  # without the robust mode they spoil it
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("bad, message", [
     (lambda p: p[:2], "at least 3 pairs"),
     (lambda p: [*p[:3], Pair("b0", p[3].ecs, p[3].mcs)], "duplicate pair id"),
@@ -78,6 +82,7 @@ def _circle_points(angles_deg, noise=0.0, seed=0):
         rng.normal(0, noise, (len(a), 3))
 
 
+@pytest.mark.unit
 def test_ecs_circle_fit_is_the_paper_frame_and_less_noisy():
     angles = [0, -30, -60, -90, -120, -150]
     exact = ecs_from_points(*_circle_points(angles)[:3])
@@ -90,6 +95,7 @@ def test_ecs_circle_fit_is_the_paper_frame_and_less_noisy():
     assert np.mean(errc) < 0.5 * np.mean(err3)
 
 
+@pytest.mark.unit
 def test_ecs_refuses_degenerate_points():
     p = np.array([[0, 0, 0], [10, 0, 0], [20, 0, 0.0]])
     with pytest.raises(DegenerateGeometry, match="collinear"):
@@ -98,6 +104,7 @@ def test_ecs_refuses_degenerate_points():
         ecs_from_points(p[0], p[0], p[1])
 
 
+@pytest.mark.unit
 def test_ball_centre_from_a_simulated_scan_with_its_opening_and_stand():
     from scancell.analysis.scanner import ScanDecoder
     from scancell.analysis.stereo_calibration import StereoCalibration
@@ -133,6 +140,7 @@ def _run(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=60)
 
 
+@pytest.mark.unit
 def test_hand_eye_cli_table_json_and_bad_csv(tmp_path):
     from scancell.analysis.pair_table import write_pairs
 
@@ -165,6 +173,7 @@ def test_hand_eye_cli_table_json_and_bad_csv(tmp_path):
     assert r.returncode == 2 and "missing.csv" in r.stderr
 
 
+@pytest.mark.process
 def test_ecs_cli(tmp_path):
     pts = _circle_points([0, -30, -60, -90])
     lines = ["id,x,y,z,j6_deg"] + [f"P{i + 1},{p[0]},{p[1]},{p[2]},{a}"

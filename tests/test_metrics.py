@@ -21,6 +21,7 @@ def plane(spacing: float = 0.5, size: float = 60.0, offset: float = 0.0, tilt_de
     return np.stack([x.ravel(), y.ravel(), z.ravel() + rng.normal(0, noise, x.size)], axis=1)
 
 
+@pytest.mark.unit
 def test_known_offset_gives_that_translation_and_no_rotation():
     a = plane()
     b = plane(offset=0.3, shift_xy=0.25)
@@ -31,6 +32,7 @@ def test_known_offset_gives_that_translation_and_no_rotation():
     assert out["radius_mm"] == pytest.approx(6 * 0.5, rel=1e-6)
 
 
+@pytest.mark.unit
 def test_known_tilt_gives_that_rotation():
     a = plane()
     b = plane(tilt_deg=2.0, shift_xy=0.25)
@@ -41,6 +43,7 @@ def test_known_tilt_gives_that_rotation():
     assert 0.3 < out["translation_mm"]["p_lt_0_6"] < 0.8
 
 
+@pytest.mark.unit
 def test_several_clouds_give_every_overlapping_pair():
     clouds = {"a": plane(), "b": plane(offset=0.1, shift_xy=0.2), "c": plane(offset=200.0)}
     out = compare_clouds(clouds).to_json()
@@ -49,6 +52,7 @@ def test_several_clouds_give_every_overlapping_pair():
     assert pairs[("a", "b")]["translation_mean_mm"] == pytest.approx(0.1, abs=1e-6)
 
 
+@pytest.mark.unit
 def test_no_overlap_nan_and_empty_are_clear_errors():
     with pytest.raises(MetricsError, match="no overlap"):
         compare_clouds({"a": plane(), "b": plane(offset=50.0)})
@@ -62,6 +66,7 @@ def test_no_overlap_nan_and_empty_are_clear_errors():
         compare_clouds({"a": plane()})
 
 
+@pytest.mark.process
 def test_cli_json_plots_and_bad_input(tmp_path):
     write_ply(tmp_path / "a.ply", plane(noise=0.005))
     write_ply(tmp_path / "b.ply", plane(offset=0.2, shift_xy=0.25, noise=0.005, seed=1))
@@ -86,6 +91,7 @@ def test_cli_json_plots_and_bad_input(tmp_path):
     assert r.returncode == 2 and "missing.ply" in r.stderr
 
 
+@pytest.mark.unit
 def test_grid_neighbourhoods_agree_with_a_kd_tree():
     """The grid kernels against scipy's k-d tree: the same nearest points, the same normals."""
     from scancell.analysis.grid_kernels import CellGrid

@@ -54,6 +54,7 @@ async def _watch(port: int, wanted: set[str], seconds: float) -> dict[str, list[
         return got
 
 
+@pytest.mark.process
 def test_a_foxglove_client_sees_the_cell_live_and_thinned(make_daemon, client):
     make_daemon()
     mon = Monitor(client.bus, MonitorSettings(max_hz=5.0, max_cloud_points=10_000),

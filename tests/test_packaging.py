@@ -6,9 +6,12 @@ import subprocess
 import sys
 import zipfile
 
+import pytest
+
 from .conftest import REPO
 
 
+@pytest.mark.process
 def test_wheel_contains_only_scancell(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "-w", str(tmp_path),
@@ -33,6 +36,7 @@ def test_wheel_contains_only_scancell(tmp_path):
     assert "scancell = scancell.cli:main" in zipfile.ZipFile(wheel).read(entry[0]).decode()
 
 
+@pytest.mark.process
 def test_help_lists_subcommands():
     out = subprocess.run([sys.executable, "-m", "scancell", "--help"], capture_output=True,
                          text=True, timeout=60)

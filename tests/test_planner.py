@@ -26,6 +26,7 @@ def planned():
     return cell, g, planner, plan, report
 
 
+@pytest.mark.unit
 def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(planned):
     cell, g, planner, plan, report = planned
     assert report.stations >= 4 and report.coverage >= 0.9, report.to_json()
@@ -45,6 +46,7 @@ def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(plann
     assert plan_from_text(plan.to_toml(), "plan.toml")["station"][0]["name"] == "s01"
 
 
+@pytest.mark.process
 def test_plan_cli_and_bad_input(tmp_path):
     run = [sys.executable, "-m", "scancell"]
     r = subprocess.run([*run, "sim", "part", "--out", str(tmp_path / "part.ply")],
@@ -69,6 +71,7 @@ def test_plan_cli_and_bad_input(tmp_path):
             SimCell(SimCellConfig(camera_scale=8)).planner_table()))
 
 
+@pytest.mark.process
 def test_plan_run_watch_abort_and_run_again_on_the_simulated_cell(planned, make_daemon, client,
                                                                   cell, endpoint, tmp_path):
     """Issue acceptance: a client plans stations for the car-body rear, runs the job with

@@ -24,6 +24,7 @@ from scancell.protocols.encoding import Attachment, EncodingError, split_encodin
 from scancell.protocols.keys import CellKeys
 
 
+@pytest.mark.unit
 def test_keys_follow_design():
     k = CellKeys("sim")
     assert k.dev("cam_left", "image") == "scancell/sim/dev/cam_left/image"
@@ -43,6 +44,7 @@ def test_keys_follow_design():
             CellKeys(bad)
 
 
+@pytest.mark.unit
 def test_attachment_round_trip_and_errors():
     a = Attachment(123, 4, 99, {"station": 3, "pattern": 8})
     assert Attachment.from_bytes(a.to_bytes()) == a
@@ -52,6 +54,7 @@ def test_attachment_round_trip_and_errors():
             Attachment.from_bytes(bad)
 
 
+@pytest.mark.unit
 def test_split_encoding():
     assert split_encoding("application/json;scancell.X") == ("application/json", "scancell.X")
     for bad in ("application/json", "text/plain;x", "zenoh/bytes", ""):
@@ -59,6 +62,7 @@ def test_split_encoding():
             split_encoding(bad)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("dtype,shape", [(np.uint8, (5, 7)), (np.uint16, (4, 3)),
                                          (np.uint8, (2, 3, 3))])
 def test_raw_image_round_trip(dtype, shape):
@@ -70,6 +74,7 @@ def test_raw_image_round_trip(dtype, shape):
     np.testing.assert_array_equal(fg.image_array(back), img)
 
 
+@pytest.mark.unit
 def test_point_cloud_round_trip_with_fields():
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(100, 3)) * 500
@@ -82,6 +87,7 @@ def test_point_cloud_round_trip_with_fields():
         fg.point_cloud(pts, 7, "mcs", {"quality": q[:5]})
 
 
+@pytest.mark.unit
 def test_frame_transform_round_trip():
     from scipy.spatial.transform import Rotation
 
@@ -94,6 +100,7 @@ def test_frame_transform_round_trip():
     np.testing.assert_allclose(fg.transform_matrix(back), T, atol=1e-9)
 
 
+@pytest.mark.unit
 def test_joint_states_and_log():
     js = fg.joint_states(["J1", "J2"], np.array([0.1, -0.2]), 3)
     back = messages.decode(js.SerializeToString(), "application/protobuf;foxglove.JointStates")
@@ -102,6 +109,7 @@ def test_joint_states_and_log():
     assert messages.decode(lg.SerializeToString(), "application/protobuf;foxglove.Log").level == 3
 
 
+@pytest.mark.unit
 def test_json_round_trip_and_unknown_schema():
     enc = messages.encode_json({"a": 1}, "scancell.DeviceStatus")
     assert messages.decode(enc.payload, enc.encoding) == {"a": 1}
@@ -113,6 +121,7 @@ def test_json_round_trip_and_unknown_schema():
         messages.decode(b"\xff\xff\xff", "application/protobuf;foxglove.RawImage")
 
 
+@pytest.mark.unit
 def test_schema_data_is_self_describing():
     fds = FileDescriptorSet.FromString(
         messages.schema_data("application/protobuf", "foxglove.PointCloud"))
@@ -122,6 +131,7 @@ def test_schema_data_is_self_describing():
     assert js["title"] == "scancell.TrackerPoint"
 
 
+@pytest.mark.unit
 def test_every_json_schema_is_valid_and_commands_have_one():
     import jsonschema
     from scancell.devices.base import KINDS
@@ -137,6 +147,7 @@ def test_every_json_schema_is_valid_and_commands_have_one():
         messages.json_schema(request_schema_name(verb))
 
 
+@pytest.mark.unit
 def test_parse_request_errors_name_the_field():
     schema = "scancell.cmd.robot.move_joints"
     assert parse_request(b'{"joints_deg":[0,0,0,0,0,0]}', schema)["joints_deg"] == [0] * 6
@@ -157,6 +168,7 @@ def test_parse_request_errors_name_the_field():
         validate({"joints_deg": [0], "speed": 5}, schema)
 
 
+@pytest.mark.unit
 def test_reply_envelope():
     assert unwrap_reply(ok_reply({"x": 1})) == {"x": 1}
     with pytest.raises(CommandError) as ei:
@@ -169,6 +181,7 @@ def test_reply_envelope():
         CommandError("no_such_code", "x")
 
 
+@pytest.mark.unit
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=200))
 def test_fuzz_request_parser_raises_only_command_errors(data):
@@ -178,6 +191,7 @@ def test_fuzz_request_parser_raises_only_command_errors(data):
         pass
 
 
+@pytest.mark.unit
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=200))
 def test_fuzz_attachment_and_decoders_raise_only_encoding_errors(data):

@@ -57,6 +57,7 @@ def _same_hand_eye(again: dict, live: dict) -> None:
         assert again["rms_mm"] == live["rms_mm"]
 
 
+@pytest.mark.e2e
 def test_record_kill_recover_replay_reprocess(make_daemon, client, cell, endpoint, tmp_path):
     d = make_daemon(sim_cell_raw(camera_scale=4))
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")

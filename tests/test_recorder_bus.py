@@ -9,6 +9,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
@@ -37,6 +38,7 @@ def _collect(bus, key: str) -> list:
     return got
 
 
+@pytest.mark.process
 def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     a, b = bus_pair
     stereo = b.latched(b.keys.stereo)  # a worker's calibration, published before the recorder
@@ -80,6 +82,7 @@ def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     assert {e["event"] for e in events} >= {"opened", "closed"}
 
 
+@pytest.mark.process
 def test_a_full_queue_drops_loudly_and_is_counted_in_the_file(bus_pair, tmp_path, caplog):
     a, b = bus_pair
     rec = Recorder(a, RecorderSettings(directory=str(tmp_path), queue_bytes=3_000_000,
@@ -119,6 +122,7 @@ def test_a_full_queue_drops_loudly_and_is_counted_in_the_file(bus_pair, tmp_path
     assert statuses and statuses[-1]["dropped"] == {key: dropped}
 
 
+@pytest.mark.process
 def test_a_write_error_is_published_and_the_next_session_retries(bus_pair, tmp_path, monkeypatch):
     a, b = bus_pair
     rec = Recorder(a, settings_with(RecorderSettings(directory=str(tmp_path), retry_s=0.2,
@@ -165,6 +169,7 @@ def test_a_write_error_is_published_and_the_next_session_retries(bus_pair, tmp_p
         assert make_reader(fh).get_summary() is not None
 
 
+@pytest.mark.process
 def test_an_unwritable_directory_is_an_error_not_a_crash(bus_pair, tmp_path):
     a, b = bus_pair
     (tmp_path / "file").write_text("x")

@@ -13,6 +13,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from scancell.bus import Bus, BusConfig
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import Attachment
@@ -39,6 +40,7 @@ def _small_recording(path, cell: str = "c1", n: int = 5) -> None:
     f.close()
 
 
+@pytest.mark.process
 def test_bad_files_and_paths_exit_2_naming_them(tmp_path):
     out = _scancell("record", "info", str(tmp_path / "nope.mcap"))
     assert out.returncode == 2 and "nope.mcap: no such recording" in out.stderr
@@ -58,6 +60,7 @@ def test_bad_files_and_paths_exit_2_naming_them(tmp_path):
     assert json.loads(out.stdout)["topics"] == {"scancell/c1/dev/tracker/point": 5}
 
 
+@pytest.mark.process
 def test_replay_cli_is_a_hub_workers_connect_to(tmp_path):
     _small_recording(tmp_path / "a.mcap", n=20)
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -78,6 +81,7 @@ def test_replay_cli_is_a_hub_workers_connect_to(tmp_path):
     assert got[0].key == "scancell/other/dev/tracker/point"
 
 
+@pytest.mark.process
 def test_the_daemon_records_its_own_session_when_configured(make_daemon, client, tmp_path):
     raw = copy.deepcopy(MOCK_CELL)
     raw["recorder"] = {"directory": str(tmp_path / "rec"), "flush_interval_s": 0.2}
@@ -93,6 +97,7 @@ def test_the_daemon_records_its_own_session_when_configured(make_daemon, client,
     assert any(t.endswith("/dev/robot/joints") for t in topics)
 
 
+@pytest.mark.process
 def test_the_daemon_serves_on_when_its_recorder_cannot_write(make_daemon, client, tmp_path):
     (tmp_path / "file").write_text("x")
     raw = copy.deepcopy(MOCK_CELL)
@@ -113,6 +118,7 @@ def _limit_file_size() -> None:
     resource.setrlimit(resource.RLIMIT_FSIZE, (3_000_000, 3_000_000))
 
 
+@pytest.mark.process
 def test_a_full_disk_is_reported_and_the_recorder_process_lives_on(make_daemon, client, cell,
                                                                    endpoint, tmp_path):
     """A real write failure: the recorder process may not grow a file beyond 3 MB."""

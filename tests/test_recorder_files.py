@@ -44,6 +44,7 @@ def _write_session(path, n_images: int = 3, settings: FileSettings | None = None
     return f
 
 
+@pytest.mark.unit
 def test_a_session_reads_back_sample_for_sample_with_attachments(tmp_path):
     f = _write_session(tmp_path / "a.mcap")
     f.close()
@@ -62,6 +63,7 @@ def test_a_session_reads_back_sample_for_sample_with_attachments(tmp_path):
         [f"{P}/dev/tracker/point"] * 3
 
 
+@pytest.mark.unit
 def test_every_message_decodes_with_its_recorded_schema(tmp_path):
     """What Foxglove does: protobuf from the file's FileDescriptorSet, JSON against its schema."""
     import jsonschema
@@ -81,6 +83,7 @@ def test_every_message_decodes_with_its_recorded_schema(tmp_path):
     assert n == 9  # 3 images, 3 companions, 3 tracker points
 
 
+@pytest.mark.unit
 def test_image_chunks_are_uncompressed_and_the_rest_compressed(tmp_path):
     f = _write_session(tmp_path / "a.mcap", settings=FileSettings(compression="zstd",
                                                                   chunk_bytes=1024))
@@ -96,6 +99,7 @@ def test_image_chunks_are_uncompressed_and_the_rest_compressed(tmp_path):
                 if isinstance(r, Chunk)} == {"zstd"}
 
 
+@pytest.mark.unit
 def test_mcap_still_lets_the_compression_change_between_chunks(tmp_path, caplog):
     """Mixed chunk compression leans on mcap's private Writer attribute (session_file.py says
     why): this fails the day an mcap release renames it, and the fallback writes one
@@ -114,6 +118,7 @@ def test_mcap_still_lets_the_compression_change_between_chunks(tmp_path, caplog)
     assert "images will be compressed too" in caplog.text
 
 
+@pytest.mark.unit
 def test_bad_settings_and_bad_files_are_named(tmp_path):
     with pytest.raises(ValueError, match="compression"):
         FileSettings(compression="gzip")
@@ -128,6 +133,7 @@ def test_bad_settings_and_bad_files_are_named(tmp_path):
         topic_matches(f"{P}/a", ["a//b"])
 
 
+@pytest.mark.unit
 def test_a_cut_file_is_recovered_up_to_its_last_whole_chunk(tmp_path):
     f = _write_session(tmp_path / "a.mcap", n_images=0)
     for k in range(10):
@@ -163,6 +169,7 @@ def test_a_cut_file_is_recovered_up_to_its_last_whole_chunk(tmp_path):
         recover(tmp_path / "b.mcap", tmp_path / "b.mcap")
 
 
+@pytest.mark.unit
 def test_flush_is_time_driven(tmp_path):
     f = SessionFile(tmp_path / "a.mcap", FileSettings(flush_interval_s=0.2))
     t = time.monotonic()

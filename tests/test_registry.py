@@ -10,6 +10,7 @@ import pytest
 from scancell.devices.registry import UnknownDriver, available_drivers, load_driver
 
 
+@pytest.mark.unit
 def test_builtin_drivers_load():
     from scancell.devices.base import Robot
 
@@ -35,6 +36,7 @@ def _make_plugin(tmp_path):
     return tmp_path
 
 
+@pytest.mark.process
 def test_entry_point_plugin_is_found_and_imported_only_when_named(tmp_path):
     root = _make_plugin(tmp_path)
     code = textwrap.dedent(f"""
@@ -56,6 +58,7 @@ def test_entry_point_plugin_is_found_and_imported_only_when_named(tmp_path):
     assert out.stdout.strip() == "ok"
 
 
+@pytest.mark.unit
 def test_broken_entry_point_gives_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules["scancell.devices.registry"].BUILTIN_DRIVERS,
                         "ghost", "scancell.devices.nonexistent:Ghost")

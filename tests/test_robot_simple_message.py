@@ -34,6 +34,7 @@ async def _pair(byteorder: str = "big", **server_kw):
     return cell, server, robot
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("byteorder", ["big", "little"])
 def test_move_follows_at_realistic_speed_and_reports_state(byteorder):
     async def main():
@@ -65,6 +66,7 @@ def test_move_follows_at_realistic_speed_and_reports_state(byteorder):
     run(main())
 
 
+@pytest.mark.process
 def test_stop_mid_motion_halts_the_robot():
     async def main():
         _, server, robot = await _pair()
@@ -86,6 +88,7 @@ def test_stop_mid_motion_halts_the_robot():
     run(main())
 
 
+@pytest.mark.process
 def test_limits_are_checked_before_any_byte_is_sent():
     async def main():
         _, server, robot = await _pair()
@@ -101,6 +104,7 @@ def test_limits_are_checked_before_any_byte_is_sent():
     run(main())
 
 
+@pytest.mark.process
 def test_robot_fault_status_maps_to_health_and_refuses_motion():
     async def main():
         _, server, robot = await _pair()
@@ -123,6 +127,7 @@ def test_robot_fault_status_maps_to_health_and_refuses_motion():
     run(main())
 
 
+@pytest.mark.process
 def test_server_killed_mid_command_gives_connection_lost_then_reconnects():
     async def main():
         cell, server, robot = await _pair()
@@ -147,6 +152,7 @@ def test_server_killed_mid_command_gives_connection_lost_then_reconnects():
     run(main())
 
 
+@pytest.mark.process
 def test_garbage_on_the_state_link_is_a_typed_error_and_reconnect_resyncs():
     async def main():
         _, server, robot = await _pair()
@@ -164,6 +170,7 @@ def test_garbage_on_the_state_link_is_a_typed_error_and_reconnect_resyncs():
     run(main())
 
 
+@pytest.mark.process
 def test_stalled_peer_times_out():
     async def main():
         _, server, robot = await _pair(stall_replies=False)
@@ -181,6 +188,7 @@ def test_stalled_peer_times_out():
     run(main())
 
 
+@pytest.mark.process
 def test_nothing_listening_is_connection_lost():
     async def main():
         robot = SimpleMessageRobot("robot", {"motion_port": 1, "state_port": 2})

@@ -34,6 +34,7 @@ def sim_daemon(make_daemon, client):
     return d
 
 
+@pytest.mark.process
 def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, client, cell,
                                                                   endpoint, tmp_path):
     world = get_world(sim_daemon.cfg.simulator["world"])
@@ -104,6 +105,7 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
         assert worker.wait(20) == 0, worker.stderr.read()
 
 
+@pytest.mark.process
 def test_scan_with_broken_trigger_coupling_is_refused_and_the_next_one_works(sim_daemon, client):
     client.call("device/projector/trigger_fault", {"camera": "cam_right", "fault": "drop"})
     with pytest.raises(Exception, match="cam_right") as err:

@@ -82,6 +82,7 @@ def sim(make_daemon, client, tmp_path):
     he.close()
 
 
+@pytest.mark.e2e
 def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_path):
     world = sim
     events = Events(client.bus)
@@ -142,6 +143,7 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     assert again["rotation_deg"] == r["rotation_deg"]
 
 
+@pytest.mark.e2e
 def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(sim, client):
     world = sim
     events = Events(client.bus)
@@ -164,6 +166,7 @@ def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(si
     assert events.final(job2)["state"] == "done"
 
 
+@pytest.mark.e2e
 def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
     world = sim
     with world.lock:
@@ -187,6 +190,7 @@ def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
             client.call("job/scan_part", bad)
 
 
+@pytest.mark.e2e
 def test_estop_stops_at_once_and_aborts_the_job(sim, client):
     world = sim
     events = Events(client.bus)
@@ -206,6 +210,7 @@ def test_estop_stops_at_once_and_aborts_the_job(sim, client):
     assert client.status()["devices"]["robot"]["state"] == "connected"
 
 
+@pytest.mark.e2e
 def test_a_station_given_as_a_scanner_pose_is_solved_by_ik(sim, client):
     """Cartesian stations: the scanner pose in the tracker frame, joints by IK on the daemon's
     robot model; an unreachable pose is refused before any motion."""

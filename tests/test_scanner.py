@@ -35,6 +35,7 @@ def synthetic(seq: FringeSequence, column: np.ndarray, b: float = 80.0, noise: f
             for k in range(len(seq))]
 
 
+@pytest.mark.unit
 def test_heterodyne_tree_and_unwrappable_periods():
     assert heterodyne_tree((70, 64, 59)) == [[70, 64, 59], [6, 5], [1]]
     assert heterodyne_tree((16, 15)) == [[16, 15], [1]]
@@ -43,6 +44,7 @@ def test_heterodyne_tree_and_unwrappable_periods():
             heterodyne_tree(bad)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("periods, method", [((70, 64, 59), "heterodyne"),
                                              ((1, 8, 64), "hierarchical"),
                                              ((16, 15), "heterodyne")])
@@ -58,6 +60,7 @@ def test_decode_recovers_the_projector_column(periods, method):
 
 # (Not 0.28 or 0.72 fringe: with 70, 64, 59 periods that error on the 64-period images matches
 # the alias 38 fringes of 70 = 32 fringes of 59 away, which no consistency check can see.)
+@pytest.mark.unit
 @pytest.mark.parametrize("cycles", [0.15, 0.45, 0.6])
 def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
     seq = FringeSequence()
@@ -77,6 +80,7 @@ def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
         decode_phase(imgs, seq, W, DecodeSettings(method="hierarchical"))
 
 
+@pytest.mark.unit
 def test_noisy_weak_fringes_leave_almost_no_wrong_order():
     seq = FringeSequence()
     column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
@@ -86,6 +90,7 @@ def test_noisy_weak_fringes_leave_almost_no_wrong_order():
     assert wrong.sum() <= 0.001 * pm.valid.sum()
 
 
+@pytest.mark.unit
 def test_dark_saturated_and_malformed_inputs():
     seq = FringeSequence()
     dark = [np.zeros((20, 30), np.uint8) for _ in range(9)]
@@ -126,6 +131,7 @@ def station(tmp_path_factory) -> dict:
     return {"root": root, "cell": cell, "calib": root / "stereo.yaml", "out": out.stdout}
 
 
+@pytest.mark.unit
 def test_calibration_from_rendered_targets_is_close_to_the_truth(station):
     cal = StereoCalibration.read(station["calib"])
     rig = station["cell"].rig
@@ -138,6 +144,7 @@ def test_calibration_from_rendered_targets_is_close_to_the_truth(station):
     assert "RMS reprojection" in station["out"]
 
 
+@pytest.mark.process
 def test_decode_cli_matches_the_true_surface(station, tmp_path):
     root, cell = station["root"], station["cell"]
     out = subprocess.run([sys.executable, "-m", "scancell", "decode", "--calib",
@@ -174,6 +181,7 @@ def _rigid_fit(points_world: np.ndarray, cell: SimCell) -> np.ndarray:
     return np.asarray(reg.transformation)
 
 
+@pytest.mark.unit
 def test_rectification_keeps_the_common_field_of_a_converging_rig(station, tmp_path):
     cell = station["cell"]
     cell.rig.write_opencv_yaml(tmp_path / "true.yaml")  # the geometry, not the estimate
@@ -197,6 +205,7 @@ def test_rectification_keeps_the_common_field_of_a_converging_rig(station, tmp_p
         assert inside.mean() > 0.999
 
 
+@pytest.mark.unit
 def test_fast_kernels_agree_with_the_numpy_reference(station):
     """The numba engine (default) and the numpy reference give the same phase and cloud."""
     cell = station["cell"]
@@ -223,6 +232,7 @@ def test_fast_kernels_agree_with_the_numpy_reference(station):
     assert cell is not None
 
 
+@pytest.mark.unit
 def test_16_bit_tiff_images_decode_like_8_bit(station, tmp_path):
     root = station["root"]
     for side in ("left", "right"):
@@ -239,6 +249,7 @@ def test_16_bit_tiff_images_decode_like_8_bit(station, tmp_path):
     assert abs(len(outs["8"]) - len(outs["16"])) < 1e-3 * len(outs["8"])
 
 
+@pytest.mark.unit
 def test_decoder_refuses_images_of_another_size(station):
     cal = StereoCalibration.read(station["calib"])
     small = [np.zeros((10, 10), np.uint8)] * 9
@@ -251,6 +262,7 @@ def _decode(args: list[str]) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.unit
 def test_decode_cli_bad_input_names_the_problem_and_writes_nothing(station, tmp_path):
     root = station["root"]
     images, calib = root / "images", station["calib"]
@@ -299,6 +311,7 @@ def test_decode_cli_bad_input_names_the_problem_and_writes_nothing(station, tmp_
         "cannot be unwrapped")
 
 
+@pytest.mark.process
 def test_calibrate_cli_bad_input(tmp_path):
     run = [sys.executable, "-m", "scancell", "calibrate", "cameras"]
     r = subprocess.run([*run, "--images", str(tmp_path), "--out", str(tmp_path / "s.yaml")],

@@ -99,6 +99,7 @@ def _move(bus: Bus, j1: float):
                     timeout_s=10.0, connect_wait_s=2.0)
 
 
+@pytest.mark.process
 def test_a_controller_moves_the_robot_a_monitor_cannot(secured_cell):
     controller = secured_cell("controller")
     wait_until(lambda: controller.call("status", timeout_s=5.0)["devices"]["robot"]["state"]
@@ -118,6 +119,7 @@ def test_a_controller_moves_the_robot_a_monitor_cannot(secured_cell):
     assert np.isclose(controller.call("device/robot/joints")["joints_deg"][0], 10.0, atol=0.01)
 
 
+@pytest.mark.process
 def test_an_engineer_calibrates_but_does_not_command_motion(secured_cell):
     engineer = secured_cell("engineer")
     wait_until(lambda: engineer.call("status", timeout_s=5.0), 20, what="daemon")
@@ -131,6 +133,7 @@ def test_an_engineer_calibrates_but_does_not_command_motion(secured_cell):
                       connect_wait_s=1.0)
 
 
+@pytest.mark.process
 def test_no_credentials_no_session(secured_cell):
     with pytest.raises(ConnectionError):
         secured_cell(None, wait_s=2.0)
@@ -140,6 +143,7 @@ def test_no_credentials_no_session(secured_cell):
         secured_cell("intruder", password="x", wait_s=2.0)
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("secured_cell", [{"access_control/enabled": False}], indirect=True)
 def test_without_the_acl_the_same_monitor_could_move(secured_cell):
     """The control experiment: it is the ACL, not the setup, that stops the monitor."""
@@ -150,6 +154,7 @@ def test_without_the_acl_the_same_monitor_could_move(secured_cell):
     assert np.isclose(monitor.call("device/robot/joints")["joints_deg"][0], 30.0, atol=0.01)
 
 
+@pytest.mark.process
 def test_motion_outside_the_workspace_is_refused_whoever_asks(make_daemon, client):
     """Whatever the ACL lets through, the daemon checks every target: joint limits and the
     flange inside the configured workspace box (robot base frame, forward kinematics)."""

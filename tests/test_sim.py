@@ -28,6 +28,7 @@ def cell() -> SimCell:
     return c
 
 
+@pytest.mark.unit
 def test_fk_ik_round_trip():
     m = RobotModel()
     rng = np.random.default_rng(0)
@@ -46,6 +47,7 @@ def test_fk_ik_round_trip():
         m.ik(far)
 
 
+@pytest.mark.unit
 def test_projection_matches_opencv_and_rays_invert_it():
     cam = default_rig().right.scaled(8)
     pts = np.random.default_rng(0).normal(size=(500, 3)) * 80 + [0, 0, 650]
@@ -57,11 +59,13 @@ def test_projection_matches_opencv_and_rays_invert_it():
     np.testing.assert_allclose(back, np.stack([u.ravel(), v.ravel()], 1), atol=1e-6)
 
 
+@pytest.mark.unit
 def test_car_rear_part_has_paper_dimensions():
     ext = parts.car_rear().get_axis_aligned_bounding_box().get_extent()
     np.testing.assert_allclose(ext, [400, 1400, 500], atol=0.5)
 
 
+@pytest.mark.unit
 def test_tracker_noise_matches_spec():
     spec = TrackerSpec()
     tm = TrackerModel(spec, np.random.default_rng(1))
@@ -85,6 +89,7 @@ def test_tracker_noise_matches_spec():
     assert spec.sigmas_mm(10_000) == pytest.approx((0.0065, 0.0375))
 
 
+@pytest.mark.unit
 def test_occluded_or_turned_away_smr_gives_beam_break(cell):
     reading = cell.measure_smr()
     assert np.linalg.norm(reading.point_mm - cell.smr_center_world()) < 0.2
@@ -115,6 +120,7 @@ def _wrapped_phase(images: list[np.ndarray]) -> np.ndarray:
     return np.arctan2(s, c)
 
 
+@pytest.mark.unit
 def test_flat_artefact_has_the_analytic_phase():
     cell = SimCell(SimCellConfig(camera_scale=8, part="flat", seed=5))
     cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(
@@ -137,6 +143,7 @@ def test_flat_artefact_has_the_analytic_phase():
                       < 0.2)
 
 
+@pytest.mark.unit
 def test_render_kernels_agree_with_the_numpy_models(cell):
     """The numba projector mapping gives what the numpy projector model and a plain
     ``A + B cos`` shading give for the same hit points."""
@@ -157,6 +164,7 @@ def test_render_kernels_agree_with_the_numpy_models(cell):
     assert np.abs(img.astype(float) - np.clip(np.rint(expected), 0, 255)).max() <= 1
 
 
+@pytest.mark.unit
 def test_shadows_where_the_projector_cannot_see():
     cell = SimCell(SimCellConfig(camera_scale=8, part="flat", seed=2))
     cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(
@@ -185,6 +193,7 @@ def test_shadows_where_the_projector_cannot_see():
     assert modulation[lit].mean() > 40
 
 
+@pytest.mark.unit
 def test_same_seed_same_everything_and_seed_matters():
     def run(seed):
         c = SimCell(SimCellConfig(camera_scale=16, seed=seed))
@@ -198,6 +207,7 @@ def test_same_seed_same_everything_and_seed_matters():
     assert not np.array_equal(a[0], c[0]) and not np.array_equal(a[1], c[1])
 
 
+@pytest.mark.unit
 def test_ground_truth_is_consistent(cell):
     pts = cell.true_points("left")
     T = cell.T_world_from_camera("left")
@@ -213,6 +223,7 @@ def test_ground_truth_is_consistent(cell):
     np.testing.assert_allclose(ecs_from_points(*p), T_w_e, atol=1e-9)
 
 
+@pytest.mark.unit
 def test_rendered_target_corners_match_truth():
     rig = default_rig().scaled(4)
     board = Chessboard()
@@ -228,6 +239,7 @@ def test_rendered_target_corners_match_truth():
             assert d.mean() < 0.25 and d.max() < 0.8
 
 
+@pytest.mark.process
 def test_sim_render_cli_writes_the_decode_layout(tmp_path):
     out = subprocess.run([sys.executable, "-m", "scancell", "sim", "render",
                           "--joints-deg=-0.6,-48.6,60.3,-2.9,-11.8,92.8", "--scale", "8",

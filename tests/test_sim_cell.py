@@ -28,6 +28,7 @@ def _all_connected(client) -> bool:
     return all(s["state"] == "connected" for s in client.status()["devices"].values())
 
 
+@pytest.mark.process
 def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
     d = make_daemon(sim_cell_raw(camera_scale=8))
     wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")
@@ -79,6 +80,7 @@ def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
         sub.undeclare()
 
 
+@pytest.mark.process
 def test_a_simulator_port_in_use_is_a_clear_startup_error(tmp_path):
     import socket
 
@@ -126,6 +128,7 @@ def _toml(raw: dict, endpoint: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.process
 def test_scancell_daemon_on_sim_toml_with_ctl(tmp_path, cell, endpoint):
     """The acceptance path: `scancell daemon --config deploy/cells/sim.toml` (ports and camera
     size overridden with --set) driven by `scancell ctl` from other processes."""
@@ -187,6 +190,7 @@ def test_scancell_daemon_on_sim_toml_with_ctl(tmp_path, cell, endpoint):
     assert time.monotonic() - t0 < 10
 
 
+@pytest.mark.process
 def test_faults_on_one_device_never_stop_the_others(make_daemon, client):
     d = make_daemon(sim_cell_raw(camera_scale=16))
     wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")

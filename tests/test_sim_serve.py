@@ -9,6 +9,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from scancell.devices.line_tracker import LineTracker
 from scancell.devices.simple_message_robot import SimpleMessageRobot
 
@@ -29,6 +30,7 @@ def _stop(proc: subprocess.Popen) -> None:
     assert proc.wait(10) == 0 and time.monotonic() - t0 < 5
 
 
+@pytest.mark.process
 def test_serve_robot_and_tracker_until_sigterm():
     mp, sp, tp = free_port(), free_port(), free_port()
     robot_proc, _ = _start("robot", "--motion-port", str(mp), "--state-port", str(sp),
@@ -56,6 +58,7 @@ def test_serve_robot_and_tracker_until_sigterm():
         _stop(tracker_proc)
 
 
+@pytest.mark.process
 def test_serve_tracker_on_a_pty():
     proc, banner = _start("tracker", "--pty")
     path = banner.rsplit(" ", 1)[-1]
@@ -75,6 +78,7 @@ def test_serve_tracker_on_a_pty():
         _stop(proc)
 
 
+@pytest.mark.process
 def test_serve_axis_over_socketcand_until_sigterm():
     from scancell.devices.canopen_axis import CanopenAxis
 

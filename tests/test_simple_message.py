@@ -27,6 +27,7 @@ def _one(data: bytes, byteorder: str = "big"):
     return msgs[0]
 
 
+@pytest.mark.unit
 def test_golden_joint_position():
     header, body = _one(_bytes(JOINT_POSITION_HEX))
     assert header == sm.Header(sm.MsgType.JOINT_POSITION, sm.CommType.TOPIC, sm.ReplyCode.INVALID)
@@ -37,6 +38,7 @@ def test_golden_joint_position():
     assert sm.encode(header, body) == _bytes(JOINT_POSITION_HEX)
 
 
+@pytest.mark.unit
 def test_golden_joint_traj_pt():
     header, body = _one(_bytes(JOINT_TRAJ_PT_HEX))
     assert (header.msg_type, header.comm_type) == (sm.MsgType.JOINT_TRAJ_PT,
@@ -48,6 +50,7 @@ def test_golden_joint_traj_pt():
     assert sm.encode(header, body) == _bytes(JOINT_TRAJ_PT_HEX)
 
 
+@pytest.mark.unit
 def test_golden_status():
     header, body = _one(_bytes(STATUS_HEX))
     assert body == sm.Status(drives_powered=1, e_stopped=-1, error_code=0, in_error=0,
@@ -55,6 +58,7 @@ def test_golden_status():
     assert sm.encode(header, body) == _bytes(STATUS_HEX)
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("byteorder", ["big", "little"])
 def test_round_trips_in_both_byte_orders(byteorder):
     msgs = [
@@ -87,6 +91,7 @@ def test_round_trips_in_both_byte_orders(byteorder):
             sm.FrameDecoder("little").feed(_bytes(STATUS_HEX))
 
 
+@pytest.mark.unit
 def test_bad_frames_are_protocol_errors():
     with pytest.raises(sm.ProtocolError, match="out of sync"):
         sm.FrameDecoder().feed(b"\x7f\xff\xff\xff" + b"\x00" * 8)
@@ -106,6 +111,7 @@ def test_bad_frames_are_protocol_errors():
     assert h.msg_type == 2001 and raw == b"\x01\x02\x03\x04"
 
 
+@pytest.mark.unit
 @settings(max_examples=400, deadline=None)
 @given(st.binary(max_size=300), st.sampled_from(["big", "little"]))
 def test_fuzz_decoder_raises_only_protocol_errors(data, byteorder):
@@ -115,6 +121,7 @@ def test_fuzz_decoder_raises_only_protocol_errors(data, byteorder):
         pass
 
 
+@pytest.mark.unit
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(-10, 10, width=32), min_size=0, max_size=10),
        st.integers(-4, 10_000), st.floats(0, 1, width=32))

@@ -18,6 +18,7 @@ from scancell.sim.scene import SceneObject
 from scancell.sim.tracker_server import PtyTrackerServer, TcpTrackerServer
 
 
+@pytest.mark.unit
 def test_codec_round_trips_and_rejects_malformed_lines():
     assert tl.format_command(7, "FindReflector", (1.5, -2, 3e3)) == \
         b"00007 FindReflector(1.5, -2, 3000.0)\r\n"
@@ -42,6 +43,7 @@ def test_codec_round_trips_and_rejects_malformed_lines():
         sp.feed(b"x" * 2000)
 
 
+@pytest.mark.unit
 @settings(max_examples=400, deadline=None)
 @given(st.text(max_size=200))
 def test_fuzz_parsers_raise_only_line_errors(text):
@@ -52,6 +54,7 @@ def test_fuzz_parsers_raise_only_line_errors(text):
             pass
 
 
+@pytest.mark.unit
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=600))
 def test_fuzz_splitter_raises_only_line_errors(data):
@@ -71,6 +74,7 @@ def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 60))
 
 
+@pytest.mark.process
 def test_measure_over_tcp_is_within_the_noise_model_and_beam_breaks_on_occlusion():
     async def main():
         cell = _cell()
@@ -108,6 +112,7 @@ def test_measure_over_tcp_is_within_the_noise_model_and_beam_breaks_on_occlusion
     run(main())
 
 
+@pytest.mark.process
 def test_garbage_lines_are_dropped_and_stalls_time_out():
     async def main():
         server = TcpTrackerServer(_cell())
@@ -132,6 +137,7 @@ def test_garbage_lines_are_dropped_and_stalls_time_out():
     run(main())
 
 
+@pytest.mark.process
 def test_server_killed_gives_connection_lost_and_reconnect_works():
     async def main():
         cell = _cell()
@@ -156,6 +162,7 @@ def test_server_killed_gives_connection_lost_and_reconnect_works():
     run(main())
 
 
+@pytest.mark.process
 def test_same_driver_over_a_pseudo_terminal_and_the_port_disappearing():
     async def main():
         cell = _cell()
@@ -176,6 +183,7 @@ def test_same_driver_over_a_pseudo_terminal_and_the_port_disappearing():
     run(main())
 
 
+@pytest.mark.unit
 @given(st.text(max_size=80))
 def test_server_responses_stay_ascii_whatever_the_message(text):
     line = tl.error_response("00001", 3, text)
