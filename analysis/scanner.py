@@ -119,7 +119,8 @@ def read_image_set(folder: str | Path, count: int) -> tuple[list[np.ndarray], li
         if not d.is_dir():
             raise ImageSetError(f"{d}: missing (expected {root}/left/00.png … and {root}/right/00.png …)")
         paths = [image_path(d, k) for k in range(count)]
-        out[side] = [read_image(p) for p in paths]
+        with ThreadPoolExecutor(2) as pool:  # PNG decoding releases the GIL
+            out[side] = list(pool.map(read_image, paths))
         names[side] = [str(p) for p in paths]
     first = out["left"][0]
     for side in ("left", "right"):

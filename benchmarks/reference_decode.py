@@ -84,6 +84,8 @@ def match(col_l: np.ndarray, col_r: np.ndarray, max_step: float):
             continue
         mono = np.concatenate([[True], vals[1:] > np.maximum.accumulate(vals)[:-1]])
         xs, vals = xs[mono], vals[mono]
+        if len(vals) < 2:
+            continue
         left = col_l[r]
         xl = np.flatnonzero(np.isfinite(left))
         q = left[xl]

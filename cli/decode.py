@@ -29,8 +29,12 @@ def main(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         seq = parse_sequence(args.periods, args.steps)
-        settings = DecodeSettings(method=args.method, **({} if args.min_modulation is None else
-                                   {"min_modulation_dn": args.min_modulation}))
+        # Measured on 1280 x 1024 (bench_cli_startup): numba's import and first call of its
+        # cached kernels cost 1.4 s per process, and save 0.6 s on one scene.
+        engine = "numpy" if args.engine == "auto" else args.engine
+        settings = DecodeSettings(method=args.method, engine=engine,
+                                  **({} if args.min_modulation is None else
+                                     {"min_modulation_dn": args.min_modulation}))
         calib = StereoCalibration.read(args.calib)
         left, right, names = read_image_set(args.images, len(seq))
         t_read = time.perf_counter() - t0
@@ -61,6 +65,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=3, help="phase steps per period")
     p.add_argument("--out", required=True, help="output PLY (x, y, z in mm, left camera frame)")
     p.add_argument("--method", choices=["heterodyne", "hierarchical"], default="heterodyne")
+    p.add_argument("--engine", choices=["auto", "fast", "numpy"], default="auto",
+                   help="fast: the numba kernels; numpy: the reference; auto (default): numpy for "
+                        "this one scene, since loading numba costs a process more than it saves "
+                        "on one decode (the scan worker, decoding many, uses fast)")
     p.add_argument("--projector-width", type=int, default=None,
                    help="projector columns (default: the DLP's, 1280)")
     p.add_argument("--min-modulation", type=float, default=None,
