@@ -54,6 +54,8 @@ def write_ply(path: str | Path, points: np.ndarray, fields: dict[str, np.ndarray
                     rec[n] = v
                 fh.write(rec.tobytes())
         os.replace(tmp, p)
+    except OSError as exc:
+        raise CloudFileError(f"{p}: cannot write: {exc.strerror or exc}") from None
     finally:
         tmp.unlink(missing_ok=True)
 
