@@ -159,7 +159,10 @@ class Daemon:
         t_end = time.monotonic() + self.cfg.daemon.shutdown_timeout_s
         queryable.undeclare()
         await self.jobs.abort({})
+        aborted = list(self.router.inflight)
         self.router.abort_all()
+        if aborted:  # their "aborted" replies go out before the bus closes
+            await asyncio.wait(aborted, timeout=max(0.1, t_end - time.monotonic()))
         for s in self.supervisors.values():
             s.stop()
         await self._stop_motion()
