@@ -94,12 +94,10 @@ class LineTracker(Tracker):
                 data = port.read(4096)
                 if not data:
                     continue
-                try:
-                    lines = splitter.feed(data)
-                except tl.LineError:
-                    self.garbage_lines += 1
-                    continue
-                for line in lines:
+                for line in splitter.feed(data):
+                    if isinstance(line, tl.LineError):
+                        self.garbage_lines += 1
+                        continue
                     try:
                         self._dispatch(tl.parse_response(line))
                     except tl.LineError:

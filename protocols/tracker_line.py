@@ -17,7 +17,22 @@ Value = float | int | str
 
 
 class LineError(ValueError):
-    """A line that does not follow the protocol grammar."""
+    """A line that does not follow the protocol grammar; ``tag`` is the line's tag when its
+    first five characters could be read as one (the reply to it then carries that tag)."""
+
+    def __init__(self, message: str, tag: str | None = None) -> None:
+        super().__init__(message)
+        self.tag = tag
+
+
+#: The tag of an error reply to a line whose own tag cannot be read.
+NO_TAG = "00000"
+
+
+def readable_tag(text: str | bytes) -> str | None:
+    """The tag a (possibly broken) command line starts with: five digits and a space."""
+    head = text[:6].decode("ascii", "replace") if isinstance(text, bytes) else text[:6]
+    return head[:5] if len(head) == 6 and _TAG.match(head[:5]) and head[5] == " " else None
 
 
 _CALL = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)\((.*)\)$")
@@ -99,12 +114,16 @@ def format_command(tag: int, name: str, args: list[Value] | tuple[Value, ...] = 
 def parse_command(line: str) -> tuple[str, str, list[Value]]:
     """Server side: (tag, name, args)."""
     line = line.rstrip("\r\n")
+    tag = readable_tag(line)
     if len(line) > MAX_LINE:
-        raise LineError(f"line longer than {MAX_LINE} bytes")
-    tag, _, call = line.partition(" ")
-    if not _TAG.match(tag):
-        raise LineError(f"bad tag {tag[:10]!r}: 5 digits expected")
-    name, args = parse_call(call)
+        raise LineError(f"line longer than {MAX_LINE} bytes", tag)
+    head, _, call = line.partition(" ")
+    if tag is None:
+        raise LineError(f"bad tag {head[:10]!r}: 5 digits and a space expected")
+    try:
+        name, args = parse_call(call)
+    except LineError as exc:
+        raise LineError(str(exc), tag) from None
     return tag, name, args
 
 
@@ -166,24 +185,42 @@ def parse_response(line: str) -> Response:
 
 
 class LineSplitter:
-    """Bytes in, complete lines out; an over-long line raises LineError and is dropped."""
+    """Bytes in, lines out, in order: each complete line as ``str``, each line that cannot be
+    passed on as one ``LineError`` (carrying its tag when readable).
+
+    A line longer than ``MAX_LINE`` gives one error however long it is: its bytes are dropped up
+    to and including the next line end, so no part of it is ever taken for a command.
+    """
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self._discarding = False  # inside an over-long line, until its line end
 
-    def feed(self, data: bytes) -> list[str]:
+    def feed(self, data: bytes) -> list[str | LineError]:
         self._buf += data
-        lines = []
-        while (i := self._buf.find(b"\n")) >= 0:
+        out: list[str | LineError] = []
+        while True:
+            i = self._buf.find(b"\n")
+            if self._discarding:
+                if i < 0:
+                    self._buf.clear()
+                    return out
+                del self._buf[: i + 1]
+                self._discarding = False
+                continue
+            if i < 0:
+                if len(self._buf) > MAX_LINE:  # over-long: say so once, drop the rest of it
+                    out.append(LineError(f"line longer than {MAX_LINE} bytes",
+                                         readable_tag(bytes(self._buf[:6]))))
+                    self._buf.clear()
+                    self._discarding = True
+                return out
             raw = bytes(self._buf[:i]).rstrip(b"\r")
             del self._buf[: i + 1]
             if len(raw) > MAX_LINE:
-                raise LineError(f"line longer than {MAX_LINE} bytes")
+                out.append(LineError(f"line longer than {MAX_LINE} bytes", readable_tag(raw)))
+                continue
             try:
-                lines.append(raw.decode("ascii"))
+                out.append(raw.decode("ascii"))
             except UnicodeDecodeError:
-                raise LineError(f"non-ASCII bytes in line {raw[:40]!r}") from None
-        if len(self._buf) > MAX_LINE:
-            self._buf.clear()
-            raise LineError(f"line longer than {MAX_LINE} bytes without a terminator")
-        return lines
+                out.append(LineError(f"non-ASCII bytes in line {raw[:40]!r}", readable_tag(raw)))

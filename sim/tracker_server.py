@@ -1,5 +1,9 @@
 """Tracker simulator speaking the scancell tracker line protocol over TCP or a pseudo-terminal,
-backed by the simulated cell's tracker model (noise, beam break on occlusion or acceptance)."""
+backed by the simulated cell's tracker model (noise, beam break on occlusion or acceptance).
+
+Besides the protocol's commands it takes the simulator-only ``SimFault("<fault>")``
+(TRACKER_PROTOCOL.md, "Simulator commands"): a beam break, a reflector lost, a busy tracker,
+or ``"clear"``, so a client written from the document can provoke every error and event."""
 
 from __future__ import annotations
 
@@ -25,8 +29,12 @@ class TrackerProtocolHandler:
         self.target = "scanner"
         self._locked: bool | None = None
         self.env = (20.0, 1013.25, 45.0)
+        #: An injected fault (SIM_FAULTS), or None.
+        self.fault: str | None = None
 
     def _lock_state(self) -> tuple[bool, str]:
+        if self.fault in ("beam_break", "reflector_lost"):
+            return False, f"injected: {self.fault.replace('_', ' ')}"
         try:
             self.cell.beam_check(self.target)
             return True, ""
@@ -42,17 +50,24 @@ class TrackerProtocolHandler:
         self._locked = locked
         return out
 
-    def handle(self, line: str) -> list[bytes]:
+    def handle(self, line: str | tl.LineError) -> list[bytes]:
+        """The reply lines to one input line (or to a line the splitter refused)."""
+        if isinstance(line, tl.LineError):
+            return [tl.error_response(line.tag or tl.NO_TAG, 2003, str(line))]
         try:
             tag, name, args = tl.parse_command(line)
         except tl.LineError as exc:
-            return [tl.error_response("00000", 2003, str(exc))]
+            return [tl.error_response(exc.tag or tl.NO_TAG, 2003, str(exc))]
+        if name == "SimFault":
+            return self._sim_fault(tag, args)
         n_args = {"Hello": 0, "Measure": 0, "Status": 0, "Environment": 0, "FindReflector": 3,
                   "Abort": 0}
         if name not in n_args:
             return [tl.error_response(tag, 2001, f"unknown command {name!r}")]
         if len(args) != n_args[name] or not all(isinstance(a, int | float) for a in args):
             return [tl.error_response(tag, 2002, f"{name} takes {n_args[name]} numbers")]
+        if self.fault == "busy":
+            return [tl.error_response(tag, 2004, "the tracker is busy (injected)")]
         ack = tl.format_response(tag, "ack")
         done = tl.format_response(tag, "done")
         if name == "Hello":
@@ -60,6 +75,9 @@ class TrackerProtocolHandler:
                                             ("scancell sim tracker", "1.0", self.serial_number)),
                     done]
         if name == "Measure":
+            locked, reason = self._lock_state()
+            if self.fault and not locked:
+                return [ack, tl.error_response(tag, 1001, reason)]
             try:
                 r = self.cell.measure_smr(self.target)
             except BeamBreak as exc:
@@ -74,6 +92,9 @@ class TrackerProtocolHandler:
         if name == "Environment":
             return [ack, tl.format_response(tag, "data", "Env", self.env), done]
         if name == "FindReflector":
+            if self.fault == "reflector_lost":
+                return [tl.error_response(tag, 1002, "no reflector within 100 mm (injected)")]
+            self.fault = None  # a broken beam is found again
             p = np.asarray(args, float)
             candidates = {"scanner": self.cell.smr_center_world()}
             with contextlib.suppress(KeyError):
@@ -84,6 +105,19 @@ class TrackerProtocolHandler:
             self.target = best
             return [ack, tl.format_response(tag, "data", "Locked", ("SMR1.5",)), done]
         return [ack, done]  # Abort: measurements here are instantaneous
+
+    def _sim_fault(self, tag: str, args: list) -> list[bytes]:
+        if len(args) != 1 or args[0] not in (*SIM_FAULTS, "clear"):
+            return [tl.error_response(tag, 2002, f"SimFault takes one of "
+                                                 f"{', '.join(f'{f!r}' for f in (*SIM_FAULTS, 'clear'))}")]
+        self.fault = None if args[0] == "clear" else str(args[0])
+        return [tl.format_response(tag, "ack"), tl.format_response(tag, "done")]
+
+
+#: Faults ``SimFault`` injects: the beam breaks (event BeamBroken; Measure fails with 1001 until
+#: FindReflector or "clear"), the reflector is lost (also FindReflector fails with 1002), the
+#: tracker is busy (every command fails with 2004 until "clear").
+SIM_FAULTS = ("beam_break", "reflector_lost", "busy")
 
 
 class TcpTrackerServer:
@@ -132,12 +166,7 @@ class TcpTrackerServer:
         splitter = tl.LineSplitter()
         try:
             while data := await reader.read(4096):
-                try:
-                    lines = splitter.feed(data)
-                except tl.LineError as exc:
-                    writer.write(tl.error_response("00000", 2003, str(exc)))
-                    continue
-                for line in lines:
+                for line in splitter.feed(data):
                     if self.stall:
                         continue
                     for out in self.handler.handle(line):
@@ -176,11 +205,8 @@ class PtyTrackerServer:
                     data = os.read(self.master, 4096)
                 except OSError:
                     return
-                try:
-                    for line in splitter.feed(data):
-                        out += self.handler.handle(line)
-                except tl.LineError as exc:
-                    out.append(tl.error_response("00000", 2003, str(exc)))
+                for line in splitter.feed(data):
+                    out += self.handler.handle(line)
             if time.monotonic() >= next_event:
                 out += self.handler.events()
                 next_event = time.monotonic() + self.event_period_s

@@ -102,3 +102,85 @@ def test_serve_axis_over_socketcand_until_sigterm():
         asyncio.run(asyncio.wait_for(main(), 60))
     finally:
         _stop(proc)
+
+
+class RawTrackerClient:
+    """A tracker client written from protocols/TRACKER_PROTOCOL.md alone: a socket and lines."""
+
+    def __init__(self, port: int) -> None:
+        import socket
+
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        self.buf = b""
+
+    def send(self, raw: bytes) -> None:
+        self.sock.sendall(raw)
+
+    def line(self, timeout_s: float = 5.0) -> str:
+        self.sock.settimeout(timeout_s)
+        while b"\n" not in self.buf:
+            chunk = self.sock.recv(65536)
+            assert chunk, "server closed the connection"
+            self.buf += chunk
+        raw, _, self.buf = self.buf.partition(b"\n")
+        return raw.decode("ascii").rstrip("\r")
+
+    def until(self, tag: str, final: tuple[str, ...] = ("%", "!")) -> list[str]:
+        """Lines up to this tag's done or error line (events and other lines kept too)."""
+        out = []
+        while True:
+            ln = self.line()
+            out.append(ln)
+            if ln.startswith(tag + " ") and ln[6:7] in final:
+                return out
+
+    def quiet(self, s: float = 0.5) -> list[str]:
+        out = []
+        try:
+            while True:
+                out.append(self.line(s))
+        except TimeoutError:
+            return out
+
+
+@pytest.mark.process
+def test_a_client_from_the_document_sees_one_error_per_long_line_tags_and_injected_faults():
+    port = free_port()
+    proc, _ = _start("tracker", "--port", str(port))
+    c = RawTrackerClient(port)
+    try:
+        # an over-long line: one BadLine error, and its tail is never run as a command
+        c.send(b"A" * 4096 + b"00042 Hello()\r\n")
+        c.send(b"00043 Status()\r\n")
+        lines = c.until("00043")
+        errors = [ln for ln in lines if "! Error(2003" in ln]
+        assert len(errors) == 1 and not any(ln.startswith("00042") for ln in lines), lines
+        c.send(b"C" * 100_000 + b"\r\n00044 Status()\r\n")
+        lines = c.until("00044")
+        assert sum("! Error(2003" in ln for ln in lines) == 1, lines
+        # a readable tag with an unreadable command: the error carries that tag
+        c.send(b"00077 Measure(\r\n")
+        assert c.until("00077")[-1].startswith("00077 ! Error(2003"), "tag lost"
+        c.send(b"7 Measure()\r\n")
+        assert c.line().startswith("00000 ! Error(2003")  # no readable tag: 00000
+        # injected faults: beam break (event + 1001), reflector lost (1002), busy (2004)
+        c.send(b"00100 Measure()\r\n")
+        assert c.until("00100")[-1] == "00100 %"
+        c.send(b'00101 SimFault("beam_break")\r\n')
+        assert c.until("00101")[-1] == "00101 %"
+        assert any("E0000 # BeamBroken(" in ln for ln in c.quiet())
+        c.send(b"00102 Measure()\r\n")
+        assert c.until("00102")[-1].startswith("00102 ! Error(1001")
+        c.send(b'00103 SimFault("reflector_lost")\r\n00104 FindReflector(0, 0, 0)\r\n')
+        assert c.until("00104")[-1].startswith("00104 ! Error(1002")
+        c.send(b'00105 SimFault("busy")\r\n00106 Status()\r\n')
+        assert c.until("00106")[-1].startswith("00106 ! Error(2004")
+        c.send(b'00107 SimFault("clear")\r\n00108 Measure()\r\n')
+        lines = c.until("00108")
+        assert lines[-1] == "00108 %" and any(ln.startswith("00108 # Point(") for ln in lines)
+        assert any("E0000 # BeamLocked(" in ln for ln in c.quiet())
+        c.send(b'00109 SimFault("flood")\r\n')
+        assert c.until("00109")[-1].startswith("00109 ! Error(2002")
+    finally:
+        c.sock.close()
+        _stop(proc)

@@ -39,8 +39,32 @@ def test_codec_round_trips_and_rejects_malformed_lines():
     sp = tl.LineSplitter()
     assert sp.feed(b"00001 &\r\n00001 %") == ["00001 &"]
     assert sp.feed(b"\n") == ["00001 %"]
-    with pytest.raises(tl.LineError):
-        sp.feed(b"x" * 2000)
+    out = sp.feed(b"x" * 2000)
+    assert len(out) == 1 and isinstance(out[0], tl.LineError)
+
+
+@pytest.mark.unit
+def test_an_over_long_line_is_one_error_and_its_tail_never_a_command():
+    sp = tl.LineSplitter()
+    # the tail of an over-long line looks like a command: it must not run
+    out = sp.feed(b"A" * 4096) + sp.feed(b"00042 Hello()\r\n") + sp.feed(b"00043 Status()\r\n")
+    assert [type(o) for o in out] == [tl.LineError, str] and out[1] == "00043 Status()"
+    # 100 kB in pieces: still one error
+    sp = tl.LineSplitter()
+    out = [o for k in range(100) for o in sp.feed(b"B" * 1000)] + sp.feed(b"\n00044 Status()\n")
+    assert sum(isinstance(o, tl.LineError) for o in out) == 1 and out[-1] == "00044 Status()"
+    # a whole over-long line with its terminator, tag readable
+    out = tl.LineSplitter().feed(b"00045 Measure(" + b"1," * 800 + b"1)\r\n")
+    assert len(out) == 1 and out[0].tag == "00045"
+
+
+@pytest.mark.unit
+def test_error_replies_carry_the_request_tag_when_readable():
+    for line, tag in (("00077 Measure(", "00077"), ("00078 Meas ure()", "00078"),
+                      ("00079 X(abc)", "00079"), ("7 Measure()", None), ("", None)):
+        with pytest.raises(tl.LineError) as e:
+            tl.parse_command(line)
+        assert e.value.tag == tag, line
 
 
 @pytest.mark.unit
@@ -58,10 +82,8 @@ def test_fuzz_parsers_raise_only_line_errors(text):
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=600))
 def test_fuzz_splitter_raises_only_line_errors(data):
-    try:
-        tl.LineSplitter().feed(data)
-    except tl.LineError:
-        pass
+    for item in tl.LineSplitter().feed(data):  # never raises: bad lines come back as errors
+        assert isinstance(item, str | tl.LineError)
 
 
 def _cell() -> SimCell:
