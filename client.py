@@ -5,12 +5,16 @@
         print(cell.status())
         cell.call("device/robot/move_joints", {"joints_deg": [0, 0, 0, 0, -90, 0]})
 
-``await cell.acall(...)`` does the same from asyncio code.
+``await cell.acall(...)`` does the same from asyncio code; ``cell.run_job("scan_part", {...},
+on_event=print)`` starts a job and follows it to its end.
 """
 
 from __future__ import annotations
 
 import asyncio
+import queue
+import time
+from collections.abc import Callable
 from typing import Any
 
 from scancell.bus import Bus, BusConfig, NoDaemon
@@ -50,6 +54,46 @@ class CellClient:
 
     def status(self) -> dict[str, Any]:
         return self.call("status")
+
+    def run_job(self, kind: str, request: dict[str, Any] | None = None,
+                on_start: Callable[[dict[str, Any]], None] | None = None,
+                on_event: Callable[[dict[str, Any]], None] | None = None,
+                timeout_s: float = 3600.0) -> dict[str, Any]:
+        """Start ``cmd/job/<kind>`` and follow it to its end; return the final event (state
+        ``done``, ``failed`` or ``aborted``).
+
+        The job's events are subscribed to *before* the job starts, so ``on_event`` sees every
+        one of them, the first included; ``on_start`` gets the start reply first. If the
+        events stop (a lost sample, a daemon restart), ``cmd/job/status`` says how it ended.
+        Raises CommandError if the job is refused, TimeoutError after ``timeout_s``."""
+        events: queue.Queue[dict[str, Any]] = queue.Queue()
+        sub = self.bus.subscribe(self.bus.keys.job_event("*"), lambda s: events.put(s.decode()))
+        try:
+            started = self.call(f"job/{kind}", request)
+            job_id = started["job_id"]
+            if on_start is not None:
+                on_start(started)
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                try:
+                    e = events.get(timeout=5.0)
+                except queue.Empty:
+                    status = self.call("job/status")
+                    if (status.get("running") or {}).get("job_id") == job_id:
+                        continue
+                    last = status.get("last") or {}
+                    return last if last.get("job_id") == job_id else \
+                        {"job_id": job_id, "state": "gone", "step": "", "message": "job ended "
+                         "unseen"}
+                if e.get("job_id") != job_id:
+                    continue  # another job's, or an event of a job before this one
+                if on_event is not None:
+                    on_event(e)
+                if e["state"] != "running":
+                    return e
+            raise TimeoutError(f"job {job_id} did not end within {timeout_s:.0f} s")
+        finally:
+            sub.undeclare()
 
     def devices(self) -> list[dict[str, Any]]:
         return self.call("devices")["devices"]

@@ -54,29 +54,11 @@ def format_devices(result: dict[str, Any]) -> str:
     return table(rows, ["DEVICE", "KIND", "DRIVER", "URL", "STATE", "OPERATIONS"])
 
 
-def _follow(client: CellClient, job_id: str) -> int:
-    """Print the job's events until it ends; exit 0 if done, 1 otherwise."""
-    import queue
-
-    q: queue.Queue[dict[str, Any]] = queue.Queue()
-    sub = client.bus.subscribe(client.bus.keys.job_event(job_id), lambda s: q.put(s.decode()))
-    try:
-        while True:
-            try:
-                e = q.get(timeout=5.0)
-            except queue.Empty:
-                if not (client.call("job/status").get("running") or {}).get("job_id") == job_id:
-                    last = client.call("job/status").get("last") or {}
-                    print(f"job {job_id}: {last.get('state', 'gone')}")
-                    return 0 if last.get("state") == "done" else 1
-                continue
-            where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
-            eta = f" (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
-            print(f"{e['state']:8s} {where}{e['message'] or e['step']}{eta}", flush=True)
-            if e["state"] != "running":
-                return 0 if e["state"] == "done" else 1
-    finally:
-        sub.undeclare()
+def print_event(e: dict[str, Any]) -> None:
+    """One job event as a line: state, station i/N, what happens, time left."""
+    where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
+    eta = f" (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
+    print(f"{e['state']:8s} {where}{e['message'] or e['step']}{eta}", flush=True)
 
 
 def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
@@ -93,9 +75,17 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
     request: dict[str, Any] = {"plan": plan}
     if args.stations:
         request["stations"] = args.stations
-    started = client.call("job/scan_part", request)
-    print(f"job {started['job_id']} started; events on {started['events']}", flush=True)
-    return 0 if args.no_wait else _follow(client, started["job_id"])
+
+    def started(reply: dict[str, Any]) -> None:
+        print(f"job {reply['job_id']} started; events on {reply['events']}", flush=True)
+
+    if args.no_wait:
+        started(client.call("job/scan_part", request))
+        return 0
+    final = client.run_job("scan_part", request, on_start=started, on_event=print_event)
+    if final.get("state") == "gone":
+        print(f"job {final['job_id']}: gone")
+    return 0 if final.get("state") == "done" else 1
 
 
 def main(args: argparse.Namespace) -> int:

@@ -23,7 +23,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -94,32 +93,12 @@ def wait_for(pred, timeout_s: float, what: str, period_s: float = 0.3) -> Any:
         time.sleep(period_s)
 
 
-def follow_job(client: CellClient, job_id: str, timeout_s: float) -> dict[str, Any]:
-    """Print the job's progress (station i/N, step, time left); return its final event."""
-    events: list[dict[str, Any]] = []
-    lock = threading.Lock()
-
-    def on_event(s) -> None:
-        e = s.decode()
-        with lock:
-            events.append(e)
-        if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs"):
-            where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
-            eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
-            print(f"   {where}{e['message']}{eta}", flush=True)
-
-    sub = client.bus.subscribe(client.bus.keys.job_event(job_id), on_event)
-    try:
-        def final():
-            with lock:
-                ends = [e for e in events if e["state"] != "running"]
-            if ends:
-                return ends[-1]
-            last = client.call("job/status").get("last") or {}
-            return last if last.get("job_id") == job_id else None
-        return wait_for(final, timeout_s, f"end of job {job_id}", 0.5)
-    finally:
-        sub.undeclare()
+def print_progress(e: dict[str, Any]) -> None:
+    """A job's progress line (station i/N, step, time left), for the steps worth a line."""
+    if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs"):
+        where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
+        eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
+        print(f"   {where}{e['message']}{eta}", flush=True)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -188,8 +167,9 @@ def main(args: argparse.Namespace) -> int:
         stage(f"hand-eye calibration: {balls} ball positions")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
-        job = client.call("job/calibrate_hand_eye", {"balls": balls})["job_id"]
-        final = follow_job(client, job, 900)
+        final = client.run_job("calibrate_hand_eye", {"balls": balls},
+                               on_event=print_progress, timeout_s=900)
+        job = final["job_id"]
         if final.get("state") != "done":
             raise RuntimeError(f"hand-eye job {final.get('state')}: {final.get('error')}")
         he = wait_for(lambda: [h for h in hand_eye if h.get("job_id") == job], 300,
@@ -217,8 +197,8 @@ def main(args: argparse.Namespace) -> int:
             request["stations"] = [s["name"] for s in plan["station"][:3]]
         reports: list[dict] = []
         client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
-        job = client.call("job/scan_part", request)["job_id"]
-        final = follow_job(client, job, 1800)
+        final = client.run_job("scan_part", request, on_event=print_progress, timeout_s=1800)
+        job = final["job_id"]
         if final.get("state") != "done":
             raise RuntimeError(f"scan job {final.get('state')}: {final.get('error')}")
         print("   measured; the fuse worker now fuses the stations, measures the overlaps and "

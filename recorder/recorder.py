@@ -4,6 +4,11 @@ A session is a job (``<job_id>.mcap``, from its ``running`` event until ``job_li
 its end, so the workers' outputs of the last station still land in it), or, between jobs, an
 ``idle-<time>.mcap`` file split every ``split_s`` seconds or ``split_bytes`` bytes.
 
+The linger holds across jobs: when the next job starts while the last one's file lingers, both
+are open. A sample that names its job (the job's events, frames and clouds through their
+attachment's ``job_id``, reports through their JSON ``job_id``) goes to that job's file; any
+other sample (tracker points, joints, status, transforms) goes to every open file.
+
 Nothing is lost silently. Samples go through a bounded queue (``queue_bytes``) to one writer
 thread; if it ever overflows, the sample is dropped, counted per key expression, named in a log
 line, published as a ``dropped`` event on ``recorder/<name>/event`` and counted in the status on
@@ -110,6 +115,8 @@ class Recorder:
         self._subs: list[Any] = []
         self._thread = threading.Thread(target=self._run, daemon=True, name="recorder")
         self.session: _Session | None = None
+        #: Ended jobs' sessions still open for their linger (the current one is ``session``).
+        self.lingering: list[_Session] = []
         self.latched: dict[str, BusSample] = {}
         self.dropped: dict[str, int] = {}
         self._drop_events: dict[str, int] = {}  # key -> drops not yet announced
@@ -202,6 +209,8 @@ class Recorder:
             self._housekeeping(time.monotonic())
             if stopping and not batch:
                 break
+        for s in list(self.lingering):
+            self._close_lingering(s, "recorder stopped")
         self._close_session("recorder stopped")
 
     def _handle(self, recv_ns: int, sample: BusSample) -> None:
@@ -212,14 +221,25 @@ class Recorder:
         if event is not None and event.get("state") == "running":
             job_id = str(event.get("job_id"))
             if self.session is None or self.session.job_id != job_id:
-                self._close_session(f"job {job_id} started")
+                s = self.session
+                if s is not None and s.job_id is not None and s.ended is not None:
+                    self.lingering.append(s)  # the last job's file stays open for its linger
+                    self.session = None
+                else:
+                    self._close_session(f"job {job_id} started")
                 self._open_session(job_id, job_id)
         if self.session is None:
             self._open_session(f"idle-{time.strftime('%Y%m%dT%H%M%S')}", None)
-        self._write(recv_ns, sample)
-        if (event is not None and event.get("state") in TERMINAL_STATES and self.session is not None
-                and self.session.job_id == event.get("job_id")):
-            self.session.ended = time.monotonic()
+        job = event.get("job_id") if event is not None else self._job_of(sample)
+        owner = next((s for s in (self.session, *self.lingering)
+                      if s is not None and job is not None and s.job_id == job), None)
+        if owner is not None:
+            self._write(recv_ns, sample, owner)
+        else:
+            for s in (*self.lingering, self.session):
+                self._write(recv_ns, sample, s)
+        if event is not None and event.get("state") in TERMINAL_STATES and owner is not None:
+            owner.ended = time.monotonic()
 
     @staticmethod
     def _job_event(rel: str, sample: BusSample) -> dict[str, Any] | None:
@@ -232,23 +252,39 @@ class Recorder:
             return None
         return e if isinstance(e, dict) else None
 
-    def _write(self, recv_ns: int, sample: BusSample) -> None:
-        if self.session is None:
+    @staticmethod
+    def _job_of(sample: BusSample) -> str | None:
+        """The job a sample names: its attachment's ``job_id``, or a small JSON body's."""
+        job = sample.attachment.meta.get("job_id")
+        if job is None and sample.mime == "application/json" and len(sample.payload) < 65536:
+            try:
+                body = json.loads(sample.payload)
+            except ValueError:
+                return None
+            job = body.get("job_id") if isinstance(body, dict) else None
+        return str(job) if job is not None else None
+
+    def _write(self, recv_ns: int, sample: BusSample, session: _Session | None) -> None:
+        if session is None:
             self.lost += 1  # after a write error, until the retry: counted in the status
             return
         try:
-            self.session.file.write(sample.key, sample.mime, sample.schema, sample.payload,
-                                    sample.attachment, recv_ns)
+            session.file.write(sample.key, sample.mime, sample.schema, sample.payload,
+                               sample.attachment, recv_ns)
         except EncodingError as exc:
             if sample.key not in self.unrecordable:
                 self.unrecordable[sample.key] = str(exc)
                 log.warning("recorder: cannot record %s: %s", sample.key, exc)
             return
         except OSError as exc:
-            self._fail(exc)
+            if session is self.session:
+                self._fail(exc)
+            else:
+                self._close_lingering(session, f"write failed: {exc.strerror or exc}")
             return
-        self.total_messages += 1
-        self.total_bytes += len(sample.payload)
+        if session is self.session:
+            self.total_messages += 1
+            self.total_bytes += len(sample.payload)
 
     def _housekeeping(self, now: float) -> None:
         s = self.session
@@ -258,6 +294,12 @@ class Recorder:
             except OSError as exc:
                 self._fail(exc)
             s = self.session
+        for ls in list(self.lingering):
+            if now - (ls.ended or now) >= self.settings.job_linger_s:
+                self._close_lingering(ls, f"job {ls.job_id} ended")
+            else:
+                with contextlib.suppress(OSError):
+                    ls.file.maybe_flush(now)
         if s is not None:
             if s.ended is not None and now - s.ended >= self.settings.job_linger_s:
                 self._close_session(f"job {s.job_id} ended")
@@ -320,6 +362,16 @@ class Recorder:
         for rel, s in sorted(self.latched.items()):
             f.write(s.key, s.mime, s.schema, s.payload, s.attachment, time.time_ns())
             f.attach(f"{rel}.json", "application/json", s.payload)
+
+    def _close_lingering(self, s: _Session, why: str) -> None:
+        self.lingering.remove(s)
+        current, self.session = self.session, s
+        try:
+            self._close_session(why)
+        finally:
+            self.session = current
+            if current is not None and self.error is None:
+                self.state = "recording"
 
     def _close_session(self, why: str) -> None:
         s, self.session = self.session, None

@@ -39,6 +39,50 @@ def _collect(bus, key: str) -> list:
 
 
 @pytest.mark.process
+def test_a_jobs_linger_holds_when_the_next_job_starts(bus_pair, tmp_path):
+    """job-1 ends and job-2 starts at once: job-1's file stays open its whole linger and gets
+    the workers' late output for job-1; job-2's own samples go to job-2's file only."""
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=1.5,
+                                       status_period_s=0.2))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _event(b, "job-1", "running")
+        _point(b, 1)
+        _event(b, "job-1", "done")
+        _event(b, "job-2", "running")  # inside job-1's linger
+        _point(b, 2)  # belongs to no job: both files
+        time.sleep(0.3)
+        b.publish_json(b.keys.fusion_report, {"job_id": "job-1", "stations": 1},
+                       "scancell.FusionReport")  # job-1's last output, after job-2 started
+        _event(b, "job-2", "done")
+        wait_until(lambda: {e.get("session") for e in events if e["event"] == "closed"}
+                   >= {"job-1", "job-2"}, 10, what="both job files closed")
+        closed = [e["session"] for e in events if e["event"] == "closed"]
+        assert closed.index("job-1") < closed.index("job-2")
+    finally:
+        rec.stop()
+
+    def body(name: str) -> list[tuple[str, str]]:
+        out = []
+        for s in samples(tmp_path / name):
+            rel = a.keys.relative(s.key)
+            if not rel.startswith("recorder/"):
+                d = json.loads(s.payload)
+                out.append((rel, str(d.get("job_id", d.get("point_mm", [""])[0]))))
+        return out
+
+    job1, job2 = body("job-1.mcap"), body("job-2.mcap")
+    assert ("fusion/report", "job-1") in job1 and ("fusion/report", "job-1") not in job2
+    assert ("dev/tracker/point", "2") in job1 and ("dev/tracker/point", "2") in job2
+    assert ("dev/tracker/point", "1") in job1 and ("dev/tracker/point", "1") not in job2
+    assert not any(j == "job-2" for k, j in job1 if k.startswith("job/"))
+    assert not any(j == "job-1" for k, j in job2 if k.startswith("job/"))
+
+
+@pytest.mark.process
 def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     a, b = bus_pair
     stereo = b.latched(b.keys.stereo)  # a worker's calibration, published before the recorder
