@@ -39,6 +39,12 @@ def sample_from_zenoh(s: zenoh.Sample) -> BusSample:
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 ENV_CONNECT = "SCANCELL_CONNECT"
+#: A client's bus settings from the environment (README "Watching and securing the cell").
+ENV_BUS_CONFIG = "SCANCELL_BUS_CONFIG"  # a TOML file with a [bus] table
+ENV_USER = "SCANCELL_USER"
+ENV_PASSWORD = "SCANCELL_PASSWORD"
+ENV_PASSWORD_FILE = "SCANCELL_PASSWORD_FILE"
+ENV_CA = "SCANCELL_CA"  # the CA certificate (PEM) a TLS router's certificate is checked against
 
 _TLS_KEYS = (
     "root_ca_certificate",
@@ -101,11 +107,68 @@ class BusConfig:
         $SCANCELL_CONNECT or the loopback default. Client mode matters: the daemon's peer routes
         between its clients, while connect-only peers behind it never hear each other (a
         worker's clouds would not reach a viewer)."""
-        if connect is None:
-            connect = os.environ.get(ENV_CONNECT, DEFAULT_ENDPOINT)
-        endpoints = [connect] if isinstance(connect, str) else list(connect)
-        eps = tuple(e.strip() for ep in endpoints for e in ep.split(",") if e.strip())
-        return cls(mode="client", connect=eps)
+        return cls.for_client(connect)
+
+    @classmethod
+    def for_client(cls, connect: str | list[str] | None = None, user: str | None = None,
+                   password_file: str | None = None, ca: str | None = None,
+                   config_file: str | None = None) -> BusConfig:
+        """A client's bus settings (ctl, workers, recorder, monitor, CellClient): the
+        arguments first, then the environment (``$SCANCELL_CONNECT``, ``$SCANCELL_USER``,
+        ``$SCANCELL_PASSWORD`` or ``$SCANCELL_PASSWORD_FILE``, ``$SCANCELL_CA``), then the
+        ``[bus]`` table of a client config file (``config_file`` or ``$SCANCELL_BUS_CONFIG``),
+        then the loopback default. Always a zenoh client. Raises ValueError naming the file or
+        variable that is wrong."""
+        import tomllib
+
+        base: dict[str, Any] = {}
+        path = config_file or os.environ.get(ENV_BUS_CONFIG)
+        if path:
+            try:
+                raw = tomllib.loads(open(path).read())
+            except OSError as exc:
+                raise ValueError(f"{path}: cannot read the bus config: {exc.strerror or exc}"
+                                 ) from None
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{path}: not valid TOML: {exc}") from None
+            table = raw.get("bus", raw)
+            if not isinstance(table, dict):
+                raise ValueError(f"{path}: [bus] must be a table")
+            try:
+                base = dict(cls.from_mapping(table).__dict__)
+            except ValueError as exc:
+                raise ValueError(f"{path}: [bus] {exc}") from None
+        connect = connect or os.environ.get(ENV_CONNECT)
+        if connect:
+            endpoints = [connect] if isinstance(connect, str) else list(connect)
+            base["connect"] = tuple(e.strip() for ep in endpoints for e in ep.split(",")
+                                    if e.strip())
+        base.setdefault("connect", (DEFAULT_ENDPOINT,))
+        if not base["connect"]:
+            base["connect"] = (DEFAULT_ENDPOINT,)
+        user = user or os.environ.get(ENV_USER)
+        password_file = password_file or os.environ.get(ENV_PASSWORD_FILE)
+        password = os.environ.get(ENV_PASSWORD)
+        if password_file:
+            try:
+                password = open(password_file).read().strip()
+            except OSError as exc:
+                raise ValueError(f"{password_file}: cannot read the password: "
+                                 f"{exc.strerror or exc}") from None
+        if user:
+            base["user"] = user
+        if password is not None:
+            base["password"] = password
+        if bool(base.get("user")) != bool(base.get("password")):
+            raise ValueError(f"a user needs a password and a password a user (user "
+                             f"{base.get('user')!r}; ${ENV_PASSWORD} or ${ENV_PASSWORD_FILE})")
+        ca = ca or os.environ.get(ENV_CA)
+        if ca:
+            if not os.path.isfile(ca):
+                raise ValueError(f"{ca}: no such CA certificate")
+            base["tls"] = {**base.get("tls", {}), "root_ca_certificate": ca}
+        base.update(mode="client", listen=())
+        return cls(**base)
 
     def to_zenoh(self) -> zenoh.Config:
         c = zenoh.Config()

@@ -28,11 +28,34 @@ def default_cell_config():
 
 
 def add_bus_arguments(p: argparse.ArgumentParser) -> None:
+    """``--cell``, ``--connect`` and, for a secured cell, ``--user``, ``--password-file``,
+    ``--ca`` and ``--bus-config`` (each with its environment variable)."""
     p.add_argument("--cell", default=None,
                    help=f"cell name (default: ${ENV_CELL} or {DEFAULT_CELL!r})")
     p.add_argument("--connect", default=None,
-                   help="zenoh endpoint(s) of the daemon, comma-separated "
-                        "(default: $SCANCELL_CONNECT or tcp/127.0.0.1:7447)")
+                   help="zenoh endpoint(s) of the daemon or the router, comma-separated, e.g. "
+                        "tls/router:7447 (default: $SCANCELL_CONNECT or tcp/127.0.0.1:7447)")
+    p.add_argument("--user", default=None,
+                   help="user name on a secured router (default: $SCANCELL_USER)")
+    p.add_argument("--password-file", default=None, metavar="FILE",
+                   help="file holding the user's password (default: $SCANCELL_PASSWORD_FILE, "
+                        "or the password itself in $SCANCELL_PASSWORD)")
+    p.add_argument("--ca", default=None, metavar="CA.pem",
+                   help="CA certificate a TLS router's certificate is checked against "
+                        "(default: $SCANCELL_CA)")
+    p.add_argument("--bus-config", default=None, metavar="FILE.toml",
+                   help="client bus settings as a [bus] table, as in a cell config "
+                        "(default: $SCANCELL_BUS_CONFIG); the options above override it")
+
+
+def bus_config(args: argparse.Namespace):
+    """The client ``BusConfig`` the bus arguments and the environment give; raises
+    ValueError naming what is wrong."""
+    from scancell.bus import BusConfig
+
+    return BusConfig.for_client(args.connect, getattr(args, "user", None),
+                                getattr(args, "password_file", None), getattr(args, "ca", None),
+                                getattr(args, "bus_config", None))
 
 
 def cell_name(args: argparse.Namespace) -> str:
@@ -58,10 +81,12 @@ def serve(args: argparse.Namespace, name: str, make: Callable[[Any], Worker],
     SIGINT/SIGTERM; then stop and close. ``name`` as in ``scancell <name>``. Exit 3 if no
     daemon answers within 30 s, 2 if the worker cannot start, else 0 after a signal
     (``finish(worker)`` runs after it stopped)."""
-    from scancell.bus import Bus, BusConfig, NoDaemon
+    from scancell.bus import Bus, NoDaemon
 
     try:
-        bus = Bus.open(BusConfig.client_default(args.connect), cell_name(args), wait_s=30.0)
+        bus = Bus.open(bus_config(args), cell_name(args), wait_s=30.0)
+    except ValueError as exc:
+        return fail(name, str(exc))
     except NoDaemon as exc:
         return fail(name, str(exc), 3)
     worker = make(bus)

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from scancell.cli._common import add_bus_arguments, cell_name, fail, table
+from scancell.cli._common import add_bus_arguments, bus_config, cell_name, fail, table
 from scancell.client import CellClient, CommandError
 
 
@@ -102,7 +102,11 @@ def main(args: argparse.Namespace) -> int:
     else:
         request, verb = {}, args.action
     try:
-        with CellClient(cell_name(args), args.connect, timeout_s=args.timeout) as client:
+        config = bus_config(args)
+    except ValueError as exc:
+        return fail("ctl", str(exc))
+    try:
+        with CellClient(cell_name(args), bus_config=config, timeout_s=args.timeout) as client:
             if args.action == "scan-part":
                 return _scan_part(client, args)
             result = client.call(verb, request)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from scancell.cli._common import DEFAULT_CELL, add_bus_arguments, fail
+from scancell.cli._common import DEFAULT_CELL, add_bus_arguments, bus_config, fail
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,8 +33,10 @@ def main(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         return fail("replay", str(exc))
     cell = args.cell or rec.cell or DEFAULT_CELL
-    cfg = (BusConfig(listen=(args.listen,)) if args.listen
-           else BusConfig.client_default(args.connect))
+    try:
+        cfg = BusConfig(listen=(args.listen,)) if args.listen else bus_config(args)
+    except ValueError as exc:
+        return fail("replay", str(exc))
     try:
         bus = Bus.open(cfg, cell, wait_s=10.0)
     except (NoDaemon, ConnectionError) as exc:

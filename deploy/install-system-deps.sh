@@ -1,9 +1,10 @@
 #!/bin/sh
-# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d);
+# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d)
+# and openssl (the commissioning guide's certificates, checked by the tests);
 # with --bench also cloudcompare (the reference of benchmarks/bench_metrics.py).
 # As root it uses apt-get; otherwise sudo when available; otherwise it prints the exact command.
 set -eu
-PKGS="libusb-1.0-0"
+PKGS="libusb-1.0-0 openssl"
 [ "${1:-}" = "--bench" ] && PKGS="cloudcompare"
 missing=""
 for p in $PKGS; do

@@ -7,18 +7,24 @@ from __future__ import annotations
 import datetime
 import ipaddress
 import threading
+import time
 
 import numpy as np
 import pytest
 from scancell.bus import Bus, BusConfig, NoDaemon
 from scancell.cli.router import load_router_config, open_router, router_config_path
+from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
 
 from .conftest import MOCK_CELL, DaemonThread, free_port, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-PASSWORDS = {"cell": "cell-pw", "controller": "ctl-pw", "engineer": "eng-pw", "monitor": "mon-pw"}
+PASSWORDS = {"daemon": "daemon-pw", "service": "svc-pw", "controller": "ctl-pw",
+             "engineer": "eng-pw", "monitor": "mon-pw"}
+#: The mock cell with the second camera a scan needs.
+SECURED_CELL = {**MOCK_CELL, "devices": {**MOCK_CELL["devices"],
+                                         "cam_right": {"driver": "mock_camera"}}}
 
 
 def _certs(folder):
@@ -77,9 +83,9 @@ def secured_cell(tmp_path, cell, request):
         return BusConfig(mode="client", connect=(endpoint,), tls=tls, user=user,
                          password=password if password is not None else PASSWORDS.get(user or ""))
 
-    daemon = DaemonThread(MOCK_CELL, cell, endpoint, bus={
-        "mode": "client", "connect": [endpoint], "tls": tls, "user": "cell",
-        "password": PASSWORDS["cell"]})
+    daemon = DaemonThread(SECURED_CELL, cell, endpoint, bus={
+        "mode": "client", "connect": [endpoint], "tls": tls, "user": "daemon",
+        "password": PASSWORDS["daemon"]})
     opened: list[Bus] = []
 
     def connect(user: str | None, password: str | None = None, wait_s: float = 5.0) -> Bus:
@@ -87,6 +93,7 @@ def secured_cell(tmp_path, cell, request):
         opened.append(b)
         return b
 
+    connect.endpoint, connect.ca, connect.cell = endpoint, str(files["ca"]), cell
     yield connect
     for b in opened:
         b.close()
@@ -174,3 +181,70 @@ def test_motion_outside_the_workspace_is_refused_whoever_asks(make_daemon, clien
         client.call("job/scan_part", {"plan": plan})
     assert client.call("device/robot/joints")["joints_deg"][0] == pytest.approx(10.0, abs=0.01)
     assert q0 != client.call("device/robot/joints")["joints_deg"]
+
+
+@pytest.mark.process
+def test_ctl_and_a_scan_part_job_as_the_controller_a_service_cannot_move(secured_cell, tmp_path):
+    """The cell controller's own tool on a TLS router with the ACL: ``scancell ctl`` with the
+    controller's credentials from the environment runs a scan_part job; a worker holding the
+    service credentials publishes results and its latched calibration, but can neither move
+    the robot nor answer a command."""
+    import os
+    import subprocess
+    import sys
+
+    controller = secured_cell("controller")
+    wait_until(lambda: controller.call("status", timeout_s=5.0)["devices"]["cam_right"]["state"]
+               == "connected", 20, what="daemon behind the router")
+    (tmp_path / "controller.pw").write_text(PASSWORDS["controller"] + "\n")
+    (tmp_path / "plan.toml").write_text(
+        'name = "secured"\nspeed = 1.0\ntracker_repeats = 1\n'
+        "[[station]]\njoints_deg = [5, 0, 0, 0, -90, 0]\n"
+        "[[station]]\njoints_deg = [10, 0, 0, 0, -90, 0]\n")
+    env = dict(os.environ, SCANCELL_CONNECT=secured_cell.endpoint, SCANCELL_CELL=secured_cell.cell,
+               SCANCELL_USER="controller", SCANCELL_PASSWORD_FILE=str(tmp_path / "controller.pw"),
+               SCANCELL_CA=secured_cell.ca)
+
+    def ctl(*args: str, env=env) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "scancell", "ctl", *args], env=env,
+                              capture_output=True, text=True, timeout=90)
+
+    out = ctl("status")
+    assert out.returncode == 0 and "cam_right" in out.stdout, out.stdout + out.stderr
+    out = ctl("scan-part", "--plan", str(tmp_path / "plan.toml"))
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.splitlines()[-1].startswith("done")
+    # without the CA, or as the monitor, ctl cannot do it
+    no_ca = {k: v for k, v in env.items() if k != "SCANCELL_CA"}
+    assert ctl("status", env=no_ca).returncode == 3
+    (tmp_path / "monitor.pw").write_text(PASSWORDS["monitor"])
+    as_monitor = dict(env, SCANCELL_USER="monitor",
+                      SCANCELL_PASSWORD_FILE=str(tmp_path / "monitor.pw"))
+    assert ctl("--timeout", "5", "call", "device/robot/stop", env=as_monitor).returncode == 3
+
+    service = secured_cell("service")
+    monitor = secured_cell("monitor")
+    reports = []
+    monitor.subscribe(monitor.keys.fusion_report, lambda s: reports.append(s.decode()))
+    time.sleep(0.5)
+    service.publish_json(service.keys.fusion_report, {"job_id": "x"}, "scancell.FusionReport")
+    wait_until(lambda: reports, 10, what="a service's result reaching a monitor")
+    latched = service.latched(service.keys.stereo)
+    latched.publish(messages.encode_json({"image_width": 8}, "scancell.StereoCalibration"))
+    try:
+        wait_until(lambda: monitor.fetch_latched(monitor.keys.stereo, 2.0), 10,
+                   what="the service's latched calibration")
+    finally:
+        latched.close()
+    with pytest.raises(NoDaemon):  # the router drops its motion command: nobody answers
+        _move(service, 40.0)
+    answered = threading.Event()
+    impostor = service.session.declare_queryable(f"{service.keys.prefix}/cmd/fake",
+                                                 lambda q: answered.set())
+    try:
+        with pytest.raises(CommandError, match="unknown"):  # only the real daemon answers
+            controller.call("fake", timeout_s=5.0)
+        assert not answered.is_set()
+    finally:
+        impostor.undeclare()
+    assert not np.isclose(controller.call("device/robot/joints")["joints_deg"][0], 40.0)
