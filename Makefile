@@ -12,11 +12,12 @@ STAMP  := $(VENV)/.scancell-installed
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml deploy/install-system-deps.sh
+$(STAMP): pyproject.toml deploy/install-system-deps.sh tests/js/package-lock.json
 	sh deploy/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,basler]'
+	cd tests/js && npm ci --no-audit --no-fund --loglevel=error  # a real Foxglove client for the tests
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -1,6 +1,7 @@
 #!/bin/sh
 # Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d)
-# and openssl (the commissioning guide's certificates, checked by the tests);
+# and openssl (the commissioning guide's certificates, checked by the tests), node and npm if
+# missing (tests/js);
 # with --bench also cloudcompare (the reference of benchmarks/bench_metrics.py).
 # As root it uses apt-get; otherwise sudo when available; otherwise it prints the exact command.
 set -eu
@@ -10,6 +11,8 @@ missing=""
 for p in $PKGS; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"
 done
+# node and npm: the tests drive the monitor with @foxglove/ws-protocol's own client (tests/js)
+[ "${1:-}" = "--bench" ] || command -v npm >/dev/null 2>&1 || missing="$missing nodejs npm"
 [ -z "$missing" ] && exit 0
 cmd="apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$missing"
 if [ "$(id -u)" = 0 ]; then

@@ -9,6 +9,14 @@ ROOT = "scancell"
 #: The cell a client talks to when it names none (``--cell``, ``$SCANCELL_CELL``): the
 #: packaged simulated cell, ``deploy/cells/sim.toml``.
 DEFAULT_CELL = "sim"
+
+#: What each device kind publishes: kind -> (stream, mime, schema) on ``dev/<device>/<stream>``,
+#: besides every device's ``dev/<device>/status`` (JSON scancell.DeviceStatus).
+DEVICE_STREAMS: dict[str, tuple[str, str, str]] = {
+    "camera": ("image", "application/protobuf", "foxglove.RawImage"),
+    "robot": ("joints", "application/protobuf", "foxglove.JointStates"),
+    "tracker": ("point", "application/json", "scancell.TrackerPoint"),
+}
 _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 

@@ -40,7 +40,12 @@ def json_schema_names() -> list[str]:
 
 
 def encode_json(obj: Any, schema: str) -> Encoded:
-    """JSON-encode ``obj`` as a message of JSON Schema ``schema``."""
+    """JSON-encode ``obj`` as a message of JSON Schema ``schema``. A top-level ``stamp_ns``
+    (int ns, about 1.8e18) also goes out as ``stamp: {sec, nsec}``, Foxglove's time, which a
+    JavaScript viewer reads exactly (its numbers are exact only up to 2^53)."""
+    if isinstance(obj, dict) and isinstance(obj.get("stamp_ns"), int) and "stamp" not in obj:
+        sec, nsec = divmod(obj["stamp_ns"], 1_000_000_000)
+        obj = {**obj, "stamp": {"sec": sec, "nsec": nsec}}
     return Encoded(json.dumps(obj, separators=(",", ":")).encode(), JSON, schema)
 
 
