@@ -75,20 +75,6 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
                                  part=options.get("part", "car_rear") or None))
 
 
-def truth_from_config(path: str) -> Callable[[np.ndarray], np.ndarray]:
-    """The true-distance function of the part of the simulated cell a config file describes;
-    raises ValueError naming the file (no such config, no ``[simulator]``)."""
-    from scancell.config import ConfigError, load_cell_config
-
-    try:
-        cfg = load_cell_config(path)
-    except ConfigError as exc:
-        raise ValueError(str(exc)) from None
-    if cfg.simulator is None:
-        raise ValueError(f"{path} has no [simulator]: no ground truth")
-    return truth_from_simulator(cfg.simulator)
-
-
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
     """The true-distance function (world points, mm -> mm) of the part of the simulated cell a
     ``[simulator]`` table describes (from a config file, or recorded in an MCAP file)."""

@@ -6,9 +6,11 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
 
 from scancell.daemon.supervisor import DeviceSupervisor
-from scancell.devices.base import Axis, Device, Robot
+from scancell.devices.base import Axis, Camera, Device, Projector, Robot, Tracker
 from scancell.protocols.commands import CommandError
 
 log = logging.getLogger(__name__)
@@ -26,6 +28,33 @@ def serving_device(supervisors: dict[str, DeviceSupervisor], name: str | None, k
     if not sup.serving:
         raise CommandError("device_unavailable", f"{verb}: {sup.name} is {sup.status.state}")
     return sup
+
+
+@dataclass(frozen=True)
+class MeasuringDevices:
+    """The supervisors a measuring job holds: the robot, the tracker, the projector and the
+    two cameras (left first: MCS)."""
+
+    robot: DeviceSupervisor
+    tracker: DeviceSupervisor
+    projector: DeviceSupervisor
+    cameras: list[DeviceSupervisor]
+
+    @property
+    def all(self) -> list[DeviceSupervisor]:
+        return [self.robot, self.tracker, self.projector, *self.cameras]
+
+
+def measuring_devices(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],
+                      verb: str) -> MeasuringDevices:
+    """The devices a job request names (``robot``, ``tracker``, ``projector``, ``cameras``),
+    or the cell's first of each kind and its first two cameras."""
+    cams = request.get("cameras") or [s.name for s in supervisors.values()
+                                      if isinstance(s.device, Camera)][:2]
+    return MeasuringDevices(serving_device(supervisors, request.get("robot"), Robot, verb),
+                            serving_device(supervisors, request.get("tracker"), Tracker, verb),
+                            serving_device(supervisors, request.get("projector"), Projector, verb),
+                            [serving_device(supervisors, c, Camera, verb) for c in cams])
 
 
 async def stop_motion(devices: Iterable[Device | None], timeout_s: float = 2.0) -> dict[str, str]:

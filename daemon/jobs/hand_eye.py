@@ -14,12 +14,12 @@ import contextlib
 from typing import Any
 
 import numpy as np
-from scancell.daemon.jobs.devices import serving_device
+from scancell.daemon.jobs.devices import measuring_devices
 from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext
 from scancell.daemon.jobs.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
-from scancell.devices.base import Camera, Projector, Robot, Tracker
+from scancell.devices.base import Robot, Tracker
 from scancell.devices.simulator import BallPlacer, Simulator
 from scancell.model.ball_layout import ball_layout
 from scancell.protocols.commands import CommandError
@@ -52,12 +52,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
     speed = float(req.get("speed", 0.2))
     repeats = int(req.get("tracker_repeats", 10))
     verb = "calibrate_hand_eye"
-    robot_s = serving_device(supervisors, req.get("robot"), Robot, verb)
-    tracker_s = serving_device(supervisors, req.get("tracker"), Tracker, verb)
-    proj_s = serving_device(supervisors, req.get("projector"), Projector, verb)
-    cams = req.get("cameras") or [s.name for s in supervisors.values()
-                                  if isinstance(s.device, Camera)][:2]
-    cam_s = [serving_device(supervisors, c, Camera, verb) for c in cams]
+    devs = measuring_devices(supervisors, req, verb)
+    robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     robot: Robot = robot_s.device
     tracker: Tracker = tracker_s.device
     placer: BallPlacer = simulator.ball_placer() if simulator is not None else OperatorPlacer(ctx)

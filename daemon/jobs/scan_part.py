@@ -18,12 +18,12 @@ import time
 from typing import Any
 
 import numpy as np
-from scancell.daemon.jobs.devices import serving_device, stop_motion
+from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop_motion
 from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import scan
 from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
-from scancell.devices.base import Axis, Camera, Projector, Robot, Tracker
+from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
@@ -133,12 +133,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     speed = float(req.get("speed", plan.speed))
     repeats = int(req.get("tracker_repeats", plan.tracker_repeats))
     turns = [float(a) for a in req.get("j6_angles_deg", plan.j6_angles_deg)]
-    robot_s = serving_device(supervisors, req.get("robot"), Robot, VERB)
-    tracker_s = serving_device(supervisors, req.get("tracker"), Tracker, VERB)
-    proj_s = serving_device(supervisors, req.get("projector"), Projector, VERB)
-    cams = req.get("cameras") or [s.name for s in supervisors.values()
-                                  if isinstance(s.device, Camera)][:2]
-    cam_s = [serving_device(supervisors, c, Camera, VERB) for c in cams]
+    devs = measuring_devices(supervisors, req, VERB)
+    robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
     axis_s = serving_device(supervisors, req.get("axis"), Axis, VERB) if needs_axis else None
     robot: Robot = robot_s.device
