@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from scancell.daemon.jobs.devices import stop_motion
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.base import OperationSpec
 from scancell.devices.errors import ConnectionLost, DeviceError
 from scancell.protocols.commands import (

@@ -27,7 +27,7 @@ from scancell.daemon.jobs.scan import scan
 from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
 from scancell.daemon.jobs.scan_part import scan_part
 from scancell.daemon.router import CellVerb, CommandRouter
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.base import Axis, Device, Robot
 from scancell.devices.registry import load_driver
 from scancell.devices.simulator import Simulator, load_simulator

@@ -9,7 +9,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.base import Axis, Camera, Device, Projector, Robot, Tracker
 from scancell.protocols.commands import CommandError
 

@@ -18,7 +18,7 @@ from scancell.daemon.jobs.devices import measuring_devices
 from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext
 from scancell.daemon.jobs.scan import scan
-from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
+from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Robot, Tracker
 from scancell.devices.simulator import BallPlacer, Simulator
 from scancell.model.ball_layout import ball_layout

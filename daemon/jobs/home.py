@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from scancell.daemon.jobs.devices import serving_device, stop_motion
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
+from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot
 from scancell.protocols.commands import CommandError
 

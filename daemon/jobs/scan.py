@@ -13,7 +13,7 @@ import uuid
 from typing import Any
 
 from scancell.daemon.jobs.devices import serving_device
-from scancell.daemon.supervisor import DeviceSupervisor
+from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError

@@ -22,7 +22,7 @@ from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop
 from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import scan
-from scancell.daemon.supervisor import DeviceSupervisor, hold_for_job
+from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
 from scancell.protocols import messages
