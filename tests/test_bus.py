@@ -90,3 +90,41 @@ def test_client_default_reads_environment(monkeypatch):
     monkeypatch.setenv("SCANCELL_CONNECT", "tcp/127.0.0.1:1,tcp/127.0.0.1:2")
     assert BusConfig.client_default().connect == ("tcp/127.0.0.1:1", "tcp/127.0.0.1:2")
     assert BusConfig.client_default("tcp/x:3").connect == ("tcp/x:3",)
+
+
+@pytest.mark.unit
+def test_a_clients_bus_settings_from_flags_environment_and_file(monkeypatch, tmp_path):
+    """Flags over environment over the [bus] file over the loopback default; a secured cell's
+    user, password file and CA; clear errors naming the file or variable."""
+    for var in ("SCANCELL_CONNECT", "SCANCELL_USER", "SCANCELL_PASSWORD", "SCANCELL_PASSWORD_FILE",
+                "SCANCELL_CA", "SCANCELL_BUS_CONFIG"):
+        monkeypatch.delenv(var, raising=False)
+    assert BusConfig.for_client() == BusConfig(mode="client", connect=("tcp/127.0.0.1:7447",))
+    ca = tmp_path / "ca.pem"
+    ca.write_text("-----BEGIN CERTIFICATE-----\n")
+    pw = tmp_path / "ctl.password"
+    pw.write_text("s3cret\n")
+    (tmp_path / "bus.toml").write_text(
+        '[bus]\nconnect = ["tls/router:7447"]\nuser = "monitor"\npassword = "m"\n'
+        f'[bus.tls]\nroot_ca_certificate = "{ca}"\n')
+    monkeypatch.setenv("SCANCELL_BUS_CONFIG", str(tmp_path / "bus.toml"))
+    c = BusConfig.for_client()
+    assert (c.mode, c.connect, c.user, c.password) == ("client", ("tls/router:7447",),
+                                                       "monitor", "m")
+    assert c.tls == {"root_ca_certificate": str(ca)}
+    monkeypatch.setenv("SCANCELL_USER", "controller")
+    monkeypatch.setenv("SCANCELL_PASSWORD_FILE", str(pw))
+    c = BusConfig.for_client("tls/other:7447")
+    assert (c.connect, c.user, c.password) == (("tls/other:7447",), "controller", "s3cret")
+    c.to_zenoh()  # zenoh takes it
+    with pytest.raises(ValueError, match=r"nope\.pem: no such CA"):
+        BusConfig.for_client(ca=str(tmp_path / "nope.pem"))
+    with pytest.raises(ValueError, match=r"missing\.password: cannot read"):
+        BusConfig.for_client(password_file=str(tmp_path / "missing.password"))
+    (tmp_path / "bad.toml").write_text("[bus]\nmode = 'router'\n")
+    with pytest.raises(ValueError, match=r"bad.toml: \[bus\] mode"):
+        BusConfig.for_client(config_file=str(tmp_path / "bad.toml"))
+    monkeypatch.delenv("SCANCELL_BUS_CONFIG")
+    monkeypatch.delenv("SCANCELL_PASSWORD_FILE")
+    with pytest.raises(ValueError, match="a user needs a password"):
+        BusConfig.for_client()
