@@ -31,7 +31,7 @@ class CellClient:
                  bus_config: BusConfig | None = None, timeout_s: float = 130.0,
                  connect_wait_s: float = 3.0) -> None:
         self.cell = cell
-        self.bus_config = bus_config or BusConfig.client_default(connect)
+        self.bus_config = bus_config or BusConfig.for_client(connect)
         self.timeout_s = timeout_s
         self.connect_wait_s = connect_wait_s
         self._bus: Bus | None = None

@@ -42,7 +42,7 @@ def run(request: dict) -> dict[str, float]:
     cell, ep = "b" + uuid.uuid4().hex[:8], f"tcp/127.0.0.1:{free_port()}"
     d = DaemonThread(sim_cell_raw(SCALE), cell, ep)
     client = CellClient(cell, ep, timeout_s=60)
-    bus = Bus.open(BusConfig.client_default(ep), cell)
+    bus = Bus.open(BusConfig.for_client(ep), cell)
     try:
         wait_until(lambda: all(s["state"] == "connected"
                                for s in client.status()["devices"].values()), 60)

@@ -102,14 +102,6 @@ class BusConfig:
                    m.get("password"))
 
     @classmethod
-    def client_default(cls, connect: str | list[str] | None = None) -> BusConfig:
-        """A non-daemon process (ctl, worker, recorder, monitor): a zenoh *client* of ``connect``,
-        $SCANCELL_CONNECT or the loopback default. Client mode matters: the daemon's peer routes
-        between its clients, while connect-only peers behind it never hear each other (a
-        worker's clouds would not reach a viewer)."""
-        return cls.for_client(connect)
-
-    @classmethod
     def for_client(cls, connect: str | list[str] | None = None, user: str | None = None,
                    password_file: str | None = None, ca: str | None = None,
                    config_file: str | None = None) -> BusConfig:
@@ -117,8 +109,9 @@ class BusConfig:
         arguments first, then the environment (``$SCANCELL_CONNECT``, ``$SCANCELL_USER``,
         ``$SCANCELL_PASSWORD`` or ``$SCANCELL_PASSWORD_FILE``, ``$SCANCELL_CA``), then the
         ``[bus]`` table of a client config file (``config_file`` or ``$SCANCELL_BUS_CONFIG``),
-        then the loopback default. Always a zenoh client. Raises ValueError naming the file or
-        variable that is wrong."""
+        then the loopback default. Always a zenoh *client*: the daemon's peer routes between its
+        clients, while connect-only peers behind it never hear each other (a worker's clouds
+        would not reach a viewer). Raises ValueError naming the file or variable that is wrong."""
         import tomllib
 
         base: dict[str, Any] = {}

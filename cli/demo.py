@@ -139,7 +139,7 @@ def main(args: argparse.Namespace) -> int:
                                *[a for s in sets for a in ("--set", s)]], env)
         from scancell.bus import BusConfig
 
-        client = CellClient(cfg.cell, bus_config=BusConfig.client_default(endpoint),
+        client = CellClient(cfg.cell, bus_config=BusConfig.for_client(endpoint),
                             connect_wait_s=60.0, timeout_s=300.0)
         wait_for(lambda: all(s["state"] == "connected" for s in
                              client.status()["devices"].values()), 90, "connected devices")

@@ -86,10 +86,10 @@ def test_unreachable_listen_endpoint_is_a_clear_error(endpoint, cell):
 
 
 @pytest.mark.process
-def test_client_default_reads_environment(monkeypatch):
+def test_client_settings_read_the_environment(monkeypatch):
     monkeypatch.setenv("SCANCELL_CONNECT", "tcp/127.0.0.1:1,tcp/127.0.0.1:2")
-    assert BusConfig.client_default().connect == ("tcp/127.0.0.1:1", "tcp/127.0.0.1:2")
-    assert BusConfig.client_default("tcp/x:3").connect == ("tcp/x:3",)
+    assert BusConfig.for_client().connect == ("tcp/127.0.0.1:1", "tcp/127.0.0.1:2")
+    assert BusConfig.for_client("tcp/x:3").connect == ("tcp/x:3",)
 
 
 @pytest.mark.unit

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -17,7 +18,7 @@ Item = TypeVar("Item")
 _STOP = object()
 
 
-class ThreadedWorker(Generic[Item]):
+class ThreadedWorker(ABC, Generic[Item]):
     """Subclasses subscribe in :meth:`on_start` (through :meth:`subscribe`), put work with
     :meth:`submit` from their callbacks and do it in :meth:`handle`, on the worker thread."""
 
@@ -63,8 +64,9 @@ class ThreadedWorker(Generic[Item]):
     def submit(self, item: Item) -> None:
         self._queue.put(item)
 
+    @abstractmethod
     def handle(self, item: Item) -> None:
-        raise NotImplementedError
+        """Do one item's work (on the worker thread)."""
 
     # ---------------------------------------------------------------- thread
     def _run(self) -> None:

@@ -108,10 +108,6 @@ class FoxgloveServer:
             self.channels[channel_id].last = (log_time_ns, payload)
         self._call(self._send_data, channel_id, payload, log_time_ns)
 
-    def subscribers(self, channel_id: int) -> int:
-        with self._lock:
-            return sum(channel_id in c.subscriptions.values() for c in self._clients)
-
     # ---------------------------------------------------------------- event loop
     def _call(self, fn, *args) -> None:
         if self._loop is not None and not self._loop.is_closed():

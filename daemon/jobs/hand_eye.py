@@ -67,7 +67,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                              "scancell.HandEyeSample")
 
     async with contextlib.AsyncExitStack() as stack:
-        await hold_for_job(stack, ctx.job_id, [robot_s, tracker_s, proj_s, *cam_s])
+        await hold_for_job(stack, ctx.job_id, devs.all)
         # Balls first, then the ECS starting from this very pose: the robot does not move
         # between the scans and P1, so its repeatability does not enter between them.
         q0 = await robot.joints()

@@ -147,8 +147,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     t_start = time.monotonic()
 
     async with contextlib.AsyncExitStack() as stack:
-        await hold_for_job(stack, ctx.job_id,
-                           [robot_s, tracker_s, proj_s, *cam_s, *([axis_s] if axis_s else [])])
+        await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
             for i, st in enumerate(plan.stations):
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
