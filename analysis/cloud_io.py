@@ -23,8 +23,9 @@ class CloudFileError(ValueError):
 
 
 def write_ply(path: str | Path, points: np.ndarray, fields: dict[str, np.ndarray] | None = None,
-              ascii: bool = False) -> None:
-    """Write (N, 3) ``points`` (mm) and optional per-point scalar ``fields`` (N,) as PLY."""
+              ascii: bool = False, comments: list[str] | None = None) -> None:
+    """Write (N, 3) ``points`` (mm) and optional per-point scalar ``fields`` (N,) as PLY;
+    ``comments`` become header ``comment`` lines (one line each, e.g. ``key: value``)."""
     p = Path(path)
     pts = np.ascontiguousarray(points, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -39,8 +40,11 @@ def write_ply(path: str | Path, points: np.ndarray, fields: dict[str, np.ndarray
         if not name.isidentifier() or name in columns:
             raise CloudFileError(f"{p}: field name {name!r} is not a plain identifier")
         columns[name] = v
+    extra = [f"comment {c}\n" for c in comments or []]
+    if any("\n" in c or "\r" in c or not c.isascii() for c in comments or []):
+        raise CloudFileError(f"{p}: header comments must be single ASCII lines")
     header = "".join(["ply\n", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0\n",
-                      "comment scancell: units mm\n", f"element vertex {len(pts)}\n",
+                      "comment scancell: units mm\n", *extra, f"element vertex {len(pts)}\n",
                       *(f"property float {n}\n" for n in columns), "end_header\n"])
     tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp.ply")
     try:

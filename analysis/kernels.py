@@ -67,21 +67,88 @@ def _unwrap(phi: float, ref: float, ratio: float) -> tuple[float, float]:
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
-def decode3_heterodyne(images: np.ndarray, steps: int, p1: float, p2: float, p3: float,
-                       width: float, dn_scale: float, sat_level: float, min_mod: float,
-                       tol: float, margin_max: float, column: np.ndarray, modulation: np.ndarray,
-                       background: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
-    """Three-frequency heterodyne decode of (3·steps, H, W) images into the output arrays.
-
-    reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
-    counts (H, 5): pixels of each reason per row.
-    """
+def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float, min_mod: float,
+             phases: np.ndarray, modulation: np.ndarray, background: np.ndarray,
+             saturated: np.ndarray, hist: np.ndarray) -> None:
+    """First pass of the three-frequency decode of (3·steps, H, W) images: wrapped phases
+    (3, H, W) in [0, 2π), the smallest modulation and the background (DN), the saturation flag,
+    and ``hist`` (blocks, 3, bins): the phases folded modulo 2π/steps of the pixels with enough
+    modulation and no saturation (see :mod:`scancell.analysis.phase_response`)."""
     h, w = images.shape[1:]
+    nblk, _, bins = hist.shape
     sin_t = np.empty(steps)
     cos_t = np.empty(steps)
     for n in range(steps):
         sin_t[n] = math.sin(TWO_PI * n / steps)
         cos_t[n] = math.cos(TWO_PI * n / steps)
+    mod_scale = 2.0 / steps * dn_scale
+    bg_scale = dn_scale / (3 * steps)
+    fold = bins * steps / TWO_PI
+    period = TWO_PI / steps
+    for blk in numba.prange(nblk):
+        q = np.empty((3, w))
+        a_sum = np.empty(w)
+        sat = np.empty(w)
+        s = np.empty(w)
+        c = np.empty(w)
+        for y in range(blk, h, nblk):
+            a_sum[:] = 0.0
+            sat[:] = 0.0
+            for j in range(3):
+                s[:] = 0.0
+                c[:] = 0.0
+                for n in range(steps):
+                    sn, cn = sin_t[n], cos_t[n]
+                    row = images[j * steps + n, y]
+                    for x in range(w):
+                        v = float(row[x])
+                        s[x] += v * sn
+                        c[x] += v * cn
+                        a_sum[x] += v
+                        sat[x] = max(sat[x], 1.0 if v >= sat_level else 0.0)
+                for x in range(w):
+                    phases[j, y, x] = _atan2_0_2pi(s[x], c[x])
+                    q[j, x] = s[x] * s[x] + c[x] * c[x]
+            for x in range(w):
+                mod = math.sqrt(min(q[0, x], q[1, x], q[2, x])) * mod_scale
+                modulation[y, x] = mod
+                background[y, x] = a_sum[x] * bg_scale
+                saturated[y, x] = 1 if sat[x] > 0.0 else 0
+                if mod >= min_mod and sat[x] == 0.0:
+                    for j in range(3):
+                        p = phases[j, y, x]
+                        b = int((p - period * math.floor(p / period)) * fold)
+                        hist[blk, j, min(max(b, 0), bins - 1)] += 1
+
+
+@numba.njit(inline="always", cache=True)
+def _corrected(phi: float, table: np.ndarray, scale: float) -> float:
+    """φ − e(φ mod 2π/N) by linear interpolation in ``table`` (bins + 1 edges), in [0, 2π)."""
+    bins = table.size - 1
+    u = phi * scale
+    u -= bins * math.floor(u / bins)
+    i = min(int(u), bins - 1)
+    f = u - i
+    out = phi - (table[i] * (1.0 - f) + table[i + 1] * f)
+    if out < 0.0:
+        out += TWO_PI
+    elif out >= TWO_PI:
+        out -= TWO_PI
+    return out
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np.ndarray,
+                       tables: np.ndarray, steps: int, p1: float, p2: float, p3: float,
+                       width: float, min_mod: float, tol: float, margin_max: float,
+                       column: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
+    """Second pass: remove the phase error ``tables`` (3, bins + 1; zeros for none) from the
+    wrapped phases, unwrap by the heterodyne tree and check the frequencies agree.
+
+    reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
+    counts (H, 5): pixels of each reason per row.
+    """
+    h, w = modulation.shape
     b1, b2 = p1 - p2, p2 - p3
     top = b1 - b2
     r_b1, r_b2 = b1 / top, b2 / top
@@ -93,34 +160,20 @@ def decode3_heterodyne(images: np.ndarray, steps: int, p1: float, p2: float, p3:
     c1 = width / (TWO_PI * p1)
     c2 = width / (TWO_PI * p2)
     c3 = width / (TWO_PI * p3)
-    mod_scale = 2.0 / steps * dn_scale
-    bg_scale = dn_scale / (3 * steps)
+    scale = (tables.shape[1] - 1) * steps / TWO_PI
+    correct = False
+    for j in range(3):
+        for i in range(tables.shape[1]):
+            if tables[j, i] != 0.0:
+                correct = True
     for y in numba.prange(h):
-        # stage by stage over one row: simple loops over contiguous rows vectorise (SIMD)
-        ph = np.empty((3, w))
-        q = np.empty((3, w))
-        a_sum = np.zeros(w)
-        sat = np.zeros(w)
-        for j in range(3):
-            s = np.zeros(w)
-            c = np.zeros(w)
-            for n in range(steps):
-                sn, cn = sin_t[n], cos_t[n]
-                row = images[j * steps + n, y]
-                for x in range(w):
-                    v = float(row[x])
-                    s[x] += v * sn
-                    c[x] += v * cn
-                    a_sum[x] += v
-                    sat[x] = max(sat[x], 1.0 if v >= sat_level else 0.0)
-            for x in range(w):
-                ph[j, x] = _atan2_0_2pi(s[x], c[x])
-                q[j, x] = s[x] * s[x] + c[x] * c[x]
         for x in range(w):
-            ph0, ph1, ph2 = ph[0, x], ph[1, x], ph[2, x]
-            mod = math.sqrt(min(q[0, x], q[1, x], q[2, x])) * mod_scale
-            modulation[y, x] = mod
-            background[y, x] = a_sum[x] * bg_scale
+            ph0, ph1, ph2 = phases[0, y, x], phases[1, y, x], phases[2, y, x]
+            if correct:
+                ph0 = _corrected(ph0, tables[0], scale)
+                ph1 = _corrected(ph1, tables[1], scale)
+                ph2 = _corrected(ph2, tables[2], scale)
+            mod = modulation[y, x]
             w12 = ph0 - ph1
             w12 += TWO_PI if w12 < 0.0 else 0.0
             w23 = ph1 - ph2
@@ -141,7 +194,7 @@ def decode3_heterodyne(images: np.ndarray, steps: int, p1: float, p2: float, p3:
             code = 0
             code = 4 if (col < -0.5 or col > width - 0.5) else code
             code = 3 if (spread > tol or margin > margin_max) else code
-            code = 2 if sat[x] > 0.0 else code
+            code = 2 if saturated[y, x] != 0 else code
             code = 1 if mod < min_mod else code
             reason[y, x] = code
             counts[y, code] += 1

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scancell.analysis.phase_response import BINS, estimate_correction, folded_histogram
 from scancell.model.patterns import FringeSequence
 
 TWO_PI = np.float32(2 * np.pi)
@@ -46,6 +47,8 @@ class PhaseMap:
     valid: np.ndarray  # bool
     #: why pixels were masked: reason -> pixel count
     rejected: dict[str, int] = field(default_factory=dict)
+    #: the fringe response found in the images (PhaseCorrection.report), {} if not estimated
+    response: dict = field(default_factory=dict)
 
     @property
     def valid_share(self) -> float:
@@ -65,6 +68,9 @@ class DecodeSettings:
     #: "fast": fused numba kernel for three-frequency heterodyne (else numpy); "numpy": always
     #: the numpy reference
     engine: str = "fast"
+    #: "passive": estimate a nonlinear response's phase error from the fringes themselves and
+    #: remove it (:mod:`scancell.analysis.phase_response`); "off": decode the phases as measured
+    compensation: str = "passive"
 
 
 def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -173,6 +179,8 @@ def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, project
         heterodyne_tree(periods)
     elif st.method != "hierarchical":
         raise DecodeError(f"unknown unwrapping method {st.method!r}: 'heterodyne' or 'hierarchical'")
+    if st.compensation not in ("passive", "off"):
+        raise DecodeError(f"unknown compensation {st.compensation!r}: 'passive' or 'off'")
     scale = 255.0 if images[0].dtype == np.uint8 else float(np.iinfo(images[0].dtype).max) \
         if np.issubdtype(images[0].dtype, np.integer) else 1.0
     sat_level = st.saturation_dn * scale / 255.0
@@ -192,6 +200,12 @@ def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, project
     background /= len(periods)
     modulation = np.minimum.reduce(mods) * np.float32(255.0 / scale)
     background *= np.float32(255.0 / scale)
+    correction = None
+    if st.compensation == "passive":
+        usable = (modulation >= st.min_modulation_dn) & ~saturated
+        correction = estimate_correction(
+            np.stack([folded_histogram(phi, usable, n) for phi in phases]), n)
+        phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
     margin = np.zeros(images[0].shape, np.float32)
     absolute = (unwrap_heterodyne(phases, periods, margin) if st.method == "heterodyne"
                 else unwrap_hierarchical(phases, periods, margin))
@@ -214,7 +228,8 @@ def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, project
     column[~valid] = np.nan
     rejected = {"low_modulation": int(low.sum()), "saturated": int((saturated & ~low).sum()),
                 "order_inconsistent": int(inconsistent.sum()), "outside_projector": int(outside.sum())}
-    return PhaseMap(column, modulation, background, valid, rejected)
+    return PhaseMap(column, modulation, background, valid, rejected,
+                    correction.report(sequence.A, sequence.B) if correction else {})
 
 
 _REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_projector")
@@ -222,19 +237,31 @@ _REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_projec
 
 def _decode_fast(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
                  st: DecodeSettings, scale: float, sat_level: float) -> PhaseMap:
-    from scancell.analysis.kernels import decode3_heterodyne
+    from scancell.analysis.kernels import unwrap3_heterodyne, wrapped3
 
     stack = np.stack(images)
     shape = images[0].shape
-    column = np.empty(shape, np.float32)
+    phases = np.empty((3, *shape), np.float32)
     modulation = np.empty(shape, np.float32)
     background = np.empty(shape, np.float32)
+    saturated = np.empty(shape, np.uint8)
+    hist = np.zeros((min(64, shape[0]), 3, BINS), np.int64)
+    wrapped3(stack, sequence.steps, 255.0 / scale, sat_level, st.min_modulation_dn, phases,
+             modulation, background, saturated, hist)
+    correction = None
+    tables = np.zeros((3, BINS + 1))
+    if st.compensation == "passive":
+        correction = estimate_correction(hist.sum(axis=0), sequence.steps)
+        if correction.applied:
+            tables = correction.tables
+    column = np.empty(shape, np.float32)
     reason = np.empty(shape, np.uint8)
     per_row = np.zeros((shape[0], 5), np.int64)
     p1, p2, p3 = (float(p) for p in sequence.periods)
-    decode3_heterodyne(stack, sequence.steps, p1, p2, p3, float(projector_width), 255.0 / scale,
-                       sat_level, st.min_modulation_dn, st.order_tolerance_px, st.order_margin,
-                       column, modulation, background, reason, per_row)
+    unwrap3_heterodyne(phases, modulation, saturated, tables, sequence.steps, p1, p2, p3,
+                       float(projector_width), st.min_modulation_dn, st.order_tolerance_px,
+                       st.order_margin, column, reason, per_row)
     counts = per_row.sum(axis=0)
     return PhaseMap(column, modulation, background, reason == 0,
-                    {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)})
+                    {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)},
+                    correction.report(sequence.A, sequence.B) if correction else {})

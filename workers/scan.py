@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.phase import DecodeError
+from scancell.analysis.phase_response import response_warning
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
 from scancell.bus.protocol import BusLike, Latched
@@ -91,6 +92,7 @@ def result_message(scan: PendingScan, result: ScanResult | None, error: str | No
         body.update(points=len(result.cloud),
                     valid_share={"left": round(result.left.valid_share, 4),
                                  "right": round(result.right.valid_share, 4)},
+                    response={"left": result.left.response, "right": result.right.response},
                     timings_s={k: round(v, 4) for k, v in result.timings.items()})
     return body
 
@@ -161,7 +163,12 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                                    f"mcs_{scan.station}",
                                    {"quality": c.quality, "intensity": c.intensity})
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c),
-                "job_id": scan.job_id, "job_kind": scan.job_kind}
+                "job_id": scan.job_id, "job_kind": scan.job_kind,
+                "response": {"left": result.left.response, "right": result.right.response}}
+        for side, pm in (("left", result.left), ("right", result.right)):
+            if pm.response and not pm.response["linear"]:
+                log.warning("scan %s station %s: %s", scan.scan_id, scan.station,
+                            response_warning(side, pm.response))
         self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
                          Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
         self._publish_result(scan, result, None)
