@@ -67,13 +67,13 @@ def _unwrap(phi: float, ref: float, ratio: float) -> tuple[float, float]:
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
-def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float, min_mod: float,
-             phases: np.ndarray, modulation: np.ndarray, background: np.ndarray,
+def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float,
+             hist_min_mod: float, phases: np.ndarray, modulation: np.ndarray, background: np.ndarray,
              saturated: np.ndarray, hist: np.ndarray) -> None:
     """First pass of the three-frequency decode of (3·steps, H, W) images: wrapped phases
     (3, H, W) in [0, 2π), the smallest modulation and the background (DN), the saturation flag,
-    and ``hist`` (blocks, 3, bins): the phases folded modulo 2π/steps of the pixels with enough
-    modulation and no saturation (see :mod:`scancell.analysis.phase_response`)."""
+    and ``hist`` (blocks, 3, bins): the phases folded modulo 2π/steps of the pixels with at
+    least ``hist_min_mod`` modulation and no saturation (see :mod:`scancell.analysis.phase_response`)."""
     h, w = images.shape[1:]
     nblk, _, bins = hist.shape
     sin_t = np.empty(steps)
@@ -114,7 +114,7 @@ def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float, 
                 modulation[y, x] = mod
                 background[y, x] = a_sum[x] * bg_scale
                 saturated[y, x] = 1 if sat[x] > 0.0 else 0
-                if mod >= min_mod and sat[x] == 0.0:
+                if mod >= hist_min_mod and sat[x] == 0.0:
                     for j in range(3):
                         p = phases[j, y, x]
                         b = int((p - period * math.floor(p / period)) * fold)

@@ -31,6 +31,8 @@ from scancell.analysis.phase_response import BINS, estimate_correction, folded_h
 from scancell.model.patterns import FringeSequence
 
 TWO_PI = np.float32(2 * np.pi)
+#: see :func:`histogram_min_modulation`
+HISTOGRAM_MIN_MODULATION_DN = 20.0
 
 
 class DecodeError(ValueError):
@@ -71,6 +73,12 @@ class DecodeSettings:
     #: "passive": estimate a nonlinear response's phase error from the fringes themselves and
     #: remove it (:mod:`scancell.analysis.phase_response`); "off": decode the phases as measured
     compensation: str = "passive"
+
+
+def histogram_min_modulation(st: DecodeSettings) -> float:
+    """Modulation (DN) a pixel needs to enter the passive response estimate: weak fringes'
+    8-bit quantisation bunches their phases, which the histogram would take for an error."""
+    return max(st.min_modulation_dn, HISTOGRAM_MIN_MODULATION_DN)
 
 
 def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -202,7 +210,7 @@ def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, project
     background *= np.float32(255.0 / scale)
     correction = None
     if st.compensation == "passive":
-        usable = (modulation >= st.min_modulation_dn) & ~saturated
+        usable = (modulation >= histogram_min_modulation(st)) & ~saturated
         correction = estimate_correction(
             np.stack([folded_histogram(phi, usable, n) for phi in phases]), n)
         phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
@@ -246,8 +254,8 @@ def _decode_fast(images: Sequence[np.ndarray], sequence: FringeSequence, project
     background = np.empty(shape, np.float32)
     saturated = np.empty(shape, np.uint8)
     hist = np.zeros((min(64, shape[0]), 3, BINS), np.int64)
-    wrapped3(stack, sequence.steps, 255.0 / scale, sat_level, st.min_modulation_dn, phases,
-             modulation, background, saturated, hist)
+    wrapped3(stack, sequence.steps, 255.0 / scale, sat_level, histogram_min_modulation(st),
+             phases, modulation, background, saturated, hist)
     correction = None
     tables = np.zeros((3, BINS + 1))
     if st.compensation == "passive":

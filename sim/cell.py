@@ -27,9 +27,44 @@ from scancell.model.transforms import apply_T, look_at_flange, make_T, rot_x, ro
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.sim import parts
 from scancell.sim.optics import PinholeModel, StereoRig, default_rig
-from scancell.sim.render_kernels import pattern_dn, projector_terms, quantise
+from scancell.sim.optics_profile import (
+    DEFAULT_PROFILE,
+    OpticsProfile,
+    blur_sigma_px,
+    level_light,
+    optics_profile,
+    response_harmonics,
+)
+from scancell.sim.render_kernels import blend_levels, pattern_dn, projector_terms, quantise, sensor_dn
 from scancell.sim.scene import Scene, SceneObject
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
+
+#: pattern indices below this show a uniform level: ``UNIFORM_BASE - v`` for the 8-bit value v
+#: (what a projector-response calibration projects); -1 dark and -2 full white are v = 0, 255
+UNIFORM_BASE = -3
+
+
+def uniform_level(k: int) -> float:
+    """Relative level (0 … 1) of a uniform pattern index k < 0."""
+    if k == -1:
+        return 0.0
+    if k == -2:
+        return 1.0
+    return (UNIFORM_BASE - k) / 255.0
+
+
+def _blur(dn: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Gaussian blur with a per-pixel sigma (px): the image blurred at a few sigmas spanning the
+    map, blended linearly per pixel between the two nearest (depth-dependent defocus)."""
+    lo, hi = float(np.min(sigma)), float(np.max(sigma))
+    if hi < 0.05:
+        return dn
+    if hi - lo < 0.05 * hi + 0.02:
+        return cv2.GaussianBlur(dn, (0, 0), max(0.5 * (lo + hi), 1e-3))
+    levels = np.linspace(lo, hi, 4 if hi - lo > 1.0 else 3)
+    blurred = [dn if s < 0.05 else cv2.GaussianBlur(dn, (0, 0), float(s)) for s in levels]
+    pos = np.clip((sigma - lo) / np.float32(levels[1] - levels[0]), 0, len(levels) - 1 - 1e-4)
+    return blend_levels(np.stack(blurred), pos.astype(np.float32))
 
 
 def _rot_z(deg: float) -> np.ndarray:
@@ -74,11 +109,10 @@ class SimCellConfig:
     smr_in_mcs_mm: np.ndarray = field(default_factory=lambda: np.array([276.0, 95.0, -140.0]))
     #: None: backwards along the rig's bisector (how the nest is machined into the housing)
     smr_opening_in_mcs: np.ndarray | None = None
-    albedo: float = 0.6
-    ambient: float = 0.08  # ambient irradiance relative to the projector's full white
-    exposure: float = 1.3  # DN = 255 * exposure * radiance
-    noise_dn: float = 1.0  # camera read noise, 1 sigma
-    psf_sigma_px: float = 0.6  # lens blur of the cameras
+    #: projector, cameras, paints and ambient light (sim/optics_profile.py, docs/simulation.md)
+    optics: OpticsProfile = field(default_factory=lambda: optics_profile(DEFAULT_PROFILE))
+    #: exposure time (s) at which ``optics.exposure`` holds (the cameras' nominal 10 ms)
+    nominal_exposure_s: float = 0.01
     tracker: TrackerSpec = field(default_factory=TrackerSpec)
     home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
 
@@ -92,6 +126,8 @@ class CameraGeometry:
     proj_x: np.ndarray  # (H, W) projector column, NaN where not lit
     base_dn: np.ndarray  # (H, W) DN from ambient light
     fringe_dn: np.ndarray  # (H, W) DN per unit projector intensity (0 where shadowed)
+    sigma_projector: np.ndarray  # (H, W) projector defocus blur at the surface, projector px
+    sigma_camera: np.ndarray  # (H, W) camera blur (in-focus PSF and depth of field), px
 
 
 class SimCell:
@@ -112,9 +148,12 @@ class SimCell:
         self.sequence = FringeSequence()
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
+        self.precompensation: np.ndarray | None = None
         if self.cfg.part:
-            self.scene.add(SceneObject(self.cfg.part, parts.PARTS[self.cfg.part](),
-                                       self.cfg.T_world_from_part, self.cfg.albedo))
+            mesh = parts.PARTS[self.cfg.part]()
+            self.scene.add(SceneObject(self.cfg.part, mesh, self.cfg.T_world_from_part,
+                                       self.cfg.optics.uniform_paint.kd,
+                                       regions=parts.paint_regions(self.cfg.part, mesh)))
         self._body = self.scene.add(SceneObject("scanner_body", parts.scanner_body(), np.eye(4),
                                                 visible_to_cameras=False))
         self._rays: dict[str, np.ndarray] = {}
@@ -339,7 +378,7 @@ class SimCell:
         T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
         proj = self.rig.projector
         eps = 0.05
-        proj_x, cos_p, dist, shadow_rays, tfar = projector_terms(
+        proj_x, cos_p, dist, shadow_rays, tfar, cos_h = projector_terms(
             dirs, hits.t, hits.normal, T_wc[:3, :3], T_wc[:3, 3], T_pc[:3, :3], T_pc[:3, 3],
             proj.K, proj.brown_conrady5, proj.width, proj.height, eps)
         t3 = clock()
@@ -349,49 +388,104 @@ class SimCell:
             proj_x[cand[shadow]] = np.nan
         t4 = clock()
         lit = np.isfinite(proj_x)
-        # object index -1 (no hit) picks the appended albedo 0
-        albedo = np.array([o.albedo for o in self.scene.objects] + [0.0],
-                          np.float32)[hits.object_index]
+        kd, lobe = self._paint(hits, cos_h)
         d0 = np.float32(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0]))
-        gain = np.float32(255.0 * cfg.exposure)
-        fringe = np.where(lit, gain * albedo * np.clip(cos_p, 0, 1) * (d0 / np.maximum(dist, 1.0))
-                          ** 2, np.float32(0.0))
-        base = gain * albedo * np.float32(cfg.ambient)
+        gain = np.float32(255.0 * cfg.optics.exposure)
+        fringe = np.where(lit, gain * np.clip(cos_p, 0, 1) * (d0 / np.maximum(dist, 1.0)) ** 2
+                          * (kd + lobe), np.float32(0.0))
+        base = gain * kd * np.float32(cfg.optics.ambient)
         hit = np.isfinite(hits.t)
         pts_cam = np.multiply(dirs, np.where(hit, hits.t, np.nan)[:, None], dtype=np.float64)
+        o = cfg.optics
+        sigma_p = blur_sigma_px(dist, float(proj.K[0, 0]), o.projector_pitch_mm,
+                                o.projector_f_number, o.projector_focus_mm)
+        cam = self.camera_model(camera)
+        # the lens's blur is a property of the full-resolution sensor; small test images see
+        # it 1/camera_scale as wide
+        full_f = float(cam.K[0, 0]) * cfg.camera_scale
+        dof = blur_sigma_px(np.where(hit, hits.t, o.camera_focus_mm), full_f, o.camera_pitch_mm,
+                            o.camera_f_number, o.camera_focus_mm)
+        sigma_c = np.sqrt(dof ** 2 + np.float32(o.psf_sigma_px) ** 2) / np.float32(cfg.camera_scale)
         self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
                         "shadow": t4 - t3, "shading": clock() - t4}
         return CameraGeometry(hit.reshape(h, w), pts_cam.reshape(h, w, 3),
-                              proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w))
+                              proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w),
+                              sigma_p.reshape(h, w), sigma_c.reshape(h, w).astype(np.float32))
 
-    def load_sequence(self, sequence: FringeSequence) -> int:
+    def _paint(self, hits, cos_h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Diffuse albedo and specular lobe (radiance factors, float32) of every hit pixel."""
+        n = hits.t.shape[0]
+        kd = np.zeros(n, np.float32)
+        lobe = np.zeros(n, np.float32)
+        table = self.cfg.optics.paint_table()
+        for i, obj in enumerate(self.scene.objects):
+            sel = np.flatnonzero(hits.object_index == i)
+            if not sel.size:
+                continue
+            if obj.regions is None or self.cfg.optics.paints == "uniform":
+                kd[sel] = obj.albedo
+                continue
+            region = obj.regions[hits.primitive[sel]]
+            for r, paint in enumerate(table):
+                rs = sel[region == r]
+                kd[rs] = paint.kd
+                if paint.ks > 0:
+                    lobe[rs] = (paint.ks * (paint.shininess + 8) / 8
+                                * cos_h[rs].astype(np.float64) ** paint.shininess)
+        return kd, lobe
+
+    def load_sequence(self, sequence: FringeSequence,
+                      precompensation: np.ndarray | None = None) -> int:
+        """Load fringe patterns; ``precompensation`` (256 ints): the 8-bit value the projector is
+        given for each value wanted (a projector-response calibration's inverse), or None."""
+        if precompensation is not None:
+            lut = np.asarray(precompensation)
+            if lut.shape != (256,) or lut.min() < 0 or lut.max() > 255:
+                raise ValueError("precompensation must be 256 values in 0 … 255")
+            precompensation = lut.astype(np.int64)
         self.sequence = sequence
+        self.precompensation = precompensation
+        self._harmonics = response_harmonics(self.cfg.optics, sequence.A, sequence.B,
+                                             precompensation)
         return len(sequence)
 
     def show(self, k: int) -> None:
-        if not -1 <= k < len(self.sequence):
+        if not -3 - 255 <= k < len(self.sequence):
             raise IndexError(f"pattern {k} outside the loaded sequence of {len(self.sequence)}")
         self.pattern = k
 
-    def render(self, camera: str, pattern: int | None = None, brightness: float = 1.0
-               ) -> np.ndarray:
+    def render(self, camera: str, pattern: int | None = None, brightness: float = 1.0,
+               gain: float = 1.0) -> np.ndarray:
         """8-bit image of ``camera`` under projector pattern ``pattern`` (default: the one shown;
-        -1 dark, -2 full white); ``brightness`` scales the signal (exposure time and gain)."""
+        -1 dark, -2 full white, ``UNIFORM_BASE - v`` the uniform 8-bit level v);
+        ``brightness`` scales the exposure (exposure time / nominal), ``gain`` the camera's
+        analogue gain (linear)."""
         g = self.geometry(camera)
         k = self.pattern if pattern is None else pattern
         seq = self.sequence
+        if not hasattr(self, "_harmonics"):
+            self.load_sequence(seq)
+        o = self.cfg.optics
         if k >= 0:
             j, n = seq.split(k)
-            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, 0,
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, True,
                             seq.periods[j] / self.rig.projector.width, 2 * np.pi * n / seq.steps,
-                            seq.A, seq.B, brightness)
+                            self._harmonics, 0.0, brightness)
         else:
-            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, k, 0.0, 0.0, 0.0, 0.0, brightness)
-        if self.cfg.psf_sigma_px > 0:
-            dn = cv2.GaussianBlur(dn, (0, 0), self.cfg.psf_sigma_px)
+            level = uniform_level(k)
+            light = level_light(o, level)  # uniform levels go out as they are
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, False, 0.0, 0.0,
+                            self._harmonics, light, brightness)
+        dn = _blur(dn, g.sigma_camera)
         rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
         self._frame += 1
-        return quantise(dn, rng.standard_normal(dn.shape, np.float32), self.cfg.noise_dn)
+        noise = rng.standard_normal(dn.shape, np.float32)
+        if o.sensor_model == "emva":
+            k_dn_per_e = 255.0 / o.full_well_e * gain
+            dark_e = o.dark_current_e_per_s * self.cfg.nominal_exposure_s * brightness
+            # the DN above were at unit gain: electrons = dn / (255 / full well)
+            return sensor_dn(dn * np.float32(gain), noise, k_dn_per_e, o.dark_noise_e, dark_e)
+        return quantise(dn * np.float32(gain), noise, o.read_noise_dn)
 
     def render_sequence(self, camera: str) -> list[np.ndarray]:
         """All patterns of the loaded sequence for one camera (one ray cast)."""

@@ -23,6 +23,7 @@ import jsonschema
 import numpy as np
 from scancell.sim.ball_placer import SimBallPlacer
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.optics_profile import DEFAULT_PROFILE, EFFECTS, PROFILES, optics_profile
 from scancell.sim.parts import PARTS
 from scancell.sim.world import SimWorld, register, unregister
 
@@ -38,6 +39,8 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
         "camera_scale": {"type": "number", "minimum": 1},
         "part": {"enum": [*PARTS, ""]},
         "look_at_part": {"type": "boolean"},
+        "profile": {"enum": sorted(PROFILES)},
+        "effects_off": {"type": "array", "items": {"enum": sorted(EFFECTS)}, "uniqueItems": True},
         "robot": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "motion_port": _PORT, "state_port": _PORT,
             "byte_order": {"enum": ["big", "little"]},
@@ -72,7 +75,9 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
     worker compares against)."""
     return SimCell(SimCellConfig(seed=int(options.get("seed", 0)),
                                  camera_scale=float(options.get("camera_scale", 1.0)),
-                                 part=options.get("part", "car_rear") or None))
+                                 part=options.get("part", "car_rear") or None,
+                                 optics=optics_profile(str(options.get("profile", DEFAULT_PROFILE)),
+                                                       list(options.get("effects_off", [])))))
 
 
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:

@@ -127,3 +127,18 @@ def scanner_body() -> o3d.geometry.TriangleMesh:
 
 
 PARTS = {"car_rear": car_rear, "flat": flat, "dumbbell": dumbbell}
+
+#: paint regions (indices into OpticsProfile.paint_table): 0 the part's one paint
+REGION_DEFAULT, REGION_BODY, REGION_BUMPER, REGION_PLATE = 0, 1, 2, 3
+
+
+def paint_regions(part: str, mesh: o3d.geometry.TriangleMesh) -> np.ndarray | None:
+    """Paint region of each triangle of a part's mesh, or None for a one-paint part. The car
+    rear: the body above the feature-line crease, the bumper below it, the licence plate."""
+    if part != "car_rear":
+        return None
+    centre = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)
+    y, z = centre[:, 1], centre[:, 2]
+    regions = np.where(z > -120.0, REGION_BODY, REGION_BUMPER).astype(np.int8)
+    regions[(np.abs(y) < 260) & (z > -235) & (z < -135)] = REGION_PLATE
+    return regions

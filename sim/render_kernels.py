@@ -52,11 +52,13 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
                     R_wc: np.ndarray, t_wc: np.ndarray, R_pc: np.ndarray, t_pc: np.ndarray,
                     K: np.ndarray, dist: np.ndarray, width: int, height: int,
                     eps_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                            np.ndarray]:
+                                            np.ndarray, np.ndarray]:
     """For every camera pixel with a hit (``t_hit`` finite): the projector column (NaN where the
     point is behind the projector, outside its image or turned away from it), the cosine of
-    the projector's incidence, the distance to the projector (mm) and the shadow ray towards it
-    in world (origin ``eps_mm`` off the surface, float32) with its length.
+    the projector's incidence, the distance to the projector (mm), the shadow ray towards it
+    in world (origin ``eps_mm`` off the surface, float32) with its length, and the cosine
+    between the normal and the half vector of the projector and camera directions (for a
+    specular lobe).
 
     ``R_wc, t_wc``: camera to world; ``R_pc, t_pc``: camera to projector; ``K, dist``: the
     projector's intrinsics and Brown–Conrady (k1, k2, p1, p2, k3) coefficients.
@@ -67,6 +69,7 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
     d_p = np.zeros(n, np.float32)
     shadow = np.zeros((n, 6), np.float32)
     tfar = np.zeros(n, np.float32)
+    cos_h = np.zeros(n, np.float32)
     # the projector's centre in the camera frame: -R_pc^T t_pc
     pc = np.empty(3)
     for r in range(3):
@@ -88,6 +91,16 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
         w2 = R_wc[2, 0] * v0 + R_wc[2, 1] * v1 + R_wc[2, 2] * v2
         c = normal_world[i, 0] * w0 + normal_world[i, 1] * w1 + normal_world[i, 2] * w2
         cos_p[i] = c
+        # half vector of the projector direction and the direction back to the camera
+        h0 = v0 - dirs_cam[i, 0]
+        h1 = v1 - dirs_cam[i, 1]
+        h2 = v2 - dirs_cam[i, 2]
+        hn = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) + 1e-30
+        hw0 = (R_wc[0, 0] * h0 + R_wc[0, 1] * h1 + R_wc[0, 2] * h2) / hn
+        hw1 = (R_wc[1, 0] * h0 + R_wc[1, 1] * h1 + R_wc[1, 2] * h2) / hn
+        hw2 = (R_wc[2, 0] * h0 + R_wc[2, 1] * h1 + R_wc[2, 2] * h2) / hn
+        cos_h[i] = max(0.0, normal_world[i, 0] * hw0 + normal_world[i, 1] * hw1
+                       + normal_world[i, 2] * hw2)
         d_p[i] = dd
         xp = R_pc[0, 0] * x0 + R_pc[0, 1] * x1 + R_pc[0, 2] * x2 + t_pc[0]
         yp = R_pc[1, 0] * x0 + R_pc[1, 1] * x1 + R_pc[1, 2] * x2 + t_pc[1]
@@ -115,28 +128,43 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
         shadow[i, 4] = w1
         shadow[i, 5] = w2
         tfar[i] = dd - 2.0 * eps_mm
-    return proj_x, cos_p, d_p, shadow, tfar
+    return proj_x, cos_p, d_p, shadow, tfar, cos_h
 
 
 # no "nnan": NaN marks pixels the projector does not light
 @numba.njit(parallel=True, cache=True, fastmath={"contract", "arcp", "reassoc", "afn"})
-def pattern_dn(base: np.ndarray, fringe: np.ndarray, proj_x: np.ndarray, mode: int,
-               cycles_per_px: float, shift: float, A: float, B: float,
-               brightness: float) -> np.ndarray:
-    """Irradiance in DN (H, W float32) under one projector pattern: ``mode`` 0 a fringe
-    ``A + B cos(2π cycles_per_px x - shift)`` at projector column x, -1 dark, -2 full white."""
+def pattern_dn(base: np.ndarray, fringe: np.ndarray, proj_x: np.ndarray, sigma_p: np.ndarray,
+               fringe_mode: bool, cycles_per_px: float, shift: float, coeffs: np.ndarray,
+               uniform_light: float, brightness: float) -> np.ndarray:
+    """Irradiance in DN (H, W float32) under one projector pattern.
+
+    ``fringe_mode``: light ``Σ_k c_k · exp(−2π² σ² k² ν²) · cos(k θ)`` with θ = 2π ν x − shift
+    at projector column x, ν = ``cycles_per_px`` and ``coeffs`` c_k the response's harmonics
+    (:func:`scancell.sim.optics_profile.response_harmonics`); σ = ``sigma_p`` the projector's
+    defocus blur at the pixel (projector px), which damps harmonic k by the Gaussian's transfer
+    function. Otherwise the uniform ``uniform_light``. Unlit pixels (x NaN) get ambient only.
+    """
     h, w = base.shape
     out = np.empty((h, w), np.float32)
     two_pi = 2.0 * math.pi
+    nk = coeffs.shape[0]
+    damp0 = -2.0 * math.pi * math.pi * cycles_per_px * cycles_per_px
     for r in numba.prange(h):
         for c in range(w):
             x = proj_x[r, c]
-            if mode == -1 or not math.isfinite(x):
+            if not math.isfinite(x):
                 light = 0.0
-            elif mode == -2:
-                light = 1.0
+            elif not fringe_mode:
+                light = uniform_light
             else:
-                light = A + B * math.cos(two_pi * cycles_per_px * x - shift)
+                theta = two_pi * cycles_per_px * x - shift
+                ct = math.cos(theta)
+                s2 = sigma_p[r, c] * sigma_p[r, c] * damp0
+                light = coeffs[0]
+                prev, cur = 1.0, ct  # Chebyshev: cos(kθ) = 2 cosθ cos((k−1)θ) − cos((k−2)θ)
+                for k in range(1, nk):
+                    light += coeffs[k] * math.exp(s2 * k * k) * cur
+                    prev, cur = cur, 2.0 * ct * cur - prev
             out[r, c] = (base[r, c] + fringe[r, c] * light) * brightness
     return out
 
@@ -150,4 +178,38 @@ def quantise(dn: np.ndarray, noise: np.ndarray, noise_dn: float) -> np.ndarray:
         for c in range(w):
             v = np.rint(dn[r, c] + noise_dn * noise[r, c])
             out[r, c] = 0 if v < 0 else (255 if v > 255 else np.uint8(v))
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def sensor_dn(dn: np.ndarray, noise: np.ndarray, k_dn_per_e: float, dark_noise_e: float,
+              dark_e: float) -> np.ndarray:
+    """8-bit image after the EMVA 1288 linear camera model: signal ``dn / K`` electrons plus
+    ``dark_e`` dark-current electrons, temporal noise of variance ``σ_d² + μ_e`` electrons²
+    (read noise and shot noise, the Poisson law by its normal approximation), times the system
+    gain K (DN/e⁻), rounded (quantisation noise 1/12 DN²) and clipped at 0 and 255
+    (saturation)."""
+    h, w = dn.shape
+    out = np.empty((h, w), np.uint8)
+    for r in numba.prange(h):
+        for c in range(w):
+            e = max(dn[r, c] / k_dn_per_e, 0.0) + dark_e
+            sigma = math.sqrt(dark_noise_e * dark_noise_e + e)
+            v = np.rint(k_dn_per_e * (e + sigma * noise[r, c]))
+            out[r, c] = 0 if v < 0 else (255 if v > 255 else np.uint8(v))
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def blend_levels(stack: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Per pixel, linear interpolation between images ``stack[i]`` and ``stack[i + 1]`` at the
+    fractional index ``pos`` (H, W): a spatially varying blur from a few uniform ones."""
+    h, w = pos.shape
+    out = np.empty((h, w), np.float32)
+    for r in numba.prange(h):
+        for c in range(w):
+            p = pos[r, c]
+            i = int(p)
+            f = p - i
+            out[r, c] = stack[i, r, c] * (1.0 - f) + stack[i + 1, r, c] * f
     return out

@@ -21,6 +21,8 @@ class SceneObject:
     T_world_from_object: np.ndarray
     albedo: float = 0.6
     visible_to_cameras: bool = True
+    #: paint region of each triangle (sim.parts.paint_regions); None: one matte ``albedo``
+    regions: np.ndarray | None = None
     _scene: o3d.t.geometry.RaycastingScene | None = field(default=None, repr=False)
 
     @property
@@ -36,6 +38,7 @@ class Hits:
     t: np.ndarray  # (N,) distance along the unit ray, inf where nothing was hit
     normal: np.ndarray  # (N, 3) unit normal in world, facing the ray origin
     object_index: np.ndarray  # (N,) index into the scene's objects, -1 where nothing was hit
+    primitive: np.ndarray  # (N,) triangle index in that object's mesh, -1 where nothing was hit
 
 
 class Scene:
@@ -62,6 +65,7 @@ class Scene:
         best_t = np.full(n, np.inf, np.float32)
         normal = np.zeros((n, 3), np.float32)
         idx = np.full(n, -1, np.int32)
+        prim = np.full(n, -1, np.int64)
         for i, obj in enumerate(self.objects):
             if cameras_only and not obj.visible_to_cameras:
                 continue
@@ -79,9 +83,10 @@ class Scene:
             R = obj.T_world_from_object[:3, :3].astype(np.float32)
             normal[closer] = r["primitive_normals"].numpy()[closer] @ R.T
             idx[closer] = i
+            prim[closer] = r["primitive_ids"].numpy()[closer]
         flip = np.einsum("ij,ij->i", normal, dirs32) > 0
         normal[flip] *= -1
-        return Hits(best_t, normal, idx)
+        return Hits(best_t, normal, idx, prim)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray,
                  tnear: float = 0.0, exclude: Collection[str] = ()) -> np.ndarray:

@@ -16,6 +16,7 @@ from scancell.model.transforms import make_T
 from scancell.sim import parts
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.optics import default_rig, read_opencv_yaml
+from scancell.sim.optics_profile import optics_profile
 from scancell.sim.scene import SceneObject
 from scancell.sim.target import Chessboard, render_calibration_set
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
@@ -157,8 +158,9 @@ def test_render_kernels_agree_with_the_numpy_models(cell):
     k = seq.index(1, 2)
     light = seq.intensity(k, g.proj_x, cell.rig.projector.width)
     expected = g.base_dn + g.fringe_dn * np.nan_to_num(light, nan=0.0)
-    noiseless = SimCell(SimCellConfig(camera_scale=8, noise_dn=0.0, psf_sigma_px=0.0,
-                                      joint_repeatability_deg=0.0, j6_repeatability_deg=0.0))
+    noiseless = SimCell(SimCellConfig(
+        camera_scale=8, optics=optics_profile("ideal", read_noise_dn=0.0, psf_sigma_px=0.0),
+        joint_repeatability_deg=0.0, j6_repeatability_deg=0.0))
     noiseless.move_joints(cell.q)
     img = noiseless.render("left", k)
     assert np.abs(img.astype(float) - np.clip(np.rint(expected), 0, 255)).max() <= 1
