@@ -29,6 +29,8 @@ class Station:
     T_world_from_ecs: np.ndarray
     #: what the tracker's stated noise in P1..P3 moves the cloud along the view, mean (mm)
     ecs_noise_mm: float | None = None
+    #: per-point 1-sigma noise (mm, analysis.uncertainty), None if the cloud has none
+    uncertainty: np.ndarray | None = None
 
 
 def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
@@ -68,13 +70,15 @@ def load_station_folder(folder: str | Path) -> tuple[list[Station], np.ndarray]:
         if not meta.exists():
             raise FusionError(f"{ply}: no transform file {meta.name} next to it")
         try:
-            pts, _ = read_ply(ply)
+            pts, fields = read_ply(ply)
         except CloudFileError as exc:
             raise FusionError(str(exc)) from None
         bad = ~np.all(np.isfinite(pts), axis=1)
         if bad.any():
             raise FusionError(f"{ply}: {int(bad.sum())} points are NaN or infinite")
-        stations.append(Station(ply.stem, pts, _matrix(meta, "T_world_from_ecs")))
+        unc = fields.get("uncertainty")
+        stations.append(Station(ply.stem, pts, _matrix(meta, "T_world_from_ecs"),
+                                uncertainty=None if unc is None else unc.astype(float)))
     if not stations:
         raise FusionError(f"{root}: no station clouds (*.ply)")
     return stations, hand_eye
@@ -90,16 +94,48 @@ class FusedCloud:
     points: np.ndarray  # (N, 3) world, mm, resampled
     per_station: dict[str, np.ndarray]  # world points of each station (not resampled)
     merged_count: int
+    #: per fused point the 1-sigma noise of its inverse-variance weighted mean (mm); None when
+    #: the stations carry no uncertainty
+    uncertainty: np.ndarray | None = None
+    #: the stations' per-point uncertainty (same order as per_station), where known
+    per_station_uncertainty: dict[str, np.ndarray] | None = None
+
+
+def weighted_voxel_mean(points: np.ndarray, sigma: np.ndarray, voxel_mm: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Per occupied voxel the inverse-variance weighted mean of its points and that mean's
+    1-sigma (mm). Open3D's voxel_down_sample averages with equal weights and has no weights
+    argument, so the grouping is done here with numpy."""
+    keys = np.floor(points / voxel_mm).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inverse = np.unique(flat, return_inverse=True)
+    s = np.asarray(sigma, float)
+    ok = np.isfinite(s) & (s > 0)
+    w = np.where(ok, 1.0 / np.maximum(s, 1e-6) ** 2, np.median(1.0 / s[ok] ** 2) if ok.any() else 1.0)
+    wsum = np.bincount(inverse, weights=w)
+    mean = np.stack([np.bincount(inverse, weights=w * points[:, i]) for i in range(3)], 1)
+    return mean / wsum[:, None], 1.0 / np.sqrt(wsum)
 
 
 def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 0.5) -> FusedCloud:
-    """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling)."""
+    """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling).
+    With per-point uncertainty on every station, each voxel is the inverse-variance weighted
+    mean of its points."""
     check_rigid(T_ecs_from_mcs, "T_ecs_from_mcs")
     world = {s.name: to_world(s, T_ecs_from_mcs) for s in stations}
     merged = np.concatenate(list(world.values()))
-    if voxel_mm > 0:
+    weighted = all(s.uncertainty is not None and len(s.uncertainty) == len(s.points_mcs)
+                   for s in stations)
+    per_unc = {s.name: np.asarray(s.uncertainty, float) for s in stations} if weighted else None
+    sigma = None
+    if voxel_mm > 0 and weighted:
+        pts, sigma = weighted_voxel_mean(merged, np.concatenate(list(per_unc.values())), voxel_mm)
+    elif voxel_mm > 0:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged))
         pts = np.asarray(pcd.voxel_down_sample(voxel_mm).points)
     else:
         pts = merged
-    return FusedCloud(pts, world, len(merged))
+        sigma = np.concatenate(list(per_unc.values())) if per_unc else None
+    return FusedCloud(pts, world, len(merged), sigma, per_unc)

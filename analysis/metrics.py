@@ -68,6 +68,8 @@ class PairMetrics:
     n: int  # points of A in overlap with B
     translation_mm: np.ndarray = field(repr=False)
     rotation_deg: np.ndarray = field(repr=False)
+    #: per overlap point sqrt(σ_A² + σ_B²) of the two points compared (mm); None if unknown
+    sigma_mm: np.ndarray | None = field(default=None, repr=False)
 
     def summary(self) -> dict[str, float | int | str]:
         return {"a": self.a, "b": self.b, "n": self.n,
@@ -87,17 +89,20 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
 
 
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
-          nb: np.ndarray, grid_b: CellGrid) -> PairMetrics:
+          nb: np.ndarray, grid_b: CellGrid, ua: np.ndarray | None = None,
+          ub: np.ndarray | None = None) -> PairMetrics:
     dist, j = nearest_within(grid_b, a, radius)
     overlap = np.isfinite(dist)
     if not overlap.any():
         return PairMetrics(*names, 0, np.zeros(0), np.zeros(0))
+    sigma = (np.hypot(ua[overlap], ub[j[overlap]]) if ua is not None and ub is not None
+             else None)
     c1, n1 = a[overlap], na[overlap]
     c2, n2 = b[j[overlap]], nb[j[overlap]]
     v = c2 - c1
     d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
     cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign is arbitrary
-    return PairMetrics(*names, int(overlap.sum()), d, np.degrees(np.arccos(cos)))
+    return PairMetrics(*names, int(overlap.sum()), d, np.degrees(np.arccos(cos)), sigma)
 
 
 @dataclass
@@ -111,14 +116,31 @@ class MetricsReport:
         r = np.concatenate([p.rotation_deg for p in self.pairs]) if self.pairs else np.zeros(0)
         return d, r
 
+    def sigmas(self) -> np.ndarray | None:
+        """sqrt(σ_A² + σ_B²) of every overlap point, if every pair has it."""
+        if not self.pairs or any(p.sigma_mm is None for p in self.pairs if p.n):
+            return None
+        return np.concatenate([p.sigma_mm for p in self.pairs if p.n])
+
     def to_json(self) -> dict:
         d, r = self.values()
         if len(d) == 0:
             raise MetricsError("no overlap between any pair of clouds")
+        translation = {"max": float(d.max()), "min": float(d.min()), "mean": float(d.mean()),
+                       "std": float(d.std()), "p_lt_0_6": float(np.mean(d < 0.6)),
+                       "p_lt_1_0": float(np.mean(d < 1.0))}
+        s = self.sigmas()
+        if s is not None and len(s) == len(d):
+            ok = np.isfinite(s) & (s > 0)
+            if ok.any():
+                w = 1.0 / s[ok] ** 2
+                # inverse-variance weighted mean; and the errors in units of their own noise
+                # (a median near 0.67 means the overlap errors are the scanner's noise alone)
+                translation["weighted_mean"] = float(np.sum(w * d[ok]) / np.sum(w))
+                translation["normalised_median"] = float(np.median(d[ok] / s[ok]))
+                translation["expected_mean"] = float(np.mean(s[ok]) * np.sqrt(2 / np.pi))
         return {
-            "translation_mm": {"max": float(d.max()), "min": float(d.min()), "mean": float(d.mean()),
-                               "std": float(d.std()), "p_lt_0_6": float(np.mean(d < 0.6)),
-                               "p_lt_1_0": float(np.mean(d < 1.0))},
+            "translation_mm": translation,
             "rotation_deg": {"max": float(r.max()), "min": float(r.min()), "mean": float(r.mean()),
                              "std": float(r.std()), "p_lt_10": float(np.mean(r < 10.0))},
             "pairs": [p.summary() for p in self.pairs],
@@ -126,8 +148,11 @@ class MetricsReport:
         }
 
 
-def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0) -> MetricsReport:
-    """Every ordered pair (A, B), A before B in the given order, that overlaps."""
+def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0,
+                   uncertainty: dict[str, np.ndarray] | None = None) -> MetricsReport:
+    """Every ordered pair (A, B), A before B in the given order, that overlaps. With
+    ``uncertainty`` (per-point 1-sigma, mm, for every cloud) the report adds the
+    inverse-variance weighted mean of the translation error."""
     if len(clouds) < 2:
         raise MetricsError(f"need at least two clouds, got {len(clouds)}")
     pts = {name: _check(name, p) for name, p in clouds.items()}
@@ -140,7 +165,9 @@ def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0) ->
     pairs = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
-            m = _pair(pts[a], pts[b], r, (a, b), nrm[a], nrm[b], grids[b])
+            ua = uncertainty.get(a) if uncertainty else None
+            ub = uncertainty.get(b) if uncertainty else None
+            m = _pair(pts[a], pts[b], r, (a, b), nrm[a], nrm[b], grids[b], ua, ub)
             pairs.append(m)
     if not any(p.n for p in pairs):
         raise MetricsError(f"no overlap: no point of one cloud is within r = {r:.3f} mm "

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scancell.analysis.phase_response import BINS, estimate_correction, folded_histogram
+from scancell.analysis.phase_response import BINS, PhaseCorrection, estimate_correction, folded_histogram
 from scancell.model.patterns import FringeSequence
 
 TWO_PI = np.float32(2 * np.pi)
@@ -51,6 +51,11 @@ class PhaseMap:
     rejected: dict[str, int] = field(default_factory=dict)
     #: the fringe response found in the images (PhaseCorrection.report), {} if not estimated
     response: dict = field(default_factory=dict)
+    #: per pixel why it was masked: 0 valid, 1 low modulation, 2 saturated, 3 order
+    #: inconsistent, 4 outside the projector (uint8; None for maps built by hand)
+    reason: np.ndarray | None = None
+    #: per pixel the exposure taken (HDR, merge_exposures); None for one exposure
+    exposure: np.ndarray | None = None
 
     @property
     def valid_share(self) -> float:
@@ -176,100 +181,202 @@ def _check_images(images: Sequence[np.ndarray], expected: int, names: Sequence[s
                               f"{label(0)}'s {shape[1]} x {shape[0]}")
 
 
-def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
-                 settings: DecodeSettings | None = None,
-                 names: Sequence[str] | None = None) -> PhaseMap:
-    """Decode one camera's K·N images to absolute projector columns."""
-    st = settings or DecodeSettings()
-    _check_images(images, len(sequence), names)
-    n, periods = sequence.steps, sequence.periods
+@dataclass
+class WrappedPhases:
+    """First stage of a decode: the wrapped phase of every frequency and what the images say
+    besides (all H x W; DN on the 8-bit scale)."""
+
+    phases: np.ndarray  # (K, H, W) float32 in [0, 2π)
+    modulation: np.ndarray  # float32, smallest over the frequencies
+    background: np.ndarray  # float32, mean intensity
+    saturated: np.ndarray  # bool or uint8
+    histograms: np.ndarray  # (K, BINS) folded phases of the strong fringes (phase_response)
+
+
+def _settings_checked(sequence: FringeSequence, st: DecodeSettings) -> None:
     if st.method == "heterodyne":
-        heterodyne_tree(periods)
+        heterodyne_tree(sequence.periods)
     elif st.method != "hierarchical":
         raise DecodeError(f"unknown unwrapping method {st.method!r}: 'heterodyne' or 'hierarchical'")
     if st.compensation not in ("passive", "off"):
         raise DecodeError(f"unknown compensation {st.compensation!r}: 'passive' or 'off'")
-    scale = 255.0 if images[0].dtype == np.uint8 else float(np.iinfo(images[0].dtype).max) \
-        if np.issubdtype(images[0].dtype, np.integer) else 1.0
+
+
+def _dn_scale(images: Sequence[np.ndarray]) -> float:
+    """Full scale of the images' type (255 for 8 bit, 65535 for 16 bit, 1 for float)."""
+    dtype = images[0].dtype
+    return float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else 1.0
+
+
+def _fast(st: DecodeSettings, sequence: FringeSequence) -> bool:
+    return st.engine == "fast" and st.method == "heterodyne" and len(sequence.periods) == 3
+
+
+def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
+                   settings: DecodeSettings | None = None,
+                   names: Sequence[str] | None = None) -> WrappedPhases:
+    """Wrapped phases, modulation, background and saturation of one camera's K·N images."""
+    st = settings or DecodeSettings()
+    _check_images(images, len(sequence), names)
+    _settings_checked(sequence, st)
+    n, periods = sequence.steps, sequence.periods
+    scale = _dn_scale(images)
     sat_level = st.saturation_dn * scale / 255.0
-    if st.engine == "fast" and st.method == "heterodyne" and len(periods) == 3:
-        return _decode_fast(images, sequence, projector_width, st, scale, sat_level)
-    phases, mods = [], []
-    background = np.zeros(images[0].shape, np.float32)
-    saturated = np.zeros(images[0].shape, bool)
+    shape = images[0].shape
+    if _fast(st, sequence):
+        from scancell.analysis.kernels import wrapped3
+
+        phases = np.empty((3, *shape), np.float32)
+        modulation = np.empty(shape, np.float32)
+        background = np.empty(shape, np.float32)
+        saturated = np.empty(shape, np.uint8)
+        blocks = min(64, shape[0])
+        hist = np.zeros((blocks, 3, BINS), np.int64)
+        wrapped3(np.stack(images), n, 255.0 / scale, sat_level, histogram_min_modulation(st),
+                 phases, modulation, background, saturated, hist)
+        return WrappedPhases(phases, modulation, background, saturated, hist.sum(axis=0))
+    phase_list, mods = [], []
+    background = np.zeros(shape, np.float32)
+    saturated = np.zeros(shape, bool)
     for j in range(len(periods)):
         group = images[j * n:(j + 1) * n]
         phi, b, a = wrapped_phase(group)
-        phases.append(phi)
+        phase_list.append(phi)
         mods.append(b)
         background += a
         for img in group:
             saturated |= img >= sat_level
-    background /= len(periods)
+    background *= np.float32(255.0 / scale / len(periods))
     modulation = np.minimum.reduce(mods) * np.float32(255.0 / scale)
-    background *= np.float32(255.0 / scale)
-    correction = None
-    if st.compensation == "passive":
-        usable = (modulation >= histogram_min_modulation(st)) & ~saturated
-        correction = estimate_correction(
-            np.stack([folded_histogram(phi, usable, n) for phi in phases]), n)
-        phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
-    margin = np.zeros(images[0].shape, np.float32)
+    usable = (modulation >= histogram_min_modulation(st)) & ~saturated
+    hist = np.stack([folded_histogram(phi, usable, n) for phi in phase_list])
+    return WrappedPhases(np.stack(phase_list), modulation, background, saturated, hist)
+
+
+def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
+                  settings: DecodeSettings | None = None,
+                  correction: PhaseCorrection | None = None) -> PhaseMap:
+    """Absolute projector columns from wrapped phases, after removing ``correction`` (None:
+    the one estimated from these phases when compensation is passive)."""
+    st = settings or DecodeSettings()
+    n, periods = sequence.steps, sequence.periods
+    if correction is None and st.compensation == "passive":
+        correction = estimate_correction(w.histograms, n)
+    if st.compensation == "off":
+        correction = None
+    if _fast(st, sequence):
+        return _unwrap_fast(w, sequence, projector_width, st, correction)
+    phases = [correction.apply(j, phi) if correction else phi for j, phi in enumerate(w.phases)]
+    modulation = w.modulation
+    saturated = w.saturated.astype(bool)
+    shape = modulation.shape
+    margin = np.zeros(shape, np.float32)
     absolute = (unwrap_heterodyne(phases, periods, margin) if st.method == "heterodyne"
                 else unwrap_hierarchical(phases, periods, margin))
-    w = np.float32(projector_width)
-    estimates = [phi * (w / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
+    wd = np.float32(projector_width)
+    estimates = [phi * (wd / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
     weights = np.asarray(periods, np.float32) ** 2
     column = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
     # How far each frequency's estimate may stray: ``order_tolerance_px``, widened for coarse
     # fringes whose own noise is larger (a wrong order moves an estimate by a whole fringe, W/p).
     spread = np.zeros_like(column)
     for e, p in zip(estimates, periods, strict=True):
-        tol = max(st.order_tolerance_px, 0.1 * float(w) / p)
+        tol = max(st.order_tolerance_px, 0.1 * float(wd) / p)
         np.maximum(spread, np.abs(e - column) * np.float32(st.order_tolerance_px / tol), out=spread)
-
     low = modulation < st.min_modulation_dn
     inconsistent = ~low & ~saturated & ((spread > st.order_tolerance_px)
                                         | (margin > st.order_margin))
-    outside = ~low & ~saturated & ~inconsistent & ((column < -0.5) | (column > w - 0.5))
-    valid = ~(low | saturated | inconsistent | outside)
+    outside = ~low & ~saturated & ~inconsistent & ((column < -0.5) | (column > wd - 0.5))
+    reason = np.zeros(shape, np.uint8)
+    reason[outside] = 4
+    reason[inconsistent] = 3
+    reason[saturated & ~low] = 2
+    reason[low] = 1
+    valid = reason == 0
     column[~valid] = np.nan
-    rejected = {"low_modulation": int(low.sum()), "saturated": int((saturated & ~low).sum()),
-                "order_inconsistent": int(inconsistent.sum()), "outside_projector": int(outside.sum())}
-    return PhaseMap(column, modulation, background, valid, rejected,
-                    correction.report(sequence.A, sequence.B) if correction else {})
+    return _phase_map(column, w, reason, correction, sequence)
 
 
-_REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_projector")
+def _phase_map(column: np.ndarray, w: WrappedPhases, reason: np.ndarray,
+               correction: PhaseCorrection | None, sequence: FringeSequence) -> PhaseMap:
+    counts = np.bincount(reason.ravel(), minlength=5)
+    return PhaseMap(column, w.modulation, w.background, reason == 0,
+                    {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)},
+                    correction.report(sequence.A, sequence.B) if correction else {}, reason)
 
 
-def _decode_fast(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
-                 st: DecodeSettings, scale: float, sat_level: float) -> PhaseMap:
-    from scancell.analysis.kernels import unwrap3_heterodyne, wrapped3
+def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
+                 st: DecodeSettings, correction: PhaseCorrection | None) -> PhaseMap:
+    from scancell.analysis.kernels import unwrap3_heterodyne
 
-    stack = np.stack(images)
-    shape = images[0].shape
-    phases = np.empty((3, *shape), np.float32)
-    modulation = np.empty(shape, np.float32)
-    background = np.empty(shape, np.float32)
-    saturated = np.empty(shape, np.uint8)
-    hist = np.zeros((min(64, shape[0]), 3, BINS), np.int64)
-    wrapped3(stack, sequence.steps, 255.0 / scale, sat_level, histogram_min_modulation(st),
-             phases, modulation, background, saturated, hist)
-    correction = None
-    tables = np.zeros((3, BINS + 1))
-    if st.compensation == "passive":
-        correction = estimate_correction(hist.sum(axis=0), sequence.steps)
-        if correction.applied:
-            tables = correction.tables
+    shape = w.modulation.shape
+    tables = (correction.tables if correction is not None and correction.applied
+              else np.zeros((3, BINS + 1)))
     column = np.empty(shape, np.float32)
     reason = np.empty(shape, np.uint8)
     per_row = np.zeros((shape[0], 5), np.int64)
     p1, p2, p3 = (float(p) for p in sequence.periods)
-    unwrap3_heterodyne(phases, modulation, saturated, tables, sequence.steps, p1, p2, p3,
-                       float(projector_width), st.min_modulation_dn, st.order_tolerance_px,
-                       st.order_margin, column, reason, per_row)
-    counts = per_row.sum(axis=0)
-    return PhaseMap(column, modulation, background, reason == 0,
-                    {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)},
-                    correction.report(sequence.A, sequence.B) if correction else {})
+    unwrap3_heterodyne(w.phases, w.modulation, w.saturated.astype(np.uint8, copy=False), tables,
+                       sequence.steps, p1, p2, p3, float(projector_width), st.min_modulation_dn,
+                       st.order_tolerance_px, st.order_margin, column, reason, per_row)
+    return _phase_map(column, w, reason, correction, sequence)
+
+
+def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
+                 settings: DecodeSettings | None = None,
+                 names: Sequence[str] | None = None) -> PhaseMap:
+    """Decode one camera's K·N images to absolute projector columns."""
+    st = settings or DecodeSettings()
+    return unwrap_phases(measure_phases(images, sequence, st, names), sequence, projector_width,
+                         st)
+
+
+def decode_exposures(exposures: Sequence[Sequence[np.ndarray]], sequence: FringeSequence,
+                     projector_width: int, settings: DecodeSettings | None = None,
+                     names: Sequence[Sequence[str]] | None = None) -> PhaseMap:
+    """HDR: one camera's image sets at several exposures into one phase map. One response
+    estimate from all exposures' strong fringes; then every pixel takes the exposure whose
+    decode is valid with the strongest modulation (saturated exposures are never valid)."""
+    st = settings or DecodeSettings()
+    if not exposures:
+        raise DecodeError("no exposures to decode")
+    measured = [measure_phases(imgs, sequence, st, names[i] if names else None)
+                for i, imgs in enumerate(exposures)]
+    shapes = {m.modulation.shape for m in measured}
+    if len(shapes) > 1:
+        raise DecodeError(f"exposures differ in image size: {sorted(shapes)}")
+    correction = None
+    if st.compensation == "passive":
+        correction = estimate_correction(sum(m.histograms for m in measured), sequence.steps)
+    maps = [unwrap_phases(m, sequence, projector_width, st, correction) for m in measured]
+    return merge_exposures(maps)
+
+
+def merge_exposures(maps: Sequence[PhaseMap]) -> PhaseMap:
+    """Per pixel the valid map with the largest modulation; where none is valid, the reason of
+    the map with the largest modulation. ``exposure`` records the index taken."""
+    if len(maps) == 1:
+        return maps[0]
+    mods = np.stack([np.where(m.valid, m.modulation, -np.inf) for m in maps])
+    pick = np.argmax(mods, axis=0)
+    any_valid = np.isfinite(np.max(mods, axis=0))
+    fallback = np.argmax(np.stack([m.modulation for m in maps]), axis=0)
+    pick = np.where(any_valid, pick, fallback)
+    rows, cols = np.indices(pick.shape)
+
+    def take(name: str) -> np.ndarray:
+        return np.stack([getattr(m, name) for m in maps])[pick, rows, cols]
+
+    reason = take("reason")
+    counts = np.bincount(reason.ravel(), minlength=5)
+    response = dict(maps[0].response)
+    if response:
+        response["exposures"] = len(maps)
+    merged = PhaseMap(take("column"), take("modulation"), take("background"), reason == 0,
+                      {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)}, response,
+                      reason)
+    merged.exposure = pick.astype(np.uint8)
+    return merged
+
+
+_REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_projector")

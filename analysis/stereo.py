@@ -82,6 +82,8 @@ class Cloud:
     quality: np.ndarray  # (N,) float32
     intensity: np.ndarray  # (N,) float32
     pixels: np.ndarray  # (N, 2) int32 rectified-left (x, y) of each point
+    #: (N,) float32 1-sigma depth noise (mm, analysis.uncertainty); None if not computed
+    uncertainty: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -163,12 +165,33 @@ def match_rows(col_left: np.ndarray, col_right: np.ndarray, max_step_px: float
     return np.concatenate(out_r), np.concatenate(out_xl), np.concatenate(out_xr).astype(np.float64)
 
 
+def point_uncertainty(rect: Rectification, col_r: np.ndarray, sigma: tuple[np.ndarray, np.ndarray],
+                      rows: np.ndarray, xl: np.ndarray, xr: np.ndarray) -> np.ndarray:
+    """1-sigma depth noise (mm) of matched points from the cameras' column-noise maps
+    ``sigma`` (unrectified, projector px) and the right row's column slope at the match."""
+    from scancell.analysis.uncertainty import depth_sigma
+
+    sig_l = _remap(sigma[0], rect.maps1)[rows, xl]
+    sig_r_rect = _remap(sigma[1], rect.maps2)
+    w2 = col_r.shape[1]
+    i0 = np.clip(np.floor(xr).astype(np.int64), 0, w2 - 2)
+    sig_r = sig_r_rect[rows, np.clip(np.rint(xr).astype(np.int64), 0, w2 - 1)]
+    slope = col_r[rows, i0 + 1] - col_r[rows, i0]
+    z = rect.f * rect.baseline_mm / ((xl - rect.cx1) - (xr - rect.cx2))
+    out = depth_sigma(z, rect.f, rect.baseline_mm, sig_l, np.where(np.isfinite(sig_r), sig_r, sig_l),
+                      slope)
+    return np.where(np.isfinite(out), out, np.float32(np.nan)).astype(np.float32)
+
+
 def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
                 rect: Rectification | None = None, max_step_px: float | None = None,
                 z_range_mm: tuple[float, float] = (50.0, 5000.0),
-                timings: dict[str, float] | None = None, engine: str = "fast") -> Cloud:
+                timings: dict[str, float] | None = None, engine: str = "fast",
+                sigma: tuple[np.ndarray, np.ndarray] | None = None) -> Cloud:
     """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s).
-    ``engine="numpy"`` matches with the numpy reference instead of the numba kernel."""
+    ``engine="numpy"`` matches with the numpy reference instead of the numba kernel.
+    ``sigma``: the left and right column-noise maps (analysis.uncertainty.column_sigma), for a
+    per-point uncertainty."""
     clock = time.perf_counter
     t0 = clock()
     for side, pm in (("left", left), ("right", right)):
@@ -177,7 +200,8 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
     if max_step_px is None:  # a few times the surface's own slope: depth edges jump far more
         max_step_px = 3.0 * typical_step(left.column)
     if engine == "fast":
-        return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0)
+        return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0,
+                                 sigma)
     col_l = _remap(mask_discontinuities(left.column, max_step_px), rect.maps1)
     col_r = _remap(mask_discontinuities(right.column, max_step_px), rect.maps2)
     t1 = clock()
@@ -201,15 +225,16 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
                       cv2.INTER_LINEAR).ravel()[flat_r]
     quality = np.minimum(mod_l, mod_r)
     intensity = _remap(left.background, rect.maps1).ravel()[flat_l]
+    unc = point_uncertainty(rect, col_r, sigma, rows, xl, xr) if sigma is not None else None
     if timings is not None:
         timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
     return Cloud(points, quality.astype(np.float32), intensity.astype(np.float32),
-                 np.stack([xl, rows], 1).astype(np.int32))
+                 np.stack([xl, rows], 1).astype(np.int32), unc)
 
 
 def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_step: float,
                       z_range_mm: tuple[float, float], timings: dict[str, float] | None,
-                      t0: float) -> Cloud:
+                      t0: float, sigma: tuple[np.ndarray, np.ndarray] | None) -> Cloud:
     """The same reconstruction with the numba kernels (scancell.analysis.kernels)."""
     from scancell.analysis import kernels as k
 
@@ -239,6 +264,10 @@ def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_
                           rect.maps1[0], rect.maps1[1], rect.maps2[0], rect.maps2[1],
                           left.modulation, right.modulation, left.background, points, quality,
                           intensity, pixels)
+    unc = None
+    if sigma is not None:
+        rows, xl = pixels[:, 1].astype(np.int64), pixels[:, 0].astype(np.int64)
+        unc = point_uncertainty(rect, col_r, sigma, rows, xl, x_right[rows, xl])
     if timings is not None:
         timings.update(rectify=t1 - t0, match=t2 - t1, triangulate=clock() - t2)
-    return Cloud(points, quality, intensity, pixels)
+    return Cloud(points, quality, intensity, pixels, unc)

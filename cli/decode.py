@@ -22,10 +22,11 @@ def parse_sequence(periods: str, steps: int):
 
 
 def main(args: argparse.Namespace) -> int:
+    import numpy as np
     from scancell.analysis.cloud_io import CloudFileError, write_ply
     from scancell.analysis.phase import DecodeError, DecodeSettings
     from scancell.analysis.phase_response import response_warning
-    from scancell.analysis.scanner import ImageSetError, ScanDecoder, read_image_set
+    from scancell.analysis.scanner import ImageSetError, ScanDecoder, read_exposure_sets
     from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
     from scancell.model.patterns import PROJECTOR_WIDTH
 
@@ -40,14 +41,18 @@ def main(args: argparse.Namespace) -> int:
                                   **({} if args.min_modulation is None else
                                      {"min_modulation_dn": args.min_modulation}))
         calib = StereoCalibration.read(args.calib)
-        left, right, names = read_image_set(args.images, len(seq))
+        sets = read_exposure_sets(args.images, len(seq))
         t_read = time.perf_counter() - t0
         decoder = ScanDecoder(calib, seq, args.projector_width or PROJECTOR_WIDTH, settings)
-        result = decoder.decode(left, right, names)
+        result = decoder.decode_exposures([s.left for s in sets], [s.right for s in sets],
+                                          ([s.names[0] for s in sets], [s.names[1] for s in sets]))
         c = result.cloud
         if len(c) == 0:
             raise DecodeError("no stereo matches: do both cameras see the same lit surface?")
-        write_ply(args.out, c.points, {"quality": c.quality, "intensity": c.intensity},
+        fields = {"quality": c.quality, "intensity": c.intensity}
+        if c.uncertainty is not None:
+            fields["uncertainty"] = c.uncertainty
+        write_ply(args.out, c.points, fields,
                   ascii=args.ascii, comments=[
                       f"scancell response {side}: {json.dumps(pm.response, separators=(',', ':'))}"
                       for side, pm in (("left", result.left), ("right", result.right))
@@ -58,8 +63,15 @@ def main(args: argparse.Namespace) -> int:
         return fail("decode", f"{exc.filename or args.out}: {exc.strerror or exc}")
     t = result.timings
     steps = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
+    exposures = ", ".join(f"{s.exposure_us:g} µs" for s in sets if s.exposure_us is not None)
     print(f"{len(c)} points -> {args.out} (left {result.left.valid_share:.1%} / right "
-          f"{result.right.valid_share:.1%} of pixels decoded)")
+          f"{result.right.valid_share:.1%} of pixels decoded"
+          f"{f'; HDR from {exposures}' if exposures else ''})")
+    if c.uncertainty is not None and len(c):
+        u = c.uncertainty[np.isfinite(c.uncertainty)]
+        if u.size:
+            print(f"point uncertainty (1 sigma, depth): median {np.median(u):.4f} mm, "
+                  f"95th percentile {np.percentile(u, 95):.4f} mm")
     for side, pm in (("left", result.left), ("right", result.right)):
         r = pm.response
         if r:
@@ -75,7 +87,10 @@ def main(args: argparse.Namespace) -> int:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calib", required=True, help="stereo.yaml (OpenCV FileStorage)")
-    p.add_argument("--images", required=True, help="DIR with left/00.png … and right/00.png …")
+    p.add_argument("--images", required=True,
+                   help="DIR with left/00.png … and right/00.png … (one exposure), or with "
+                        "exp_<µs>/left/… and exp_<µs>/right/… (HDR: any number of exposures; "
+                        "each pixel takes its best unsaturated one)")
     p.add_argument("--periods", default="70,64,59", help="fringe periods across the projector")
     p.add_argument("--steps", type=int, default=3, help="phase steps per period")
     p.add_argument("--out", required=True, help="output PLY (x, y, z in mm, left camera frame)")

@@ -71,7 +71,8 @@ def main(args: argparse.Namespace) -> int:
         else:
             stations, hand_eye = load_station_folder(args.source)
         fused = fuse(stations, hand_eye, args.voxel)
-        write_ply(args.out, fused.points)
+        write_ply(args.out, fused.points, None if fused.uncertainty is None
+                  else {"uncertainty": fused.uncertainty})
         if args.e57:
             write_e57(args.e57, fused.points)
         if args.mesh:
@@ -84,8 +85,8 @@ def main(args: argparse.Namespace) -> int:
             from scancell.analysis.metrics import compare_clouds
             from scancell.analysis.report import write_report
 
-            report = write_report(args.report, fused, compare_clouds(fused.per_station),
-                                  extra=extra)
+            report = write_report(args.report, fused, compare_clouds(
+                fused.per_station, uncertainty=fused.per_station_uncertainty), extra=extra)
             print(f"report -> {report}")
     except (FusionError, CloudFileError, ExportError, MetricsError) as exc:
         return fail("fuse", str(exc))

@@ -154,7 +154,9 @@ def test_decode_cli_matches_the_true_surface(station, tmp_path):
     assert out.returncode == 0, out.stderr
     assert "points ->" in out.stdout and "decode" in out.stdout
     pts, fields = read_ply(tmp_path / "cloud.ply")
-    assert set(fields) == {"quality", "intensity"}
+    assert set(fields) == {"quality", "intensity", "uncertainty"}
+    assert np.all(fields["uncertainty"][np.isfinite(fields["uncertainty"])] > 0)
+    assert np.isfinite(fields["uncertainty"]).mean() > 0.99
     world = apply_T(cell.T_world_from_mcs(), pts)
     raw = cell.surface_distance(world)
     # An estimated calibration also places MCS slightly off the true left camera (a principal

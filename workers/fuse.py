@@ -45,6 +45,8 @@ class JobStations:
     job_id: str
     ecs: dict[str, dict[str, Any]] = field(default_factory=dict)  # station -> StationEcs
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # station -> MCS points
+    #: station -> per-point 1-sigma (mm), where the scan worker sent it
+    uncertainty: dict[str, np.ndarray] = field(default_factory=dict)
     fused: dict[str, Station] = field(default_factory=dict)
     display: dict[str, np.ndarray] = field(default_factory=dict)  # thinned world points
     ended: str | None = None  # done | failed | aborted
@@ -117,12 +119,16 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return  # not a scan_part station (a hand-eye ball, a single scan)
         job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
-            pts = fg.cloud_points(sample.decode()).astype(float)
+            msg = sample.decode()
+            pts = fg.cloud_points(msg).astype(float)
+            unc = fg.cloud_fields(msg).get("uncertainty")
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
         with self._lock:
             self._job(job_id).clouds[station] = pts
+            if unc is not None:
+                self._job(job_id).uncertainty[station] = unc.astype(float)
         self.submit(("station", f"{job_id}\0{station}"))
 
     def _on_event(self, sample: Any) -> None:
@@ -166,7 +172,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if ecs.get("sigma_mm") is not None and len(cloud):
             noise = ecs_noise_effect(np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]),
                                      ecs["j6_deg"], frame, T_ecs_from_mcs, cloud)
-        st = Station(station, cloud, T_world_from_ecs, noise)
+        st = Station(station, cloud, T_world_from_ecs, noise, job.uncertainty.get(station))
         thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
         with self._lock:
             job.fused[station] = st
@@ -228,7 +234,8 @@ def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarra
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
     metrics = None
     try:
-        metrics = compare_clouds(fused.per_station) if len(stations) > 1 else None
+        metrics = (compare_clouds(fused.per_station, uncertainty=fused.per_station_uncertainty)
+                   if len(stations) > 1 else None)
     except MetricsError as exc:
         body["metrics_error"] = str(exc)
     if metrics is not None:
@@ -260,8 +267,12 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
 
     folder.mkdir(parents=True, exist_ok=True)
     files = {"ply": str(folder / "fused.ply"), "e57": str(folder / "fused.e57")}
-    write_ply(files["ply"], fused.points,
-              {"true_error_mm": truth.astype(np.float32)} if truth is not None else None)
+    fields = {}
+    if fused.uncertainty is not None:
+        fields["uncertainty"] = fused.uncertainty.astype(np.float32)
+    if truth is not None:
+        fields["true_error_mm"] = truth.astype(np.float32)
+    write_ply(files["ply"], fused.points, fields or None)
     write_e57(files["e57"], fused.points)
     if mesh:
         files["mesh"] = str(folder / "mesh.ply")

@@ -21,6 +21,7 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
     hand_eye: dict[str, Any] | None = None
     ecs: dict[str, dict[str, Any]] = {}
     clouds: dict[str, np.ndarray] = {}
+    uncertainty: dict[str, np.ndarray] = {}
     for s in samples(path, ["calib/hand_eye", "scan/*/ecs", "scan/*/cloud"]):
         if s.key.endswith("/calib/hand_eye"):
             body = json.loads(s.payload)
@@ -30,8 +31,12 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
             e = json.loads(s.payload)
             ecs[e["scan_id"]] = e
         else:
-            clouds[str(s.attachment.meta.get("scan_id"))] = fg.cloud_points(
-                s.decode()).astype(float)
+            msg = s.decode()
+            scan_id = str(s.attachment.meta.get("scan_id"))
+            clouds[scan_id] = fg.cloud_points(msg).astype(float)
+            unc = fg.cloud_fields(msg).get("uncertainty")
+            if unc is not None:
+                uncertainty[scan_id] = unc.astype(float)
     if hand_eye is None:
         raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")
     if not ecs:
@@ -46,5 +51,6 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
             T = ecs_for_frame(np.asarray(e["points_mm"]), e["j6_deg"], frame)
         except DegenerateGeometry as exc:
             raise FusionError(f"{path}: station {e['station']}: {exc}") from None
-        stations.append(Station(e["station"], clouds[scan_id], T))
+        stations.append(Station(e["station"], clouds[scan_id], T,
+                                uncertainty=uncertainty.get(scan_id)))
     return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye

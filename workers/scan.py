@@ -159,9 +159,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             self._publish_result(scan, None, str(exc))
             return None
         c = result.cloud
-        msg = fg.point_cloud(c.points, scan.stamp_ns or messages.now_ns(),
-                                   f"mcs_{scan.station}",
-                                   {"quality": c.quality, "intensity": c.intensity})
+        fields = {"quality": c.quality, "intensity": c.intensity}
+        if c.uncertainty is not None:
+            fields["uncertainty"] = c.uncertainty
+        msg = fg.point_cloud(c.points, scan.stamp_ns or messages.now_ns(), f"mcs_{scan.station}",
+                             fields)
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c),
                 "job_id": scan.job_id, "job_kind": scan.job_kind,
                 "response": {"left": result.left.response, "right": result.right.response}}
