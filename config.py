@@ -57,6 +57,9 @@ class CellConfig:
     recorder: Any = None
     #: The cell's ``[planner]`` table, parsed (None: the config has none).
     planner: CellGeometry | None = None
+    #: ``[scanner]``: how every scan of the cell is taken unless its request says otherwise;
+    #: ``exposures_us``: a list of exposure times (HDR) or "auto" (absent: one exposure)
+    scanner: dict[str, Any] = field(default_factory=dict)
 
     @cached_property
     def geometry(self) -> CellGeometry | None:
@@ -217,8 +220,18 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
             recorder = RecorderSettings.from_mapping(rec_t)
         except (ValueError, TypeError) as exc:
             raise err("[recorder]", str(exc)) from None
+    scanner = _table(raw, "scanner", err)
+    unknown = set(scanner) - {"exposures_us"}
+    if unknown:
+        raise err("[scanner]", f"unknown key {sorted(unknown)[0]!r} (known: exposures_us)")
+    exp = scanner.get("exposures_us")
+    if exp is not None and exp != "auto" and not (
+            isinstance(exp, list) and 1 <= len(exp) <= 6
+            and all(isinstance(e, int | float) and not isinstance(e, bool) and e > 0 for e in exp)):
+        raise err("[scanner] exposures_us", f"must be 1 to 6 positive exposure times (µs) or "
+                                            f"\"auto\", got {exp!r}")
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
-                      simulator, recorder, planner)
+                      simulator, recorder, planner, dict(scanner))
 
 
 def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from scancell.cli._common import fail
+from scancell.cli._common import add_bus_arguments, bus_config, cell_name, fail
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,14 +23,50 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     he.add_argument("--threshold-mm", type=float, default=None,
                     help="exclude pairs whose leave-one-out error exceeds this (default: robust)")
     he.add_argument("--no-robust", action="store_true", help="use every pair")
+    proj = sub.add_parser("projector", help="the projector's response through the cell (job "
+                                            "calibrate_projector): levels projected, fitted by "
+                                            "the scan worker, stored next to stereo.yaml")
+    add_bus_arguments(proj)
+    proj.add_argument("--levels", type=int, default=18,
+                      help="uniform levels from 0 to 255 (default 18: every 15)")
+    proj.add_argument("--timeout", type=float, default=300.0, help="longest wait for the job (s)")
     ecs = sub.add_parser("ecs", help="end coordinate system from SMR points P1..Pn (CSV)")
     ecs.add_argument("--points", required=True, help="CSV: id,x,y,z[,j6_deg] (mm, deg)")
     ecs.add_argument("--json", help="write the frame as JSON")
 
 
 def main(args: argparse.Namespace) -> int:
-    return {"cameras": cameras_main, "hand-eye": hand_eye_main,
-            "ecs": ecs_main}[args.calibrate_command](args)
+    return {"cameras": cameras_main, "hand-eye": hand_eye_main, "ecs": ecs_main,
+            "projector": projector_main}[args.calibrate_command](args)
+
+
+def projector_main(args: argparse.Namespace) -> int:
+    """Run a calibrate_projector job and print the fitted response."""
+    from scancell.cli.ctl import print_event
+    from scancell.client import CellClient
+    from scancell.protocols.commands import CommandError
+
+    if not 3 <= args.levels <= 256:
+        return fail("calibrate projector", f"--levels {args.levels}: need 3 to 256")
+    levels = sorted({round(i * 255 / (args.levels - 1)) for i in range(args.levels)})
+    try:
+        config = bus_config(args)
+        with CellClient(cell_name(args), bus_config=config) as client:
+            final = client.run_job("calibrate_projector", {"levels": levels},
+                                   on_event=print_event, timeout_s=args.timeout)
+    except CommandError as exc:
+        return fail("calibrate projector", f"{exc.code}: {exc.message}")
+    except (ConnectionError, ValueError, TimeoutError) as exc:
+        return fail("calibrate projector", str(exc), 3)
+    if final.get("state") != "done":
+        return fail("calibrate projector", final.get("message") or final.get("state", "failed"))
+    r = final.get("result") or {}
+    print(f"projector response: gamma {r.get('gamma', float('nan')):.3f} (power-law fit RMS "
+          f"{r.get('fit_rms', float('nan')):.4f}), from {r.get('pixels')} pixels; stored in "
+          f"{r.get('file')}")
+    for v, y in zip(r.get("levels") or [], r.get("response") or [], strict=False):
+        print(f"  level {v:3d}: {y:.4f}")
+    return 0
 
 
 def cameras_main(args: argparse.Namespace) -> int:

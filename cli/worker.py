@@ -13,7 +13,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     scan = sub.add_parser("scan", help="reassemble scans from dev/*/image, decode, publish "
                                        "scan/<station>/cloud")
     add_bus_arguments(scan)
-    scan.add_argument("--calib", required=True, help="stereo.yaml of the scanner")
+    scan.add_argument("--calib", required=True,
+                      help="stereo.yaml of the scanner; the projector response is kept next to it "
+                           "(projector_response.json, written by calibrate_projector jobs)")
     scan.add_argument("--projector-width", type=int, default=None,
                       help="projector columns (default: the DLP's, 1280)")
     cal = sub.add_parser("calibrate", help="hand-eye from calibrate_hand_eye jobs -> "
@@ -37,6 +39,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def scan_main(args: argparse.Namespace) -> int:
+    from scancell.analysis.projector_response import RESPONSE_FILE
     from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
     from scancell.model.patterns import PROJECTOR_WIDTH
     from scancell.workers.scan import ScanWorker
@@ -46,7 +49,8 @@ def scan_main(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         return fail("worker scan", str(exc))
     width = args.projector_width or PROJECTOR_WIDTH
-    return serve(args, "worker scan", lambda bus: ScanWorker(bus, calib, width),
+    response = Path(args.calib).parent / RESPONSE_FILE
+    return serve(args, "worker scan", lambda bus: ScanWorker(bus, calib, width, response),
                  lambda bus: f"scan worker on cell {bus.keys.cell!r}: waiting for scans "
                              f"(calibration {args.calib}, {calib.image_size[0]} x "
                              f"{calib.image_size[1]})")

@@ -22,8 +22,9 @@ from scancell.daemon.buslog import BusLogHandler
 from scancell.daemon.jobs.devices import stop_motion
 from scancell.daemon.jobs.hand_eye import calibrate_hand_eye
 from scancell.daemon.jobs.home import home
+from scancell.daemon.jobs.projector_response import ResponseState, calibrate_projector
 from scancell.daemon.jobs.runner import JobRunner
-from scancell.daemon.jobs.scan import scan
+from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
 from scancell.daemon.jobs.scan_part import scan_part
 from scancell.daemon.router import CellVerb, CommandRouter
@@ -126,18 +127,24 @@ class Daemon:
             self.devices[name] = dev
             self.supervisors[name] = DeviceSupervisor(
                 dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
+        response = ResponseState(self.bus)
+        response.start()
+        setup = ScannerSetup(response, dict(self.cfg.scanner))
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
-                                                                 self.simulator),
-            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry),
+                                                                 self.simulator, setup),
+            "calibrate_projector": lambda ctx: calibrate_projector(ctx, self.supervisors),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
              "config": CellVerb(self._cmd_config),
-             "scan": CellVerb(lambda r: scan(self.supervisors, r), timeout_s=300.0),
+             "scan": CellVerb(lambda r: scan(self.supervisors, r, setup=setup), timeout_s=300.0),
              "job/calibrate_hand_eye": CellVerb(
                  lambda r: self.jobs.start("calibrate_hand_eye", r)),
+             "job/calibrate_projector": CellVerb(
+                 lambda r: self.jobs.start("calibrate_projector", r)),
              "job/scan_part": CellVerb(self._cmd_scan_part),
              "home": CellVerb(lambda r: self.jobs.start("home", r)),
              "estop": CellVerb(self._cmd_estop, timeout_s=5.0),
@@ -175,6 +182,7 @@ class Daemon:
             with contextlib.suppress(Exception):
                 token.undeclare()
         self._tokens.clear()
+        response.close()
         return 0
 
     async def _stop_motion(self) -> None:

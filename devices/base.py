@@ -418,8 +418,14 @@ class Camera(Device):
 
 
 class Projector(Device):
-    """A pattern projector. A sequence spec is a dict, e.g. the scanner's fringe sequence
-    ``{"kind": "fringe", "steps": 3, "periods": [70, 64, 59]}``."""
+    """A pattern projector. A sequence spec is a dict:
+
+    - the scanner's fringe sequence ``{"kind": "fringe", "steps": 3, "periods": [70, 64, 59]}``,
+      optionally with ``"precompensation"``: 256 ints, the 8-bit value to project for each
+      value wanted (the inverse of a projector-response calibration);
+    - uniform levels ``{"kind": "levels", "levels": [0, 15, …, 255]}``: pattern k lights the
+      whole image at levels[k] (a projector-response calibration).
+    """
 
     kind = "projector"
 

@@ -177,7 +177,10 @@ class MockProjector(MockLink, Projector):
 
     async def load_sequence(self, spec: dict[str, Any]) -> int:
         self._check()
-        self.count = int(spec.get("steps", 3)) * len(spec.get("periods", [70, 64, 59]))
+        if spec.get("kind") == "levels":
+            self.count = len(spec.get("levels", []))
+        else:
+            self.count = int(spec.get("steps", 3)) * len(spec.get("periods", [70, 64, 59]))
         return self.count
 
     async def show(self, index: int) -> None:

@@ -27,6 +27,7 @@ ERROR_CODES: dict[str, str] = {
     "bad_reply": "the device answered with something that could not be understood",
     "busy": "another command or job holds the resource",
     "aborted": "the command was aborted (shutdown, stop or estop)",
+    "calibration_failed": "a calibration's measurements gave no result (the previous one is kept)",
     "internal": "a bug in scancell: please report it with the daemon log",
 }
 

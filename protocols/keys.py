@@ -90,6 +90,16 @@ class CellKeys:
     def stereo(self) -> str:
         return f"{self.prefix}/calib/stereo"
 
+    @property
+    def projector_response(self) -> str:
+        """The scanner's projector response (latched, ``scancell.ProjectorResponse``)."""
+        return f"{self.prefix}/calib/projector_response"
+
+    @property
+    def projector_response_result(self) -> str:
+        """The outcome of each projector-response calibration (``scancell.ProjectorResponseResult``)."""
+        return f"{self.prefix}/calib/projector_response/result"
+
     def transform(self, child_frame: str) -> str:
         """foxglove.FrameTransform of ``child_frame`` in its parent (``world`` <- ``ecs_i`` <-
         ``mcs_i``), for Foxglove's 3D panel."""

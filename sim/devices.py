@@ -16,11 +16,13 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, ClassVar
 
+import numpy as np
 from scancell.devices.base import OK, Camera, CameraSettings, Frame, Health, Projector, operation
 from scancell.devices.errors import ConnectionLost, Timeout
 from scancell.model.patterns import FringeSequence
 from scancell.protocols.commands import CommandError
 from scancell.protocols.messages import now_ns
+from scancell.sim.cell import UNIFORM_BASE
 from scancell.sim.world import SimWorld, get_world
 
 NOMINAL_EXPOSURE_US = 10000.0
@@ -174,21 +176,42 @@ class SimProjector(SimLink, Projector):
         self._w()
         return OK
 
+    _levels: list[int] | None = None
+
     async def load_sequence(self, spec: dict[str, Any]) -> int:
+        """``kind`` "fringe" (with an optional 256-value ``precompensation``) or "levels" (one
+        uniform 8-bit level per pattern, for a response calibration)."""
         world = self._w()
         try:
+            if spec.get("kind") == "levels":
+                levels = [int(v) for v in spec["levels"]]
+                if not levels or min(levels) < 0 or max(levels) > 255:
+                    raise ValueError(f"levels must be 8-bit values, got {spec['levels']}")
+                self._levels = levels
+                return len(levels)
             seq = FringeSequence.from_spec(spec)
-        except ValueError as exc:
+            pre = spec.get("precompensation")
+            lut = None if pre is None else np.asarray(pre, np.int64)
+        except (ValueError, TypeError, KeyError) as exc:
             raise CommandError("invalid", f"{self.name}: {exc}") from None
+        self._levels = None
 
         def load() -> int:
             with world.lock:
-                return world.cell.load_sequence(seq)
+                return world.cell.load_sequence(seq, lut)
 
-        return await asyncio.to_thread(load)
+        try:
+            return await asyncio.to_thread(load)
+        except ValueError as exc:
+            raise CommandError("invalid", f"{self.name}: {exc}") from None
 
     async def show(self, index: int) -> None:
         world = self._w()
+        if self._levels is not None and index >= 0:
+            if index >= len(self._levels):
+                raise CommandError("out_of_range", f"{self.name}: pattern {index} outside the "
+                                                   f"{len(self._levels)} loaded levels")
+            index = UNIFORM_BASE - self._levels[index]
 
         def show() -> None:
             with world.lock:
@@ -198,7 +221,7 @@ class SimProjector(SimLink, Projector):
             await asyncio.to_thread(show)
         except IndexError as exc:
             raise CommandError("out_of_range", f"{self.name}: {exc}") from None
-        if index >= 0 and self.options.get("trigger_out", True):
+        if (index >= 0 or index <= UNIFORM_BASE) and self.options.get("trigger_out", True):
             world.trigger.pulse(index)
 
     @operation("sim.trigger_fault", timeout_s=2.0, exclusive=False)

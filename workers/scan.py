@@ -13,11 +13,13 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scancell.analysis.phase import DecodeError
 from scancell.analysis.phase_response import response_warning
+from scancell.analysis.projector_response import ProjectorResponse, ResponseCalibrationError, fit_response
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
 from scancell.bus.protocol import BusLike, Latched
@@ -32,23 +34,41 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class PendingScan:
+    """A scan being reassembled: a fringe scan (``sequence``, any number of exposures) or a
+    projector-response calibration's uniform ``levels``."""
+
     scan_id: str
     station: str
-    sequence: FringeSequence
+    sequence: FringeSequence | None
     patterns: int
-    frames: dict[str, dict[int, np.ndarray]] = field(default_factory=lambda: {"left": {}, "right": {}})
+    #: role -> (exposure index, pattern) -> image
+    frames: dict[str, dict[tuple[int, int], np.ndarray]] = field(
+        default_factory=lambda: {"left": {}, "right": {}})
     first_seen: float = field(default_factory=time.monotonic)
     stamp_ns: int = 0
     #: The job that took the scan and its kind (None: a plain cmd/scan).
     job_id: str | None = None
     job_kind: str | None = None
+    exposures: int = 1
+    exposure_us: dict[int, float | None] = field(default_factory=dict)
+    precompensated: bool = False
+    levels: list[int] | None = None
+
+    def expected(self) -> set[tuple[int, int]]:
+        return {(e, k) for e in range(self.exposures) for k in range(self.patterns)}
 
     def complete(self) -> bool:
-        return all(len(self.frames[r]) == self.patterns for r in ("left", "right"))
+        return all(len(self.frames[r]) == self.patterns * self.exposures for r in ("left", "right"))
 
     def missing(self) -> str:
-        return "; ".join(f"{r}: patterns {sorted(set(range(self.patterns)) - set(f))}"
-                         for r, f in self.frames.items() if len(f) < self.patterns)
+        return "; ".join(f"{r}: (exposure, pattern) {sorted(self.expected() - set(f))}"
+                         for r, f in self.frames.items()
+                         if len(f) < self.patterns * self.exposures)
+
+    def image_sets(self, role: str) -> list[list[np.ndarray]]:
+        """One list of images per exposure, in pattern order."""
+        return [[self.frames[role][e, k] for k in range(self.patterns)]
+                for e in range(self.exposures)]
 
 
 class ScanAssembler:
@@ -61,17 +81,28 @@ class ScanAssembler:
     def add(self, meta: dict[str, Any], image: np.ndarray, stamp_ns: int) -> PendingScan | None:
         try:
             scan_id, role, k = str(meta["scan_id"]), str(meta["role"]), int(meta["pattern"])
-            seq = FringeSequence(tuple(float(p) for p in meta["periods"]), int(meta["steps"]))
             n = int(meta["patterns"])
+            levels = [int(v) for v in meta["levels"]] if "levels" in meta else None
+            seq = None if levels is not None else FringeSequence(
+                tuple(float(p) for p in meta["periods"]), int(meta["steps"]))
+            e, n_exp = int(meta.get("exposure_index", 0)), int(meta.get("exposures", 1))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"frame meta is not a ScanFrameMeta: {exc}") from None
-        if role not in ("left", "right") or not 0 <= k < n or n != len(seq):
+        size = len(levels) if levels is not None else len(seq)  # type: ignore[arg-type]
+        if role not in ("left", "right") or not 0 <= k < n or n != size:
             raise ValueError(f"scan {scan_id}: bad role {role!r} or pattern {k} of {n}")
+        if not 0 <= e < n_exp <= 16:
+            raise ValueError(f"scan {scan_id}: bad exposure {e} of {n_exp}")
         scan = self.pending.setdefault(scan_id, PendingScan(
             scan_id, str(meta.get("station", "0")), seq, n, job_id=meta.get("job_id"),
-            job_kind=meta.get("job_kind")))
-        scan.frames[role][k] = image
-        if k == 0 and role == "left":
+            job_kind=meta.get("job_kind"), exposures=n_exp,
+            precompensated=bool(meta.get("precompensated", False)), levels=levels))
+        if scan.exposures != n_exp or scan.patterns != n:
+            raise ValueError(f"scan {scan_id}: frame of {n_exp} exposures x {n} patterns in a "
+                             f"scan of {scan.exposures} x {scan.patterns}")
+        scan.frames[role][e, k] = image
+        scan.exposure_us[e] = meta.get("exposure_us")
+        if k == 0 and e == 0 and role == "left":
             scan.stamp_ns = stamp_ns
         if scan.complete():
             return self.pending.pop(scan_id)
@@ -93,6 +124,7 @@ def result_message(scan: PendingScan, result: ScanResult | None, error: str | No
                     valid_share={"left": round(result.left.valid_share, 4),
                                  "right": round(result.right.valid_share, 4)},
                     response={"left": result.left.response, "right": result.right.response},
+                    exposures=scan.exposures, precompensated=scan.precompensated,
                     timings_s={k: round(v, 4) for k, v in result.timings.items()})
     return body
 
@@ -103,9 +135,12 @@ class ScanWorker(ThreadedWorker[PendingScan]):
     thread_name = "scan-worker"
 
     def __init__(self, bus: BusLike, calib: StereoCalibration,
-                 projector_width: int = PROJECTOR_WIDTH) -> None:
+                 projector_width: int = PROJECTOR_WIDTH, response_path: Path | None = None) -> None:
         super().__init__(bus)
         self.calib = calib
+        #: where the projector response is kept: next to the stereo calibration
+        self.response_path = response_path
+        self._response_pub: Latched | None = None
         self.projector_width = projector_width
         self.assembler = ScanAssembler()
         self._decoders: dict[FringeSequence, ScanDecoder] = {}
@@ -120,10 +155,50 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             "scancell.StereoCalibration"))
         self.subscribe(self.bus.keys.dev("*", "image"), self._on_frame,
                        lambda key, exc: log.warning("%s: %s", key, exc))
+        if self.response_path is not None and self.response_path.is_file():
+            try:
+                self._publish_response(ProjectorResponse.read(self.response_path))
+            except ResponseCalibrationError as exc:
+                log.error("%s; fringes will not be pre-compensated", exc)
 
     def on_stop(self) -> None:
-        if self._calib_pub is not None:
-            self._calib_pub.close()
+        for pub in (self._calib_pub, self._response_pub):
+            if pub is not None:
+                pub.close()
+
+    def _publish_response(self, response: ProjectorResponse) -> None:
+        if self._response_pub is None:
+            self._response_pub = self.bus.latched(self.bus.keys.projector_response)
+        self._response_pub.publish(messages.encode_json(response.to_json(),
+                                                        "scancell.ProjectorResponse"))
+
+    def calibrate_response(self, scan: PendingScan) -> dict[str, Any]:
+        """Fit the projector response from a calibrate_projector job's level frames; on success
+        store it (the previous file is replaced atomically) and latch it; either way answer on
+        calib/projector_response/result. A failed fit keeps the previous response."""
+        body: dict[str, Any] = {"job_id": scan.job_id, "ok": False, "error": None}
+        try:
+            response = fit_response(scan.levels or [], {r: scan.image_sets(r)[0]
+                                                        for r in ("left", "right")}, scan.job_id)
+            if self.response_path is not None:
+                response.write(self.response_path)
+            self._publish_response(response)
+            body.update(ok=True, gamma=response.gamma, fit_rms=response.fit_rms,
+                        levels=response.levels, response=response.response,
+                        pixels=response.pixels,
+                        file=str(self.response_path) if self.response_path else None)
+            log.info("projector response from %s: gamma %.3f (fit RMS %.4f), stored in %s",
+                     scan.job_id, response.gamma, response.fit_rms, self.response_path)
+        except ResponseCalibrationError as exc:
+            body["error"] = str(exc)
+            log.error("projector response from %s: %s; the previous response is kept",
+                      scan.job_id, exc)
+        except OSError as exc:
+            body["error"] = f"{self.response_path}: cannot write: {exc.strerror or exc}"
+            log.error("projector response from %s: %s", scan.job_id, body["error"])
+        self.bus.publish_json(self.bus.keys.projector_response_result, body,
+                              "scancell.ProjectorResponseResult")
+        return body
 
     def _on_frame(self, sample: Any) -> None:
         meta = sample.attachment.meta
@@ -150,10 +225,10 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         return self._decoders[seq]
 
     def process(self, scan: PendingScan) -> ScanResult | None:
-        left = [scan.frames["left"][k] for k in range(scan.patterns)]
-        right = [scan.frames["right"][k] for k in range(scan.patterns)]
+        assert scan.sequence is not None
         try:
-            result = self.decoder(scan.sequence).decode(left, right)
+            result = self.decoder(scan.sequence).decode_exposures(scan.image_sets("left"),
+                                                                  scan.image_sets("right"))
         except (DecodeError, CalibrationError) as exc:
             log.error("scan %s (station %s): %s", scan.scan_id, scan.station, exc)
             self._publish_result(scan, None, str(exc))
@@ -166,6 +241,8 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                              fields)
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c),
                 "job_id": scan.job_id, "job_kind": scan.job_kind,
+                "exposures_us": [scan.exposure_us.get(e) for e in range(scan.exposures)],
+                "precompensated": scan.precompensated,
                 "response": {"left": result.left.response, "right": result.right.response}}
         for side, pm in (("left", result.left), ("right", result.right)):
             if pm.response and not pm.response["linear"]:
@@ -179,11 +256,19 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         return result
 
     def _publish_result(self, scan: PendingScan, result: ScanResult | None, error: str | None) -> None:
+        if scan.levels is not None:
+            self.bus.publish_json(self.bus.keys.projector_response_result,
+                                  {"job_id": scan.job_id, "ok": False, "error": error},
+                                  "scancell.ProjectorResponseResult")
+            return
         self.bus.publish_json(self.bus.keys.scan_result(scan.station),
                               result_message(scan, result, error), "scancell.ScanResult")
 
     def handle(self, scan: PendingScan) -> None:
         try:
-            self.process(scan)
+            if scan.levels is not None:
+                self.calibrate_response(scan)
+            else:
+                self.process(scan)
         finally:
             self.done += 1

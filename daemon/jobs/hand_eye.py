@@ -17,7 +17,7 @@ import numpy as np
 from scancell.daemon.jobs.devices import measuring_devices
 from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.jobs.scan import scan
+from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Robot, Tracker
 from scancell.devices.simulator import BallPlacer, Simulator
@@ -45,7 +45,8 @@ class OperatorPlacer:
 
 
 async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
-                             simulator: Simulator | None) -> dict[str, Any]:
+                             simulator: Simulator | None,
+                             setup: ScannerSetup | None = None) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
     turns = [float(a) for a in req.get("j6_angles_deg", [*DEFAULT_J6_ANGLES_DEG, 60.0, -60.0])]
@@ -80,7 +81,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                 reply = await scan(supervisors, {"station": f"he{i:02d}", "scan_id":
                                                  f"{ctx.job_id}-{sid}", "projector": proj_s.name,
                                                  "cameras": [c.name for c in cam_s]},
-                             hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind)
+                             hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind,
+                             setup=setup)
                 await tracker.find_reflector(approx)
                 point, sigma = await averaged(tracker, repeats,
                                               {"job_id": ctx.job_id, "ball": sid})

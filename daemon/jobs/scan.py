@@ -10,21 +10,36 @@ from __future__ import annotations
 import contextlib
 import time
 import uuid
+from dataclasses import dataclass, field
 from typing import Any
 
 from scancell.daemon.jobs.devices import serving_device
+from scancell.daemon.jobs.projector_response import ResponseState
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
 
 
+@dataclass
+class ScannerSetup:
+    """What every scan of the cell uses besides its request: the projector response to
+    pre-compensate the fringes with (when known) and the cell's ``[scanner]`` table (e.g.
+    ``exposures_us``), which a request overrides."""
+
+    response: ResponseState | None = None
+    defaults: dict[str, Any] = field(default_factory=dict)
+
+
 async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],
                hold_locks: bool = True, job_id: str | None = None,
-               job_kind: str | None = None) -> dict[str, Any]:
+               job_kind: str | None = None, setup: ScannerSetup | None = None) -> dict[str, Any]:
     """``hold_locks=False``: the caller (a job) already holds the scanner's devices. A job
     names itself (``job_id``, ``job_kind``): every frame's meta carries both, so the workers
     know whose scan it is without reading it from the scan id."""
+    setup = setup or ScannerSetup()
+    response = setup.response
+    request = {**setup.defaults, **request}
     station = str(request.get("station", "0"))
     scan_id = str(request.get("scan_id") or f"{time.strftime('%Y%m%dT%H%M%S')}-{uuid.uuid4().hex[:6]}")
     cam_names = list(request.get("cameras", ["cam_left", "cam_right"]))
@@ -33,29 +48,65 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
     proj_sup = serving_device(supervisors, str(request.get("projector", "projector")), Projector,
                               "scan")
     cam_sups = [serving_device(supervisors, n, Camera, "scan") for n in cam_names]
-    spec = {"kind": "fringe", "steps": int(request.get("steps", 3)),
-            "periods": [float(p) for p in request.get("periods", [70, 64, 59])]}
+    spec: dict[str, Any] = {"kind": "fringe", "steps": int(request.get("steps", 3)),
+                            "periods": [float(p) for p in request.get("periods", [70, 64, 59])]}
+    pre = response.precompensation if response is not None else None
+    if pre is not None and request.get("precompensate", True):
+        spec["precompensation"] = pre
+    timeout_s = float(request.get("timeout_s", 5.0))
+    cams: list[Camera] = [s.device for s in cam_sups]
     sups = [proj_sup, *cam_sups]
+    acquisitions = []
     async with contextlib.AsyncExitStack() as stack:
         if hold_locks:
             for sup in sups:  # hold every device of the scanner: no other command interleaves
                 await sup.lock.acquire()
                 stack.callback(sup.lock.release)
         t0 = time.monotonic()
+        base_us = [c.settings.exposure_us for c in cams]
+        exposures = request.get("exposures_us")
         try:
-            acq = await acquire_sequence(proj_sup.device, [s.device for s in cam_sups], spec,
-                                         float(request.get("timeout_s", 5.0)))
+            if exposures == "auto":
+                exposures = await auto_exposures(proj_sup.device, cams, timeout_s)
+            for e in exposures or [None]:
+                if e is not None:
+                    for cam in cams:
+                        await cam.configure(exposure_us=float(e))
+                acquisitions.append(
+                    (e, await acquire_sequence(proj_sup.device, cams, spec, timeout_s)))
         except CouplingError as exc:
             raise CommandError("device_fault", f"scan {scan_id}: {exc}") from None
+        finally:
+            if exposures:
+                for cam, e in zip(cams, base_us, strict=True):
+                    await cam.configure(exposure_us=e)
         t_acq = time.monotonic() - t0
-    n = len(acq.shown_ns)
-    for role, sup in zip(("left", "right"), cam_sups, strict=True):
-        cam: Camera = sup.device
-        for k, frame in enumerate(acq.frames[cam.name]):
-            cam.publish_frame(frame, {"scan_id": scan_id, "station": station, "role": role,
-                                      "job_id": job_id, "job_kind": job_kind,
-                                      "pattern": k, "patterns": n, "steps": spec["steps"],
-                                      "periods": spec["periods"],
-                                      "trigger_count": frame.trigger_count})
+    n = len(acquisitions[0][1].shown_ns)
+    for i, (e, acq) in enumerate(acquisitions):
+        for role, cam in zip(("left", "right"), cams, strict=True):
+            for k, frame in enumerate(acq.frames[cam.name]):
+                cam.publish_frame(frame, {"scan_id": scan_id, "station": station, "role": role,
+                                          "job_id": job_id, "job_kind": job_kind,
+                                          "pattern": k, "patterns": n, "steps": spec["steps"],
+                                          "periods": spec["periods"],
+                                          "exposure_us": e if e is not None
+                                          else cam.settings.exposure_us,
+                                          "exposure_index": i, "exposures": len(acquisitions),
+                                          "precompensated": "precompensation" in spec,
+                                          "trigger_count": frame.trigger_count})
     return {"scan_id": scan_id, "station": station, "patterns": n, "cameras": cam_names,
-            "acquisition_s": round(t_acq, 3), "stamp_ns": acq.shown_ns[0]}
+            "exposures_us": [e for e, _ in acquisitions if e is not None] or None,
+            "precompensated": "precompensation" in spec,
+            "acquisition_s": round(t_acq, 3), "stamp_ns": acquisitions[0][1].shown_ns[0]}
+
+
+async def auto_exposures(projector: Projector, cams: list[Camera], timeout_s: float
+                         ) -> list[float]:
+    """A dark and a full-white preview frame per camera at the current exposure, and the
+    exposures :func:`choose_exposures` picks from them."""
+    from scancell.analysis.exposure import choose_exposures
+
+    acq = await acquire_sequence(projector, cams, {"kind": "levels", "levels": [0, 255]},
+                                 timeout_s)
+    previews = [(acq.frames[c.name][0].image, acq.frames[c.name][1].image) for c in cams]
+    return choose_exposures(previews, float(cams[0].settings.exposure_us))

@@ -21,7 +21,7 @@ import numpy as np
 from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop_motion
 from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs.runner import JobContext, StepFailed
-from scancell.daemon.jobs.scan import scan
+from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
@@ -127,7 +127,8 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
 
 
 async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
-                    geometry: CellGeometry | None = None) -> dict[str, Any]:
+                    geometry: CellGeometry | None = None,
+                    setup: ScannerSetup | None = None) -> dict[str, Any]:
     req = ctx.request
     plan = plan_from_request(req, geometry)
     speed = float(req.get("speed", plan.speed))
@@ -172,7 +173,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     reply = await scan(supervisors, {
                         "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
                         "projector": proj_s.name, "cameras": [c.name for c in cam_s]},
-                        hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind)
+                        hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=setup)
                     step = "ecs"
                     ecs = await measure_ecs(
                         robot, tracker, q0, [st.j6_sign * a for a in turns], speed, repeats, meta,
