@@ -445,8 +445,10 @@ class SimCell:
             precompensation = lut.astype(np.int64)
         self.sequence = sequence
         self.precompensation = precompensation
-        self._harmonics = response_harmonics(self.cfg.optics, sequence.A, sequence.B,
-                                             precompensation)
+        c = response_harmonics(self.cfg.optics, sequence.A, sequence.B, precompensation)
+        # the harmonics a linear projector leaves are 8-bit rounding: < 1e-4 of full scale
+        keep = np.flatnonzero(np.abs(c) > 1e-4)
+        self._harmonics = c[: int(keep.max()) + 1 if keep.size else 1]
         return len(sequence)
 
     def show(self, k: int) -> None:

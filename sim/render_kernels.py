@@ -159,11 +159,17 @@ def pattern_dn(base: np.ndarray, fringe: np.ndarray, proj_x: np.ndarray, sigma_p
             else:
                 theta = two_pi * cycles_per_px * x - shift
                 ct = math.cos(theta)
-                s2 = sigma_p[r, c] * sigma_p[r, c] * damp0
+                # damping of harmonic k: q^(k²), built up as q^(k²) = q^((k-1)²) · q^(2k-1)
+                q = math.exp(sigma_p[r, c] * sigma_p[r, c] * damp0)
+                q2 = q * q
+                step = q
+                damp = 1.0
                 light = coeffs[0]
                 prev, cur = 1.0, ct  # Chebyshev: cos(kθ) = 2 cosθ cos((k−1)θ) − cos((k−2)θ)
                 for k in range(1, nk):
-                    light += coeffs[k] * math.exp(s2 * k * k) * cur
+                    damp *= step
+                    step *= q2
+                    light += coeffs[k] * damp * cur
                     prev, cur = cur, 2.0 * ct * cur - prev
             out[r, c] = (base[r, c] + fringe[r, c] * light) * brightness
     return out
