@@ -83,7 +83,7 @@ class CellConfig:
         return scrub(self.raw)
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices", "simulator", "recorder", "planner"}
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:

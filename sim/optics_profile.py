@@ -112,9 +112,8 @@ REALISTIC = OpticsProfile(
 )
 
 PROFILES: dict[str, OpticsProfile] = {"ideal": IDEAL, "realistic": REALISTIC}
-#: the simulated cell's profile when its config names none. "ideal" until the scanner's
-#: defences (response calibration, HDR) are in: see docs/simulation.md
-DEFAULT_PROFILE = "ideal"
+#: the simulated cell's profile when its config names none
+DEFAULT_PROFILE = "realistic"
 
 
 class ProfileError(ValueError):

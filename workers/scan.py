@@ -116,11 +116,26 @@ class ScanAssembler:
         return old
 
 
+#: fringe modulation (DN, at the pixel's best exposure) above which a pixel counts as lit by the
+#: projector: the noise alone gives well under 1 DN
+LIT_MODULATION_DN = 3.0
+
+
+def lit_share(pm: Any) -> float:
+    """Share of a camera's pixels the projector lights (modulation above the noise)."""
+    return float(np.mean(pm.modulation >= LIT_MODULATION_DN))
+
+
 def result_message(scan: PendingScan, result: ScanResult | None, error: str | None) -> dict[str, Any]:
     body: dict[str, Any] = {"scan_id": scan.scan_id, "station": scan.station, "ok": error is None,
                             "error": error}
     if result is not None:
+        lit = {side: lit_share(pm) for side, pm in (("left", result.left), ("right", result.right))}
         body.update(points=len(result.cloud),
+                    lit_share={k: round(v, 4) for k, v in lit.items()},
+                    decoded_of_lit={side: round(pm.valid_share / lit[side], 4) if lit[side] else 0.0
+                                    for side, pm in (("left", result.left),
+                                                     ("right", result.right))},
                     valid_share={"left": round(result.left.valid_share, 4),
                                  "right": round(result.right.valid_share, 4)},
                     response={"left": result.left.response, "right": result.right.response},
