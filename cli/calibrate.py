@@ -1,4 +1,5 @@
-"""``scancell calibrate cameras | hand-eye | ecs``: the calibrations on files."""
+"""``scancell calibrate cameras | hand-eye | ecs`` (the calibrations on files) and ``projector``
+(a calibrate_projector job on the cell)."""
 
 from __future__ import annotations
 

@@ -128,6 +128,8 @@ class CameraGeometry:
     fringe_dn: np.ndarray  # (H, W) DN per unit projector intensity (0 where shadowed)
     sigma_projector: np.ndarray  # (H, W) projector defocus blur at the surface, projector px
     sigma_camera: np.ndarray  # (H, W) camera blur (in-focus PSF and depth of field), px
+    #: a number no other geometry of this cell has (keys the images rendered from it)
+    serial: int = 0
 
 
 class SimCell:
@@ -158,6 +160,8 @@ class SimCell:
                                                 visible_to_cameras=False))
         self._rays: dict[str, np.ndarray] = {}
         self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
+        self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
+        self._serial = 0  # geometries and loaded sequences, for the image cache
         self._scene_version = 0
         self.timings: dict[str, float] = {}
         self._update_body()
@@ -362,6 +366,8 @@ class SimCell:
         if cached and cached[0] == key and cached[1] == self._scene_version:
             return cached[2]
         geom = self._compute_geometry(camera, T_wc)
+        self._serial += 1
+        geom.serial = self._serial
         self._geom_cache[camera] = (key, self._scene_version, geom)
         return geom
 
@@ -430,8 +436,10 @@ class SimCell:
                 rs = sel[region == r]
                 kd[rs] = paint.kd
                 if paint.ks > 0:
-                    lobe[rs] = (paint.ks * (paint.shininess + 8) / 8
-                                * cos_h[rs].astype(np.float64) ** paint.shininess)
+                    # the lobe is below 1e-6 of its peak where cos^s < 1e-6: skip those pixels
+                    near = rs[cos_h[rs] > np.float32(1e-6 ** (1 / paint.shininess))]
+                    lobe[near] = (paint.ks * (paint.shininess + 8) / 8
+                                  * cos_h[near].astype(np.float64) ** paint.shininess)
         return kd, lobe
 
     def load_sequence(self, sequence: FringeSequence,
@@ -445,9 +453,12 @@ class SimCell:
             precompensation = lut.astype(np.int64)
         self.sequence = sequence
         self.precompensation = precompensation
+        self._serial += 1
+        self._sequence_serial = self._serial
         c = response_harmonics(self.cfg.optics, sequence.A, sequence.B, precompensation)
-        # the harmonics a linear projector leaves are 8-bit rounding: < 1e-4 of full scale
-        keep = np.flatnonzero(np.abs(c) > 1e-4)
+        # harmonics below 1e-3 of full white are under a quarter of one 8-bit pattern step
+        # (what a linear or pre-compensated projector leaves): not worth rendering
+        keep = np.flatnonzero(np.abs(c) > 1e-3)
         self._harmonics = c[: int(keep.max()) + 1 if keep.size else 1]
         return len(sequence)
 
@@ -468,17 +479,7 @@ class SimCell:
         if not hasattr(self, "_harmonics"):
             self.load_sequence(seq)
         o = self.cfg.optics
-        if k >= 0:
-            j, n = seq.split(k)
-            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, True,
-                            seq.periods[j] / self.rig.projector.width, 2 * np.pi * n / seq.steps,
-                            self._harmonics, 0.0, brightness)
-        else:
-            level = uniform_level(k)
-            light = level_light(o, level)  # uniform levels go out as they are
-            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, False, 0.0, 0.0,
-                            self._harmonics, light, brightness)
-        dn = _blur(dn, g.sigma_camera)
+        dn = self._irradiance(camera, g, k) * np.float32(brightness * gain)
         rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
         self._frame += 1
         noise = rng.standard_normal(dn.shape, np.float32)
@@ -486,8 +487,31 @@ class SimCell:
             k_dn_per_e = 255.0 / o.full_well_e * gain
             dark_e = o.dark_current_e_per_s * self.cfg.nominal_exposure_s * brightness
             # the DN above were at unit gain: electrons = dn / (255 / full well)
-            return sensor_dn(dn * np.float32(gain), noise, k_dn_per_e, o.dark_noise_e, dark_e)
-        return quantise(dn * np.float32(gain), noise, o.read_noise_dn)
+            return sensor_dn(dn, noise, k_dn_per_e, o.dark_noise_e, dark_e)
+        return quantise(dn, noise, o.read_noise_dn)
+
+    def _irradiance(self, camera: str, g: CameraGeometry, k: int) -> np.ndarray:
+        """Blurred irradiance (DN at unit exposure and gain) under pattern k. Optics are linear
+        in the exposure, so the exposures of an HDR scan share it (cached per camera, pose,
+        scene and loaded sequence)."""
+        key = (g.serial, k, self._sequence_serial)
+        cache = self._dn_cache.setdefault(camera, {})
+        if key in cache:
+            return cache[key]
+        if (cache and next(iter(cache))[0] != g.serial) or len(cache) > 2 * len(self.sequence) + 8:
+            cache.clear()
+        seq = self.sequence
+        if k >= 0:
+            j, n = seq.split(k)
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, True,
+                            seq.periods[j] / self.rig.projector.width, 2 * np.pi * n / seq.steps,
+                            self._harmonics, 0.0, 1.0)
+        else:
+            light = level_light(self.cfg.optics, uniform_level(k))  # levels go out as they are
+            dn = pattern_dn(g.base_dn, g.fringe_dn, g.proj_x, g.sigma_projector, False, 0.0, 0.0,
+                            self._harmonics, light, 1.0)
+        cache[key] = _blur(dn, g.sigma_camera)
+        return cache[key]
 
     def render_sequence(self, camera: str) -> list[np.ndarray]:
         """All patterns of the loaded sequence for one camera (one ray cast)."""

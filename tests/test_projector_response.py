@@ -124,7 +124,7 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
             return reply, next(r for r in results if r["scan_id"] == reply["scan_id"])
 
         # before: the gamma 2.2 projector is found by the passive estimate
-        reply, before = scan({"station": "a"})
+        reply, before = scan({"station": "a", "exposures_us": None})
         assert not reply["precompensated"] and before["ok"], before
         assert before["response"]["left"]["equivalent_gamma"] == pytest.approx(2.2, abs=0.25)
 
@@ -139,7 +139,7 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
 
         # after: the fringes are pre-compensated and the images look linear
         wait_until(lambda: world.cell is not None, 1)
-        reply, after = scan({"station": "b"})
+        reply, after = scan({"station": "b", "exposures_us": None})
         assert reply["precompensated"] and after["precompensated"] and after["ok"], after
         assert after["response"]["left"]["equivalent_gamma"] == pytest.approx(1.0, abs=0.12)
 
@@ -153,7 +153,7 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
             client.call(f"device/{cam}/configure", {"exposure_us": 10000.0})
 
         # HDR: two exposures in one scan; the dark body paint is decoded from the long one
-        reply, one = scan({"station": "c"})
+        reply, one = scan({"station": "c", "exposures_us": None})
         reply, hdr = scan({"station": "d", "exposures_us": [10000, 40000]})
         assert reply["exposures_us"] == [10000, 40000] and hdr["exposures"] == 2
         assert hdr["valid_share"]["left"] > one["valid_share"]["left"] + 0.05, (one, hdr)

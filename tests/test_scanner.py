@@ -23,6 +23,7 @@ from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibra
 from scancell.model.patterns import FringeSequence
 from scancell.model.transforms import apply_T
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.optics_profile import optics_profile
 
 W = 1280
 
@@ -120,7 +121,8 @@ def station(tmp_path_factory) -> dict:
                           "--out", str(root / "stereo.yaml")], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
-    cell = SimCell(SimCellConfig(camera_scale=4))
+    # the decoder's own checks: the ideal optics (test_sim_optics covers the realistic ones)
+    cell = SimCell(SimCellConfig(camera_scale=4, optics=optics_profile("ideal")))
     target = cell.cfg.T_world_from_part[:3, 3] + [-200.0, 0, 0]
     cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target, 600.0)))
     cell.load_sequence(FringeSequence())
@@ -329,3 +331,44 @@ def test_calibrate_cli_bad_input(tmp_path):
                         "--out", str(tmp_path / "s.yaml")], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "COLSxROWSxSQUARE_MM" in r.stderr
     assert not (tmp_path / "s.yaml").exists()
+
+
+@pytest.mark.unit
+def test_decode_cli_hdr_exposure_folders(tmp_path):
+    """DIR/exp_<µs>/left|right: each pixel its best unsaturated exposure, more points than any
+    one exposure; exposures of different sizes are refused and write nothing."""
+    cell = SimCell(SimCellConfig(camera_scale=8, seed=3, optics=optics_profile("realistic")))
+    cell.move_joints(cell.start_joints())
+    cell.load_sequence(FringeSequence())
+    cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    for us in (10000, 40000):
+        for side in ("left", "right"):
+            d = tmp_path / "hdr" / f"exp_{us}" / side
+            d.mkdir(parents=True)
+            for k in range(9):
+                cv2.imwrite(str(d / f"{k:02d}.png"), cell.render(side, k, us / 10000))
+    args = ["--calib", str(tmp_path / "stereo.yaml"), "--periods", "70,64,59", "--steps", "3"]
+    counts = {}
+    for name in ("exp_10000", "exp_40000", ""):
+        out = tmp_path / f"{name or 'hdr'}.ply"
+        r = _decode([*args, "--images", str(tmp_path / "hdr" / name), "--out", str(out)])
+        assert r.returncode == 0, r.stderr
+        pts, fields = read_ply(out)
+        counts[name] = len(pts)
+        assert "uncertainty" in fields
+    assert "HDR from 10000 µs, 40000 µs" in r.stdout
+    assert counts[""] > 1.1 * max(counts["exp_10000"], counts["exp_40000"]), counts
+    small = tmp_path / "hdr" / "exp_40000" / "left" / "03.png"
+    cv2.imwrite(str(small), np.zeros((20, 30), np.uint8))
+    out = tmp_path / "bad.ply"
+    r = _decode([*args, "--images", str(tmp_path / "hdr"), "--out", str(out)])
+    assert r.returncode == 2 and "exp_40000/left/03.png" in r.stderr and "30 x 20" in r.stderr
+    assert not out.exists()
+    # a whole exposure of another size
+    for side in ("left", "right"):
+        for k in range(9):
+            cv2.imwrite(str(tmp_path / "hdr" / "exp_40000" / side / f"{k:02d}.png"),
+                        np.zeros((20, 30), np.uint8))
+    r = _decode([*args, "--images", str(tmp_path / "hdr"), "--out", str(out)])
+    assert r.returncode == 2 and "all exposures must match" in r.stderr, r.stderr
+    assert not out.exists()

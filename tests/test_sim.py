@@ -24,7 +24,8 @@ from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
 
 @pytest.fixture(scope="module")
 def cell() -> SimCell:
-    c = SimCell(SimCellConfig(camera_scale=8, seed=3))
+    # the renderer's geometry: ideal optics (tests/test_sim_optics.py has the realistic ones)
+    c = SimCell(SimCellConfig(camera_scale=8, seed=3, optics=optics_profile("ideal")))
     c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
     return c
 
@@ -123,7 +124,9 @@ def _wrapped_phase(images: list[np.ndarray]) -> np.ndarray:
 
 @pytest.mark.unit
 def test_flat_artefact_has_the_analytic_phase():
-    cell = SimCell(SimCellConfig(camera_scale=8, part="flat", seed=5))
+    """The renderer's geometry: with the ideal (linear) optics the phase is the projector's."""
+    cell = SimCell(SimCellConfig(camera_scale=8, part="flat", seed=5,
+                                 optics=optics_profile("ideal")))
     cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(
         cell.cfg.T_world_from_part[:3, 3], standoff_mm=650)))
     seq = FringeSequence()

@@ -78,9 +78,11 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                 sid = f"b{i:02d}"
                 ctx.event("running", "ball", f"ball {i + 1}/{n}: place, scan, measure", i, n)
                 approx = await placer.place(i, target)
+                # the ball is matte white: one exposure, whatever the cell's HDR default
                 reply = await scan(supervisors, {"station": f"he{i:02d}", "scan_id":
                                                  f"{ctx.job_id}-{sid}", "projector": proj_s.name,
-                                                 "cameras": [c.name for c in cam_s]},
+                                                 "cameras": [c.name for c in cam_s],
+                                                 "exposures_us": req.get("exposures_us")},
                              hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind,
                              setup=setup)
                 await tracker.find_reflector(approx)
