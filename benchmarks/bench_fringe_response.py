@@ -69,7 +69,10 @@ def figures(cell: SimCell, ply: Path) -> dict[str, float]:
     d = np.minimum(cell.scene.distance(world, ["flat"]), cell.scene.distance(world, ["sphere"]))
     centre = cell.scene.get("sphere").T_world_from_object[:3, 3]
     on_sphere = np.linalg.norm(world - centre, axis=1) < SPHERE_R + 2.0
-    plane_pts = world[~on_sphere & (np.abs(world[:, 1] - world[~on_sphere, 1].mean()) < 100)]
+    # the plate's front face (world x of the part's frame, facing -x), away from its edges
+    front = cell.cfg.T_world_from_part[:3, 3]
+    plane_pts = world[~on_sphere & (np.abs(world[:, 0] - front[0]) < 2.0)
+                      & (np.abs(world[:, 1:] - front[1:]).max(axis=1) < 140.0)]
     out = {"points": float(len(pts)), "gross": float(np.mean(d > 0.25))}
     out["plane_rms"] = fit_plane(plane_pts).rms if len(plane_pts) > 100 else float("nan")
     sp = world[on_sphere]
