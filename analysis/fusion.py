@@ -9,13 +9,13 @@ calibrate worker's file or ``scancell calibrate hand-eye --json``).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 from scancell.analysis.cloud_io import CloudFileError, read_ply
+from scancell.analysis.json_file import read_json
 
 
 class FusionError(ValueError):
@@ -47,12 +47,7 @@ def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
 
 
 def _matrix(path: Path, key: str) -> np.ndarray:
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise FusionError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except json.JSONDecodeError as exc:
-        raise FusionError(f"{path}: not JSON: {exc}") from None
+    data = read_json(path, FusionError)
     if key not in data or data[key] is None:
         raise FusionError(f"{path}: no {key!r}")
     return check_rigid(np.array(data[key], float), f"{path} {key}")

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis.json_file import read_json
 
 #: the file stored next to the stereo calibration (stereo.yaml)
 RESPONSE_FILE = "projector_response.json"
@@ -97,14 +98,7 @@ class ProjectorResponse:
 
     @classmethod
     def read(cls, path: str | Path) -> ProjectorResponse:
-        p = Path(path)
-        try:
-            obj = json.loads(p.read_text())
-        except OSError as exc:
-            raise ResponseCalibrationError(f"{p}: cannot read: {exc.strerror or exc}") from None
-        except json.JSONDecodeError as exc:
-            raise ResponseCalibrationError(f"{p}: not JSON: {exc}") from None
-        return cls.from_json(obj, str(p))
+        return cls.from_json(read_json(path, ResponseCalibrationError), str(path))
 
 
 def camera_curve(levels: Sequence[int], images: Sequence[np.ndarray], camera: str

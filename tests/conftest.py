@@ -7,6 +7,8 @@ import asyncio
 import copy
 import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -149,3 +151,14 @@ def wait_until(pred, timeout_s: float = 10.0, period_s: float = 0.05, what: str 
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(period_s)
+
+
+def start_scan_worker(endpoint: str, cell: str, calib: Path) -> subprocess.Popen:
+    """``scancell worker scan --calib CALIB`` on the test's bus, once it waits for scans."""
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",
+                               str(calib)], env=env, text=True, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE)
+    line = worker.stdout.readline()
+    assert "waiting for scans" in line, line + worker.stderr.read()
+    return worker

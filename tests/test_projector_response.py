@@ -5,9 +5,6 @@ pre-compensated fringes), with HDR scans on the same path."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import threading
 
 import numpy as np
@@ -22,7 +19,7 @@ from scancell.analysis.projector_response import (
 from scancell.protocols.commands import CommandError
 from scancell.sim.world import get_world
 
-from .conftest import sim_cell_raw, wait_until
+from .conftest import sim_cell_raw, start_scan_worker, wait_until
 
 
 def _levels_images(gamma: float, levels=DEFAULT_LEVELS, seed: int = 0, gain: float = 180.0,
@@ -110,12 +107,8 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
             results.append(s.decode())
 
     sub = client.bus.subscribe(client.bus.keys.scan_result("*"), keep)
-    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
-    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",
-                               str(tmp_path / "stereo.yaml")], env=env, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    worker = start_scan_worker(endpoint, cell, tmp_path / "stereo.yaml")
     try:
-        assert "waiting for scans" in worker.stdout.readline()
 
         def scan(request):
             reply = client.call("scan", request)

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -20,7 +19,7 @@ from scancell.model.transforms import apply_T
 from scancell.protocols import foxglove_schemas as fg
 from scancell.sim.world import get_world
 
-from .conftest import sim_cell_raw, wait_until
+from .conftest import sim_cell_raw, start_scan_worker, wait_until
 
 
 def _all_connected(client) -> bool:
@@ -53,13 +52,9 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
     subs = [client.bus.subscribe(client.bus.keys.dev("*", "image"), keep(frames)),
             client.bus.subscribe(client.bus.keys.scan_cloud("*"), keep(clouds)),
             client.bus.subscribe(client.bus.keys.scan_result("*"), keep(results))]
-    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
-    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",
-                               str(tmp_path / "stereo.yaml")], env=env, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    worker = start_scan_worker(endpoint, cell, tmp_path / "stereo.yaml")
     try:
-        assert "waiting for scans" in worker.stdout.readline()
-        reply = client.call("scan", {"station": "s1"})
+        reply = client.call("scan", {"station": "s1", "exposures_us": None})  # one exposure
         assert reply["patterns"] == 9 and reply["station"] == "s1"
         wait_until(lambda: clouds and results, 60, what="cloud and result from the worker")
         result = results[0].decode()
