@@ -80,10 +80,18 @@ class DecodeSettings:
     compensation: str = "passive"
 
 
+def modulation_floor(min_dn: float) -> float:
+    """The threshold a modulation is compared with. 8-bit images give the modulation exact
+    discrete values (12 · 2/3 = 8 DN is one), which the engines' float32 and float64 arithmetic
+    round to either side of a threshold set on such a value: the comparison is made 1e-3 DN
+    lower, far below the spacing of those values, so both engines decide alike."""
+    return min_dn - 1e-3
+
+
 def histogram_min_modulation(st: DecodeSettings) -> float:
     """Modulation (DN) a pixel needs to enter the passive response estimate: weak fringes'
     8-bit quantisation bunches their phases, which the histogram would take for an error."""
-    return max(st.min_modulation_dn, HISTOGRAM_MIN_MODULATION_DN)
+    return modulation_floor(max(st.min_modulation_dn, HISTOGRAM_MIN_MODULATION_DN))
 
 
 def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -283,7 +291,7 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
     for e, p in zip(estimates, periods, strict=True):
         tol = max(st.order_tolerance_px, 0.1 * float(wd) / p)
         np.maximum(spread, np.abs(e - column) * np.float32(st.order_tolerance_px / tol), out=spread)
-    low = modulation < st.min_modulation_dn
+    low = modulation < modulation_floor(st.min_modulation_dn)
     inconsistent = ~low & ~saturated & ((spread > st.order_tolerance_px)
                                         | (margin > st.order_margin))
     outside = ~low & ~saturated & ~inconsistent & ((column < -0.5) | (column > wd - 0.5))
@@ -317,7 +325,8 @@ def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: in
     per_row = np.zeros((shape[0], 5), np.int64)
     p1, p2, p3 = (float(p) for p in sequence.periods)
     unwrap3_heterodyne(w.phases, w.modulation, w.saturated.astype(np.uint8, copy=False), tables,
-                       sequence.steps, p1, p2, p3, float(projector_width), st.min_modulation_dn,
+                       sequence.steps, p1, p2, p3, float(projector_width),
+                       modulation_floor(st.min_modulation_dn),
                        st.order_tolerance_px, st.order_margin, column, reason, per_row)
     return _phase_map(column, w, reason, correction, sequence)
 

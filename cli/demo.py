@@ -186,7 +186,8 @@ def main(args: argparse.Namespace) -> int:
         stage(f"hand-eye calibration: {balls} ball positions")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
-        final = client.run_job("calibrate_hand_eye", {"balls": balls},
+        # the ball is matte white: exposed at half the nominal time it does not saturate
+        final = client.run_job("calibrate_hand_eye", {"balls": balls, "exposures_us": [5000.0]},
                                on_event=print_progress, timeout_s=900)
         job = final["job_id"]
         if final.get("state") != "done":

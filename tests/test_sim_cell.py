@@ -65,7 +65,7 @@ def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
         for cam in ("cam_left", "cam_right"):
             g = client.call(f"device/{cam}/grab", {"meta": {"pattern": 4}})
             assert (g["width"], g["height"]) == (306, 256)
-            assert 20 < g["mean"] < 200
+            assert 5 < g["mean"] < 200  # the realistic part's dark paint is dark
 
         # axis: the rail carries the robot base, so the tracker sees the SMR move with it
         client.call("device/axis/home")
