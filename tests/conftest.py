@@ -72,9 +72,12 @@ MOCK_CELL: dict[str, Any] = {
 }
 
 
-def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[str, Any]:
+def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None,
+                 hdr: bool = False) -> dict[str, Any]:
     """The packaged sim.toml with every simulator on a free port (drivers follow), small
-    cameras and its own world name, ready for :class:`DaemonThread`."""
+    cameras and its own world name, ready for :class:`DaemonThread`. ``hdr=False`` drops its
+    ``[scanner]`` HDR default: tests of the jobs' mechanics scan one exposure (HDR is tested
+    in test_projector_response and by the quick demo)."""
     import tomllib
 
     from scancell.config import merge_into
@@ -88,6 +91,8 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None) -> dict[st
     for name in ("cam_left", "cam_right", "projector"):
         dev[name]["world"] = sim["world"]
     raw["daemon"].update(status_period_s=0.3, reconnect_initial_s=0.1, reconnect_max_s=0.5)
+    if not hdr:
+        raw.pop("scanner", None)
     return raw
 
 

@@ -87,7 +87,7 @@ def _all_connected(client) -> bool:
 
 @pytest.fixture
 def realistic_daemon(make_daemon, client):
-    raw = sim_cell_raw(camera_scale=8)
+    raw = sim_cell_raw(camera_scale=8, hdr=True)
     raw["simulator"]["profile"] = "realistic"
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")

@@ -61,7 +61,7 @@ class Events:
 
 @pytest.fixture
 def sim(make_daemon, client, tmp_path):
-    raw = sim_cell_raw(camera_scale=8)
+    raw = sim_cell_raw(camera_scale=8, hdr=True)  # the true error needs the dark paint
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
     world = get_world(d.cfg.simulator["world"])
