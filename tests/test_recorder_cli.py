@@ -86,6 +86,8 @@ def test_the_daemon_records_its_own_session_when_configured(make_daemon, client,
     raw = copy.deepcopy(MOCK_CELL)
     raw["recorder"] = {"directory": str(tmp_path / "rec"), "flush_interval_s": 0.2}
     d = make_daemon(raw)
+    wait_until(lambda: client.status()["devices"]["tracker"]["state"] == "connected", 20,
+               what="tracker connected")
     client.call("device/tracker/measure")
     wait_until(lambda: d.daemon.recorder.total_messages > 20, 20, what="recording")
     assert client.call("config")["config"]["recorder"]["directory"] == str(tmp_path / "rec")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 from typing import Any
 
@@ -42,11 +43,16 @@ class ResponseState:
         self._sub: Any = None
 
     def start(self) -> None:
+        """Subscribe, and fetch the response already latched in a thread of its own (the query
+        waits up to a second when nobody latches one; the daemon's loop must not)."""
         self._sub = self.bus.subscribe(self.bus.keys.projector_response, self._on_sample)
+        threading.Thread(target=self._fetch, name="projector-response", daemon=True).start()
+
+    def _fetch(self) -> None:
         try:
             for s in self.bus.fetch_latched(self.bus.keys.projector_response, 1.0):
                 self._on_sample(s)
-        except Exception as exc:
+        except Exception as exc:  # no latched response yet is normal
             log.debug("no projector response on the bus yet: %s", exc)
 
     def close(self) -> None:
