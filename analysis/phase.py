@@ -383,8 +383,7 @@ def merge_exposures(maps: Sequence[PhaseMap]) -> PhaseMap:
         response["exposures"] = len(maps)
     merged = PhaseMap(take("column"), take("modulation"), take("background"), reason == 0,
                       {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)}, response,
-                      reason)
-    merged.exposure = pick.astype(np.uint8)
+                      reason, pick.astype(np.uint8))
     return merged
 
 

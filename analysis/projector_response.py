@@ -33,8 +33,25 @@ MIN_SPAN_DN = 20.0
 SATURATION_DN = 254.5
 #: fewer usable pixels than this per camera and the fit is refused
 MIN_PIXELS = 200
+def spread_levels(count: int) -> list[int]:
+    """``count`` 8-bit levels spread evenly from 0 to 255."""
+    return sorted({round(i * 255 / (count - 1)) for i in range(count)})
+
+
 #: 18 levels from 0 to 255, every 15
-DEFAULT_LEVELS = tuple(round(v * 255 / 17) for v in range(18))
+DEFAULT_LEVELS = tuple(spread_levels(18))
+
+
+def check_levels(levels: Sequence[int]) -> list[int]:
+    """The levels as ints; ResponseCalibrationError unless they are at least 3 different 8-bit
+    values increasing from 0 to 255."""
+    lv = [int(v) for v in levels]
+    if len(set(lv)) < 3:
+        raise ResponseCalibrationError(
+            f"levels {lv}: need at least 3 different levels (0, 255 and some between)")
+    if lv != sorted(set(lv)) or lv[0] != 0 or lv[-1] != 255:
+        raise ResponseCalibrationError(f"levels {lv}: must increase from 0 to 255")
+    return lv
 
 
 class ResponseCalibrationError(ValueError):
@@ -136,12 +153,7 @@ def camera_curve(levels: Sequence[int], images: Sequence[np.ndarray], camera: st
 def fit_response(levels: Sequence[int], images: Mapping[str, Sequence[np.ndarray]],
                  job_id: str | None = None) -> ProjectorResponse:
     """The projector's response from each camera's level images (see the module doc)."""
-    lv = [int(v) for v in levels]
-    if len(set(lv)) < 3:
-        raise ResponseCalibrationError(
-            f"levels {lv}: need at least 3 different levels (0, 255 and some between)")
-    if lv != sorted(set(lv)) or lv[0] != 0 or lv[-1] != 255:
-        raise ResponseCalibrationError(f"levels {lv}: must increase from 0 to 255")
+    lv = check_levels(levels)
     if not images:
         raise ResponseCalibrationError("no camera images")
     curves, pixels = {}, {}

@@ -65,16 +65,3 @@ def depth_sigma(z_mm: np.ndarray, f_px: float, baseline_mm: float, sigma_left: n
     z = np.asarray(z_mm, np.float32)
     return (z * z / np.float32(f_px * baseline_mm) * disparity).astype(np.float32)
 
-
-def weights(uncertainty: np.ndarray | None, n: int) -> np.ndarray:
-    """Inverse-variance weights (normalised to mean 1), or ones when there is no uncertainty
-    (or it is not finite and positive)."""
-    if uncertainty is None:
-        return np.ones(n)
-    u = np.asarray(uncertainty, float)
-    ok = np.isfinite(u) & (u > 0)
-    if not ok.any():
-        return np.ones(n)
-    w = np.where(ok, 1.0 / np.maximum(u, 1e-6) ** 2, 0.0)
-    w[~ok] = np.median(w[ok])
-    return w / w.mean()

@@ -43,13 +43,14 @@ def main(args: argparse.Namespace) -> int:
 
 def projector_main(args: argparse.Namespace) -> int:
     """Run a calibrate_projector job and print the fitted response."""
+    from scancell.analysis.projector_response import spread_levels
     from scancell.cli.ctl import print_event
     from scancell.client import CellClient
     from scancell.protocols.commands import CommandError
 
     if not 3 <= args.levels <= 256:
         return fail("calibrate projector", f"--levels {args.levels}: need 3 to 256")
-    levels = sorted({round(i * 255 / (args.levels - 1)) for i in range(args.levels)})
+    levels = spread_levels(args.levels)
     try:
         config = bus_config(args)
         with CellClient(cell_name(args), bus_config=config) as client:

@@ -147,7 +147,6 @@ class SimCell:
         self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
         self.q = self.q_commanded.copy()
         self.rail_mm = 0.0
-        self.sequence = FringeSequence()
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
         self.precompensation: np.ndarray | None = None
@@ -162,6 +161,7 @@ class SimCell:
         self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
         self._serial = 0  # geometries and loaded sequences, for the image cache
+        self.load_sequence(FringeSequence())
         self._scene_version = 0
         self.timings: dict[str, float] = {}
         self._update_body()
@@ -475,9 +475,6 @@ class SimCell:
         analogue gain (linear)."""
         g = self.geometry(camera)
         k = self.pattern if pattern is None else pattern
-        seq = self.sequence
-        if not hasattr(self, "_harmonics"):
-            self.load_sequence(seq)
         o = self.cfg.optics
         dn = self._irradiance(camera, g, k) * np.float32(brightness * gain)
         rng = np.random.default_rng([self.cfg.seed, 3, self._frame])

@@ -25,7 +25,6 @@ from scancell.protocols.messages import now_ns
 from scancell.sim.cell import UNIFORM_BASE
 from scancell.sim.world import SimWorld, get_world
 
-NOMINAL_EXPOSURE_US = 10000.0
 #: Rendering is the simulator's cost, not the camera's: a frame whose trigger arrived is waited
 #: for this long on top of the grab timeout.
 RENDER_ALLOWANCE_S = 60.0
@@ -99,16 +98,18 @@ class SimCamera(SimLink, Camera):
         return self.settings
 
     # ---------------------------------------------------------------- exposure
-    def _brightness(self) -> float:
+    def _exposure(self) -> tuple[float, float]:
+        """(exposure / the simulated cell's nominal one, linear analogue gain)."""
         s = self.settings
-        return s.exposure_us / NOMINAL_EXPOSURE_US * 10 ** (s.gain_db / 20)
+        nominal_us = self._w().cell.cfg.nominal_exposure_s * 1e6
+        return s.exposure_us / nominal_us, 10 ** (s.gain_db / 20)
 
     def _expose(self, pattern: int) -> None:
         """Start an exposure now under ``pattern``; the frame joins the queue."""
         if self._pool is None:
             return
         self._triggers += 1
-        fut = self._pool.submit(self._render, pattern, self._triggers, now_ns(), self._brightness())
+        fut = self._pool.submit(self._render, pattern, self._triggers, now_ns(), *self._exposure())
         with self._qlock:
             self._queue.append(fut)
 
@@ -116,11 +117,11 @@ class SimCamera(SimLink, Camera):
         if self.settings.trigger == "hardware":
             self._expose(pattern)
 
-    def _render(self, pattern: int, trigger_count: int, exposed_ns: int,
-                brightness: float) -> Frame:
+    def _render(self, pattern: int, trigger_count: int, exposed_ns: int, brightness: float,
+                gain: float) -> Frame:
         world = self._w()
         with world.lock:
-            img = world.cell.render(self.camera, pattern, brightness)
+            img = world.cell.render(self.camera, pattern, brightness, gain)
         self._frames += 1
         return Frame(img, now_ns(), self._frames, exposed_ns, {"sim_pattern": pattern},
                      trigger_count)

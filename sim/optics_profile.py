@@ -170,10 +170,7 @@ def response_harmonics(profile: OpticsProfile, A: float, B: float,
     return c.astype(np.float64)
 
 
-def level_light(profile: OpticsProfile, level: float,
-                precompensation: np.ndarray | None = None) -> float:
-    """Light output of a uniform pattern of value ``level`` in [0, 1] (8-bit)."""
+def level_light(profile: OpticsProfile, level: float) -> float:
+    """Light output of a uniform pattern of value ``level`` in [0, 1], sent as 8 bits."""
     v = int(np.clip(np.rint(level * 255), 0, 255))
-    if precompensation is not None:
-        v = int(np.asarray(precompensation)[v])
     return float(profile.projector_light(np.array(v / 255.0)))

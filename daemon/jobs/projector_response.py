@@ -21,7 +21,7 @@ import threading
 import time
 from typing import Any
 
-from scancell.analysis.projector_response import DEFAULT_LEVELS
+from scancell.analysis.projector_response import DEFAULT_LEVELS, ResponseCalibrationError, check_levels
 from scancell.bus.protocol import BusLike, BusSample
 from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.runner import JobContext
@@ -78,12 +78,10 @@ async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupe
                               ) -> dict[str, Any]:
     req = ctx.request
     verb = "calibrate_projector"
-    levels = [int(v) for v in req.get("levels", DEFAULT_LEVELS)]
-    # the worker checks them again; a bad request must fail before anything is projected
-    if len(set(levels)) < 3 or levels != sorted(set(levels)) or levels[0] != 0 \
-            or levels[-1] != 255:
-        raise CommandError("invalid", f"{verb}: levels must be at least 3 increasing 8-bit "
-                                      f"values from 0 to 255, got {levels}")
+    try:  # a bad request fails before anything is projected
+        levels = check_levels(req.get("levels", DEFAULT_LEVELS))
+    except ResponseCalibrationError as exc:
+        raise CommandError("invalid", f"{verb}: {exc}") from None
     proj = serving_device(supervisors, req.get("projector"), Projector, verb)
     cam_names = req.get("cameras") or [s.name for s in supervisors.values()
                                        if isinstance(s.device, Camera)][:2]
