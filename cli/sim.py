@@ -21,7 +21,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     axs.add_argument("--port", type=int, default=29536)
     axs.add_argument("--node-id", type=int, default=5)
     axs.add_argument("--counts-per-mm", type=float, default=1000.0)
-    for sp in (rob, trk, axs):
+    prj = dev.add_parser("projector", help="TI DLPC350/DLPC900 controller emulator: USB HID "
+                                           "reports over TCP (protocols/DLP_HID_PROTOCOL.md)")
+    prj.add_argument("--model", choices=["dlpc350", "dlpc900"], default="dlpc350")
+    prj.add_argument("--port", type=int, default=7100)
+    prj.add_argument("--flash", help="DLPC350: a JSON file with the flash layout (default: the "
+                                     "scanner's fringes and 18 levels, as deploy/cells/sim.toml)")
+    for sp in (rob, trk, axs, prj):
         sp.add_argument("--host", default="127.0.0.1")
         sp.add_argument("--seed", type=int, default=0)
     r = sub.add_parser("render", help="render one station: DIR/left/00.png ..., "

@@ -1,7 +1,9 @@
 """Coupled projector/camera acquisition of a pattern sequence.
 
-The projector's trigger output exposes every camera once per pattern. Frame k of every camera
-must belong to pattern k, and this module proves it for each frame rather than assuming it:
+The projector's trigger output exposes every camera once per pattern. A projector is either
+stepped (``show(k)`` for each pattern) or plays the loaded sequence itself (``play()``: a TI
+LightCrafter running its pattern LUT). Frame k of every camera must belong to pattern k, and
+this module proves it for each frame rather than assuming it:
 
 - every camera delivers exactly one frame per pattern before the next pattern is shown (a lost
   pulse is a missing frame; a doubled pulse is an extra frame waiting in the queue);
@@ -20,6 +22,14 @@ from typing import Any
 from scancell.devices.base import Camera, Frame, Projector
 from scancell.devices.errors import DeviceError, Timeout
 from scancell.protocols.messages import now_ns
+
+#: Each pattern stays up this much longer than the cameras expose (trigger latency, µs).
+DISPLAY_MARGIN_US = 500
+
+
+def display_us(cameras: Sequence[Camera]) -> int:
+    """How long a projector must show each pattern for the cameras' current exposure (µs)."""
+    return int(max(c.settings.exposure_us for c in cameras)) + DISPLAY_MARGIN_US
 
 
 class CouplingError(DeviceError):
@@ -48,6 +58,9 @@ async def acquire_sequence(projector: Projector, cameras: Sequence[Camera], spec
             await cam.configure(trigger="hardware")
             await cam.flush()
         first_count: dict[str, int | None] = {}
+        if projector.plays_sequences:
+            await _played(projector, cameras, n, timeout_s, frames, shown, first_count)
+            return AcquiredSequence(dict(spec), frames, shown)
         for k in range(n):
             t_k = now_ns()
             await projector.show(k)
@@ -71,6 +84,26 @@ async def acquire_sequence(projector: Projector, cameras: Sequence[Camera], spec
             finally:
                 await cam.configure(trigger=previous[cam.name])
     return AcquiredSequence(dict(spec), frames, shown)
+
+
+async def _played(projector: Projector, cameras: Sequence[Camera], n: int, timeout_s: float,
+                  frames: dict[str, list[Frame]], shown: list[int],
+                  first_count: dict[str, int | None]) -> None:
+    """A projector that plays the sequence itself: start it, then take each camera's n frames in
+    trigger order; frame k is the k-th trigger after the start."""
+    t0 = now_ns()
+    await projector.play()
+    shown.extend([t0] * n)
+    for cam in cameras:
+        for k in range(n):
+            frame = await _one_frame(cam, k, n, timeout_s)
+            _check_frame(cam.name, frame, k, t0, first_count)
+            frames[cam.name].append(frame)
+    for cam in cameras:
+        extra = await cam.pending()
+        if extra:
+            raise CouplingError(f"{cam.name}: {extra} extra frame(s) after the {n} patterns: the "
+                                f"camera was triggered more than once per pattern")
 
 
 async def _one_frame(cam: Camera, k: int, n: int, timeout_s: float) -> Frame:

@@ -428,10 +428,22 @@ class Projector(Device):
     """
 
     kind = "projector"
+    #: The projector runs a loaded sequence itself (:meth:`play`), one trigger-out pulse per
+    #: pattern; otherwise acquisition steps it with :meth:`show`.
+    plays_sequences: ClassVar[bool] = False
 
     @abstractmethod
     async def load_sequence(self, spec: dict[str, Any]) -> int:
-        """Load a pattern sequence; return its number of patterns."""
+        """Load a pattern sequence; return its number of patterns. ``display_us`` in the spec,
+        if given, is the least time (µs) each pattern must stay up (the cameras' exposure)."""
+
+    def unloadable(self, spec: dict[str, Any]) -> str | None:
+        """Why this projector cannot load ``spec`` (e.g. patterns not in its flash), or None."""
+        return None
+
+    async def play(self) -> None:
+        """Start the loaded sequence once; each pattern pulses trigger out (plays_sequences)."""
+        raise NotImplementedError(f"{self.name}: this projector is stepped with show()")
 
     @abstractmethod
     async def show(self, index: int) -> None:

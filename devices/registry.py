@@ -24,6 +24,8 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "canopen_axis": "scancell.devices.canopen_axis:CanopenAxis",
     "opencv_camera": "scancell.devices.opencv_camera:OpenCVCamera",
     "basler_camera": "scancell.devices.basler_camera:BaslerCamera",
+    "dlpc350_projector": "scancell.devices.dlpc350_projector:Dlpc350Projector",
+    "dlpc900_projector": "scancell.devices.dlpc900_projector:Dlpc900Projector",
     "sim_camera": "scancell.sim.devices:SimCamera",
     "sim_projector": "scancell.sim.devices:SimProjector",
 }

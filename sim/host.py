@@ -5,6 +5,8 @@ A cell config's ``[simulator]`` table starts it inside the daemon before the dev
 - ``[simulator.robot]``: the KAREL-style simple_message server (motion/state ports);
 - ``[simulator.tracker]``: the STLP tracker server on TCP;
 - ``[simulator.axis]``: the CiA 402 drive on a virtual CAN channel, served over socketcand;
+- ``[simulator.projector]``: a TI DLPC350 or DLPC900 emulator (USB HID reports on TCP) whose
+  DMD is the world's projector and whose trigger out is the world's trigger line;
 - the world itself, for the in-process ``sim_camera`` and ``sim_projector`` drivers.
 
 The servers run on their own event loop so the daemon's drivers reach them through real
@@ -47,6 +49,11 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
             "state_hz": {"type": "number", "exclusiveMinimum": 0}}},
         "tracker": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "port": _PORT}},
+        "projector": {"type": "object", "additionalProperties": False, "properties": {
+            "host": _HOST, "port": _PORT, "model": {"enum": ["dlpc350", "dlpc900"]},
+            "dmd": {"type": "array", "items": {"type": "integer", "minimum": 1},
+                    "minItems": 2, "maxItems": 2},
+            "flash": {"type": "array", "items": {"type": "object"}}}},
         "axis": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "port": _PORT, "node_id": {"type": "integer", "minimum": 1,
                                                      "maximum": 127},
@@ -67,7 +74,8 @@ def check_options(options: dict[str, Any]) -> str | None:
     return f"{'.'.join(str(p) for p in e.path) or '(table)'}: {e.message}"
 
 
-_SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "axis": ("port",)}
+_SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "axis": ("port",),
+                 "projector": ("port",)}
 
 
 def sim_cell(options: dict[str, Any]) -> SimCell:
@@ -248,6 +256,19 @@ class SimHost:
             await server.start()
             self._servers["axis"] = server
             self.endpoints["axis"] = {"port": server.port, "node_id": self._drive.node.id}
+
+        if "projector" in o:
+            from scancell.sim.dlp_emulator import DlpEmulatorServer
+            from scancell.sim.projector_images import WorldDisplay
+
+            p = o["projector"]
+            projector = DlpEmulatorServer(str(p.get("model", "dlpc350")), p.get("host", "127.0.0.1"),
+                                          int(p.get("port", 7100)), WorldDisplay(world),
+                                          list(p.get("flash", [])),
+                                          tuple(p.get("dmd", (1280, 800))))
+            await projector.start()
+            self._servers["projector"] = projector
+            self.endpoints["projector"] = {"port": projector.port}
 
     async def _close_servers(self) -> None:
         for server in reversed(list(self._servers.values())):

@@ -112,6 +112,18 @@ async def _serve(args: argparse.Namespace) -> int:
         await stop.wait()
         await server.close()
         drive.close()
+    elif args.device == "projector":
+        from scancell.sim.dlp_emulator import DEFAULT_FLASH, DlpEmulatorServer
+
+        flash = DEFAULT_FLASH
+        if args.flash:
+            flash = json.loads(Path(args.flash).read_text())
+        server = DlpEmulatorServer(args.model, args.host, args.port, flash=flash)
+        await server.start()
+        print(f"emulated {args.model.upper()} (USB HID reports on TCP) on "
+              f"{args.host}:{server.port}", flush=True)
+        await stop.wait()
+        await server.close()
     elif args.pty:
         from scancell.sim.tracker_server import PtyTrackerServer
 

@@ -89,7 +89,8 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None,
     sim["camera_scale"] = camera_scale
     sim["world"] = world or f"w{uuid.uuid4().hex[:8]}"
     for name in ("cam_left", "cam_right", "projector"):
-        dev[name]["world"] = sim["world"]
+        if str(dev[name]["driver"]).startswith("sim_"):
+            dev[name]["world"] = sim["world"]
     raw["daemon"].update(status_period_s=0.3, reconnect_initial_s=0.1, reconnect_max_s=0.5)
     if not hdr:
         raw.pop("scanner", None)
@@ -167,3 +168,22 @@ def start_scan_worker(endpoint: str, cell: str, calib: Path) -> subprocess.Popen
     line = worker.stdout.readline()
     assert "waiting for scans" in line, line + worker.stderr.read()
     return worker
+
+
+@pytest.fixture
+def sim_host_factory():
+    """Start a simulated cell (small cameras, a world of its own) with the given servers."""
+    from scancell.sim.host import SimHost
+
+    hosts = []
+
+    def start(servers: dict[str, Any]) -> tuple[Any, str]:
+        world = f"w{uuid.uuid4().hex[:8]}"
+        host = SimHost({"world": world, "camera_scale": 8.0, **servers})
+        host.start()
+        hosts.append(host)
+        return host, world
+
+    yield start
+    for host in hosts:
+        host.stop()

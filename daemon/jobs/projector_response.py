@@ -26,7 +26,7 @@ from scancell.bus.protocol import BusLike, BusSample
 from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.runner import JobContext
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
-from scancell.devices.acquisition import CouplingError, acquire_sequence
+from scancell.devices.acquisition import CouplingError, acquire_sequence, display_us
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
 
@@ -104,8 +104,10 @@ async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupe
                       len(levels))
             t0 = time.monotonic()
             try:
-                acq = await acquire_sequence(proj.device, [c.device for c in cams],
-                                             {"kind": "levels", "levels": levels},
+                cams_dev = [c.device for c in cams]
+                acq = await acquire_sequence(proj.device, cams_dev,
+                                             {"kind": "levels", "levels": levels,
+                                              "display_us": display_us(cams_dev)},
                                              float(req.get("timeout_s", 5.0)))
             except CouplingError as exc:
                 raise CommandError("device_fault", f"{verb}: {exc}") from None

@@ -8,6 +8,7 @@ sequence. A subscriber or a recording can reassemble the scan from that alone.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -16,9 +17,11 @@ from typing import Any
 from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.projector_response import ResponseState
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
-from scancell.devices.acquisition import CouplingError, acquire_sequence
+from scancell.devices.acquisition import CouplingError, acquire_sequence, display_us
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -52,7 +55,11 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
                             "periods": [float(p) for p in request.get("periods", [70, 64, 59])]}
     pre = response.precompensation if response is not None else None
     if pre is not None and request.get("precompensate", True):
-        spec["precompensation"] = pre
+        why_not = proj_sup.device.unloadable({**spec, "precompensation": pre})
+        if why_not is None:
+            spec["precompensation"] = pre
+        else:
+            log.warning("scan: fringes not pre-compensated: %s", why_not)
     timeout_s = float(request.get("timeout_s", 5.0))
     cams: list[Camera] = [s.device for s in cam_sups]
     sups = [proj_sup, *cam_sups]
@@ -72,8 +79,9 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
                 if e is not None:
                     for cam in cams:
                         await cam.configure(exposure_us=float(e))
+                shown = {**spec, "display_us": display_us(cams)}
                 acquisitions.append(
-                    (e, await acquire_sequence(proj_sup.device, cams, spec, timeout_s)))
+                    (e, await acquire_sequence(proj_sup.device, cams, shown, timeout_s)))
         except CouplingError as exc:
             raise CommandError("device_fault", f"scan {scan_id}: {exc}") from None
         finally:
@@ -106,7 +114,7 @@ async def auto_exposures(projector: Projector, cams: list[Camera], timeout_s: fl
     exposures :func:`choose_exposures` picks from them."""
     from scancell.analysis.exposure import choose_exposures
 
-    acq = await acquire_sequence(projector, cams, {"kind": "levels", "levels": [0, 255]},
-                                 timeout_s)
+    acq = await acquire_sequence(projector, cams, {"kind": "levels", "levels": [0, 255],
+                                                   "display_us": display_us(cams)}, timeout_s)
     previews = [(acq.frames[c.name][0].image, acq.frames[c.name][1].image) for c in cams]
     return choose_exposures(previews, float(cams[0].settings.exposure_us))

@@ -1,0 +1,156 @@
+"""What the DLPC350 and DLPC900 drivers share: the report link, transactions, status, playing.
+
+A driver programs the controller's pattern LUT for a sequence spec and validates it; then
+:meth:`play` runs the sequence once (each pattern pulses trigger out 1 to the cameras) and
+:meth:`show` displays one pattern (a one-entry LUT). Transactions run in a worker thread, one
+at a time; a reply's sequence byte must echo the request's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from abc import abstractmethod
+from typing import Any, ClassVar
+
+from scancell.devices.base import OK, Health, HealthState, Projector
+from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
+from scancell.devices.hid_link import HidLink, open_link
+from scancell.protocols import dlp_hid
+from scancell.protocols.commands import CommandError
+
+log = logging.getLogger(__name__)
+
+DLP_OPTIONS: dict[str, Any] = {
+    "url": {"type": "string"},
+    "timeout_s": {"type": "number", "exclusiveMinimum": 0},
+    "exposure_us": {"type": "integer", "minimum": 1},
+    "trigger_out_invert": {"type": "boolean"},
+}
+
+
+class ValidationFailed(CommandError):
+    """The controller refused a pattern sequence; the message names the rule broken."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("invalid", message)
+
+
+class DlpProjector(Projector):
+    """Base of the LightCrafter drivers (subclasses: the controller's command set)."""
+
+    plays_sequences = True
+    names: ClassVar[dict[int, str]] = {}
+    #: The version reply's command (both controllers: 0x0205).
+    version_command: ClassVar[int] = 0x0205
+
+    def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
+        super().__init__(name, options)
+        self.url = str(self.options.get("url", ""))
+        self.timeout_s = float(self.options.get("timeout_s", 2.0))
+        self._link: HidLink | None = None
+        self._lock = threading.Lock()
+        self._seq = 0
+        self.versions: dict[str, str] = {}
+        self.patterns = 0
+
+    # ---------------------------------------------------------------- link
+    async def connect(self) -> None:
+        await self.close()
+        self._link = await asyncio.to_thread(open_link, self.url, self.timeout_s)
+        try:
+            await self._on_connect()
+        except BaseException:
+            await self.close()
+            raise
+
+    async def close(self) -> None:
+        link, self._link = self._link, None
+        if link is not None:
+            await asyncio.to_thread(link.close)
+
+    @abstractmethod
+    async def _on_connect(self) -> None:
+        """Read the versions, leave standby, enter pattern mode."""
+
+    def _transact(self, req: dlp_hid.Request) -> dlp_hid.Reply | None:
+        link = self._link
+        if link is None:
+            raise ConnectionLost(f"{self.name}: not connected")
+        with self._lock:
+            self._seq = (self._seq + 1) & 0xFF
+            req = dlp_hid.Request(req.command, req.data, req.read, req.reply, self._seq)
+            what = f"{self.name}: {dlp_hid.command_name(self.names, req.command)}"
+            try:
+                for report in dlp_hid.to_reports(dlp_hid.encode_request(req)):
+                    link.write(report)
+                if not req.reply:
+                    return None
+                while True:
+                    first = link.read(self.timeout_s)
+                    reports = [first] + [link.read(self.timeout_s)
+                                         for _ in range(dlp_hid.reports_needed(first) - 1)]
+                    reply = dlp_hid.decode_reply(dlp_hid.join_reports(reports))
+                    if reply.seq == req.seq:
+                        return reply
+                    log.warning("%s: dropped a stale reply (sequence %d, expected %d)", what,
+                                reply.seq, req.seq)
+            except dlp_hid.HidFrameError as exc:
+                raise BadReply(f"{what}: {exc}") from None
+            except Timeout as exc:
+                raise Timeout(f"{what}: {exc}") from None
+
+    async def write(self, command: int, data: bytes = b"", check: bool = True) -> None:
+        """Write ``command``; the controller's error flag raises unless ``check`` is False."""
+        reply = await asyncio.to_thread(self._transact, dlp_hid.Request(command, data))
+        if check and reply is not None and reply.error:
+            raise await self._command_failed(command)
+
+    async def read(self, command: int, data: bytes = b"", min_bytes: int = 1) -> bytes:
+        reply = await asyncio.to_thread(self._transact,
+                                        dlp_hid.Request(command, data, read=True))
+        assert reply is not None
+        if reply.error:
+            raise await self._command_failed(command)
+        if len(reply.data) < min_bytes:
+            raise BadReply(f"{self.name}: {dlp_hid.command_name(self.names, command)} answered "
+                           f"{len(reply.data)} bytes, expected ≥ {min_bytes}")
+        return reply.data
+
+    async def _command_failed(self, command: int) -> Exception:
+        return DeviceFault(f"{self.name}: the controller refused "
+                           f"{dlp_hid.command_name(self.names, command)} (error flag set)")
+
+    # ---------------------------------------------------------------- status
+    @abstractmethod
+    async def _status(self) -> tuple[list[str], bool]:
+        """(faults the status registers report, whether a sequence is running)."""
+
+    async def health(self) -> Health:
+        faults, _ = await self._status()
+        if faults:
+            return Health(HealthState.FAULT, "controller_fault", "; ".join(faults))
+        return OK
+
+    # ---------------------------------------------------------------- patterns
+    def _exposure_us(self, spec: dict[str, Any], minimum: int) -> int:
+        """The pattern exposure: the driver's option, raised to the spec's ``display_us`` (the
+        cameras' exposure) and to the controller's minimum for the bit depth."""
+        return max(int(self.options.get("exposure_us", 0)), int(spec.get("display_us", 0)),
+                   minimum)
+
+    async def show(self, index: int) -> None:
+        if index < 0:
+            await self._stop()
+            return
+        if not 0 <= index < self.patterns:
+            raise CommandError("out_of_range", f"{self.name}: pattern {index} outside the "
+                                               f"loaded sequence of {self.patterns}")
+        await self._show_one(index)
+
+    @abstractmethod
+    async def _stop(self) -> None: ...
+
+    @abstractmethod
+    async def _show_one(self, index: int) -> None: ...

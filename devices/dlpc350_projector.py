@@ -1,0 +1,174 @@
+"""TI DLPC350 (LightCrafter 4500) projector driver: 8-bit patterns from the controller's flash.
+
+The DLPC350 takes no images over USB: its pattern sequences play 24-bit images stored in flash
+(each holding three 8-bit patterns: G7-G0, R7-R0, B7-B0). The ``flash`` option states what the
+cell's flash holds, as commissioning wrote it (docs/commissioning.md):
+
+    flash = [{kind = "fringe", periods = [70, 64, 59], steps = 3, first_image = 0},
+             {kind = "levels", levels = [0, 15, ..., 255], first_image = 3}]
+
+A fringe entry may carry the ``precompensation`` table it was flashed with; a pre-compensated
+sequence loads only if such an entry exists (:meth:`unloadable` says why not otherwise).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from scancell.devices.dlp_projector import DLP_OPTIONS, DlpProjector, ValidationFailed
+from scancell.devices.errors import DeviceFault, Timeout
+from scancell.protocols import dlpc350 as c
+from scancell.protocols.commands import CommandError
+
+PLANES = 3  # 8-bit patterns per 24-bit flash image
+VALIDATION_POLLS = 50
+
+
+def _layout_schema() -> dict[str, Any]:
+    return {"type": "array", "items": {"type": "object", "required": ["kind", "first_image"],
+                                       "properties": {
+        "kind": {"enum": ["fringe", "levels"]},
+        "first_image": {"type": "integer", "minimum": 0, "maximum": 255},
+        "periods": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}},
+        "steps": {"type": "integer", "minimum": 3},
+        "levels": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}},
+        "precompensation": {"type": "array", "items": {"type": "integer"}}}}}
+
+
+def locate(flash: list[dict[str, Any]], spec: dict[str, Any]) -> list[tuple[int, int]] | str:
+    """(flash image, plane) of each pattern of ``spec``, or why the flash does not hold them."""
+    if spec.get("kind") == "levels":
+        where: dict[int, tuple[int, int]] = {}
+        for entry in flash:
+            if entry["kind"] == "levels":
+                for i, v in enumerate(entry["levels"]):
+                    where.setdefault(int(v), (entry["first_image"] + i // PLANES, i % PLANES))
+        missing = [int(v) for v in spec.get("levels", []) if int(v) not in where]
+        if missing:
+            return f"levels {missing} are not in the projector's flash"
+        return [where[int(v)] for v in spec["levels"]]
+    periods = [float(p) for p in spec.get("periods", [70, 64, 59])]
+    steps = int(spec.get("steps", 3))
+    pre = spec.get("precompensation")
+    for entry in flash:
+        if (entry["kind"] == "fringe" and [float(p) for p in entry["periods"]] == periods
+                and int(entry.get("steps", 3)) == steps and entry.get("precompensation") == pre):
+            return [(entry["first_image"] + k // PLANES, k % PLANES)
+                    for k in range(steps * len(periods))]
+    what = "pre-compensated " if pre is not None else ""
+    return (f"the projector's flash holds no {what}fringes of periods {periods} x {steps} steps "
+            f"(a DLPC350 plays flash images only: flash them, docs/commissioning.md)")
+
+
+class Dlpc350Projector(DlpProjector):
+    OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
+        "type": "object",
+        "properties": {**DLP_OPTIONS, "flash": _layout_schema(),
+                       "images_in_flash": {"type": "integer", "minimum": 1}},
+        "required": ["url", "flash"],
+        "additionalProperties": False,
+    }
+    names = c.NAMES
+
+    def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
+        super().__init__(name, options)
+        self.flash: list[dict[str, Any]] = list(self.options.get("flash", []))
+        self._placed: list[tuple[int, int]] = []
+        self._exposure = 0
+        self._full = False
+
+    async def _on_connect(self) -> None:
+        data = await self.read(c.GET_VERSION, min_bytes=16)
+        self.versions = {k: str(v) for k, v in c.read_versions(data).items()}
+        await self.write(c.POWER_CONTROL, b"\x00")
+        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+        await self.write(c.DISP_MODE, b"\x01")
+        await self.write(c.PAT_DISP_MODE, bytes([c.SOURCE_FLASH]))
+        await self.write(c.PAT_TRIG_MODE, bytes([c.TRIGGER_INTERNAL]))
+        invert = int(bool(self.options.get("trigger_out_invert", False)))
+        await self.write(c.TRIG_OUT1_CTL, bytes([invert, 0xBB, 0xBB]))  # 0xBB: no delay
+        images = (await self.read(c.NUM_IMAGE_IN_FLASH))[0]
+        needed = max((e["first_image"] + -(-len(e.get("levels") or [0] * (
+            int(e.get("steps", 3)) * len(e.get("periods", [])))) // PLANES) for e in self.flash),
+            default=0)
+        if images < needed:
+            raise DeviceFault(f"{self.name}: the flash holds {images} images, the 'flash' option "
+                              f"describes {needed}: the option does not match the firmware")
+
+    async def _status(self) -> tuple[list[str], bool]:
+        hw = (await self.read(c.STATUS_HW))[0]
+        sys = (await self.read(c.STATUS_SYS))[0]
+        main = (await self.read(c.STATUS_MAIN))[0]
+        faults = c.hardware_faults(hw)
+        if not sys & c.SYS_MEMORY_TEST_PASSED:
+            faults.append("internal memory test failed")
+        return faults, bool(main & c.MAIN_SEQUENCE_RUNNING)
+
+    def unloadable(self, spec: dict[str, Any]) -> str | None:
+        placed = locate(self.flash, spec)
+        return placed if isinstance(placed, str) else None
+
+    async def load_sequence(self, spec: dict[str, Any]) -> int:
+        placed = locate(self.flash, spec)
+        if isinstance(placed, str):
+            raise CommandError("invalid", f"{self.name}: {placed}")
+        self._exposure = self._exposure_us(spec, c.MIN_EXPOSURE_US[7])
+        await self._program(placed, repeat=False)
+        self._placed = placed
+        self._full = True
+        self.patterns = len(placed)
+        return self.patterns
+
+    async def _program(self, placed: list[tuple[int, int]], repeat: bool) -> None:
+        """Write the pattern and image LUTs for ``placed`` and validate them."""
+        images: list[int] = []
+        entries: list[c.LutEntry] = []
+        for image, plane in placed:
+            swap = not images or images[-1] != image
+            if swap:
+                images.append(image)
+            entries.append(c.LutEntry(pattern=plane, bit_depth=8, buffer_swap=swap))
+        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+        await self.write(c.PAT_EXPO_PRD, c.exposure_period(self._exposure, self._exposure))
+        await self.write(c.PAT_CONFIG, c.PatternConfig(len(entries), repeat, len(entries),
+                                                       len(images)).pack())
+        await self._mailbox(c.MAILBOX_PATTERN, c.pack_lut(entries))
+        # dlpc350_api.cpp: a two-entry image LUT goes in swapped order
+        lut = bytes(images[::-1] if len(images) == 2 else images)
+        await self._mailbox(c.MAILBOX_IMAGE, lut)
+        await self._validate()
+
+    async def _mailbox(self, box: int, data: bytes) -> None:
+        await self.write(c.MBOX_CONTROL, bytes([box]))
+        await self.write(c.MBOX_ADDRESS, b"\x00")
+        await self.write(c.MBOX_DATA, data)
+        await self.write(c.MBOX_CONTROL, b"\x00")
+
+    async def _validate(self) -> None:
+        await self.write(c.LUT_VALID, b"\x00")
+        for _ in range(VALIDATION_POLLS):
+            status = (await self.read(c.LUT_VALID))[0]
+            if not status & c.VALID_BUSY:
+                break
+        else:
+            raise Timeout(f"{self.name}: the controller still validates after "
+                          f"{VALIDATION_POLLS} polls")
+        errors, warnings = c.describe_validation(status)
+        if errors:
+            raise ValidationFailed(f"{self.name}: sequence validation failed (status "
+                                   f"0x{status:02X}): " + "; ".join(errors + warnings))
+
+    async def play(self) -> None:
+        if not self._full:
+            await self._program(self._placed, repeat=False)
+            self._full = True
+        await self.write(c.PAT_START_STOP, bytes([c.START]))
+
+    async def _stop(self) -> None:
+        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+
+    async def _show_one(self, index: int) -> None:
+        """Pattern ``index`` alone, repeated until the next command."""
+        await self._program([self._placed[index]], repeat=True)
+        self._full = False
+        await self.write(c.PAT_START_STOP, bytes([c.START]))

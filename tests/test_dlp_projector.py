@@ -1,0 +1,325 @@
+"""TI LightCrafter projectors: the HID codecs against TI's byte examples, the drivers against the
+emulators over a real socket, bad input, and the simulated cell played through the protocol."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+
+import numpy as np
+import pytest
+from scancell.devices.acquisition import acquire_sequence
+from scancell.devices.dlp_projector import ValidationFailed
+from scancell.devices.dlpc350_projector import Dlpc350Projector, locate
+from scancell.devices.dlpc900_projector import Dlpc900Projector, pattern_images
+from scancell.devices.errors import BadReply, ConnectionLost, Timeout
+from scancell.model.patterns import FringeSequence
+from scancell.protocols import dlp_hid
+from scancell.protocols import dlpc350 as c350
+from scancell.protocols import dlpc900 as c900
+from scancell.sim.dlp_emulator import DEFAULT_FLASH, DlpEmulatorServer
+from scancell.sim.projector_images import UnrenderableImage, identify_fringes
+
+# ------------------------------------------------------------------ codecs
+
+
+def test_dlpc900_guide_examples_byte_for_byte() -> None:
+    # DLPU018 Table 1-5/1-6/1-7 (curtain colour); the report-ID byte 0x00 is hidapi's, not ours
+    read = dlp_hid.encode_request(dlp_hid.Request(c900.CURTAIN_COLOR, read=True, seq=0x11))
+    assert read == bytes.fromhex("C0 11 02 00 00 11")
+    reply = dlp_hid.decode_reply(bytes.fromhex("C0 11 06 00 FF 01 FF 01 FF 01"))
+    assert (reply.seq, reply.error, reply.data) == (0x11, False, bytes.fromhex("FF01FF01FF01"))
+    write = dlp_hid.encode_request(dlp_hid.Request(c900.CURTAIN_COLOR, bytes.fromhex(
+        "FF01FF01FF01"), reply=False, seq=0x12))
+    assert write == bytes.fromhex("00 12 08 00 00 11 FF 01 FF 01 FF 01")
+
+
+def test_dlpc350_api_examples() -> None:
+    # dlpc350_api.cpp: a read puts CMD3 before CMD2 (0x0205 -> 05 02) with length 2
+    assert dlp_hid.encode_request(dlp_hid.Request(c350.GET_VERSION, read=True)) == bytes.fromhex(
+        "C0 00 02 00 05 02")
+    # SetPatternConfig(3, true, 3, 1): data - 1 per field
+    assert c350.PatternConfig(3, True, 3, 1).pack() == bytes([2, 1, 2, 0])
+    # DLPC350_AddToPatLut(trig 0, pat 2, depth 8, LED 7, no invert, black, swap, no prev)
+    word = c350.LutEntry(pattern=2, bit_depth=8, buffer_swap=True).pack()
+    assert word == 0 | 2 << 2 | 8 << 8 | 7 << 12 | 1 << 17 | 1 << 18
+    assert c350.LutEntry.unpack(word) == c350.LutEntry(pattern=2, buffer_swap=True)
+    assert c350.exposure_period(8333, 8563) == bytes.fromhex("8D 20 00 00 73 21 00 00")
+
+
+def test_reports_split_and_join() -> None:
+    msg = dlp_hid.encode_request(dlp_hid.Request(c900.BMP_LOAD, bytes(range(200)) * 2))
+    reports = dlp_hid.to_reports(msg)
+    assert all(len(r) == 64 for r in reports) and len(reports) == dlp_hid.reports_needed(
+        reports[0]) == 7
+    assert dlp_hid.decode_request(dlp_hid.join_reports(reports)).data == bytes(range(200)) * 2
+    with pytest.raises(dlp_hid.HidFrameError, match="exceeds"):
+        dlp_hid.message_length(bytes([0, 0, 0xFF, 0x7F]))
+    with pytest.raises(dlp_hid.HidFrameError, match="truncated"):
+        dlp_hid.join_reports(reports[:3])
+
+
+def test_dlpc900_lut_definition_fields() -> None:
+    d = c900.LutDefinition(index=5, exposure_us=105, bit_depth=1, led=0b111, wait_trigger=True,
+                           dark_us=0x123456, disable_trigger2=True, image_index=2,
+                           bit_position=23)
+    raw = d.pack()
+    assert raw[:2] == b"\x05\x00" and raw[2:5] == b"\x69\x00\x00"
+    assert raw[5] == 0b1_111_000_1 and raw[6:9] == b"\x56\x34\x12" and raw[9] == 1
+    assert int.from_bytes(raw[10:12], "little") == 2 | 23 << 11
+    assert c900.LutDefinition.unpack(raw) == d
+    assert c900.lut_config(9, 9) == bytes([9, 0, 9, 0, 0, 0])
+
+
+@pytest.mark.parametrize("kind", ["fringes", "random", "levels"])
+def test_enhanced_rle_round_trip(kind: str) -> None:
+    rng = np.random.default_rng(1)
+    if kind == "fringes":
+        planes = [FringeSequence().image(k, 200, 40) for k in range(3)]
+    elif kind == "random":
+        planes = [rng.integers(0, 3, (30, 300)).astype(np.uint8) * 100 for _ in range(3)]
+    else:
+        planes = [np.full((20, 256), v, np.uint8) for v in (0, 128, 255)]
+    image = c900.merge_planes(planes)
+    encoded = c900.encode_image(image)
+    assert len(encoded) % 4 == 0 and c900.read_header(encoded)[:3] == (image.shape[1],
+                                                                      image.shape[0],
+                                                                      len(encoded))
+    decoded = c900.decode_image(encoded)
+    np.testing.assert_array_equal(decoded, image)
+    for i, p in enumerate(planes):
+        np.testing.assert_array_equal(c900.plane(decoded, 8 * i, 8), p)
+
+
+def test_enhanced_rle_controls_as_the_guide_defines_them() -> None:
+    # one line of 200 equal pixels: repeat n = 200 (two bytes: 0xC8 0x01), then end of line/image
+    body = c900.encode_image(np.full((1, 200), 0x010203, np.uint32))[48:]
+    assert body.startswith(bytes([0xC8, 0x01, 0x01, 0x02, 0x03, 0x00, 0x00, 0x00, 0x01, 0x00]))
+    with pytest.raises(ValueError, match="ends before"):
+        c900.decode_image(c900.encode_image(np.zeros((4, 8), np.uint32))[:52])
+
+
+def test_fringe_images_are_recognised_with_their_precompensation() -> None:
+    lut = np.round(255 * (np.arange(256) / 255) ** (1 / 2.2)).astype(np.int64)
+    images = pattern_images({"kind": "fringe", "periods": [70, 64, 59], "steps": 3,
+                             "precompensation": lut.tolist()}, 1280, 4)
+    found = identify_fringes([im[0].astype(np.int64) for im in images])
+    assert found.sequence.periods == (70.0, 64.0, 59.0) and found.sequence.steps == 3
+    assert found.precompensation is not None
+    assert np.abs(found.precompensation - lut).max() <= 1
+    with pytest.raises(UnrenderableImage):
+        identify_fringes([np.random.default_rng(0).integers(0, 255, 1280) for _ in range(3)])
+
+
+# ------------------------------------------------------------------ emulator fixtures
+
+
+class EmulatorThread:
+    """An emulator on its own event loop, reached only through its TCP port."""
+
+    def __init__(self, model: str) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.server = DlpEmulatorServer(model, port=0, flash=DEFAULT_FLASH, dmd=(320, 200))
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.call(self.server.start())
+
+    def call(self, coro):
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    @property
+    def url(self) -> str:
+        return f"socket://127.0.0.1:{self.server.port}"
+
+    def stop(self) -> None:
+        self.call(self.server.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+
+
+@pytest.fixture(params=["dlpc350", "dlpc900"])
+def emulated(request: pytest.FixtureRequest):
+    emu = EmulatorThread(request.param)
+    if request.param == "dlpc350":
+        proj = Dlpc350Projector("projector", {"url": emu.url, "flash": DEFAULT_FLASH,
+                                              "timeout_s": 1.0})
+    else:
+        proj = Dlpc900Projector("projector", {"url": emu.url, "dmd": [320, 200],
+                                              "timeout_s": 1.0})
+    yield emu, proj
+    asyncio.run(proj.close())
+    emu.stop()
+
+
+FRINGES = {"kind": "fringe", "periods": [70, 64, 59], "steps": 3}
+
+
+def test_driver_loads_plays_and_reads_status(emulated) -> None:
+    emu, proj = emulated
+
+    async def run() -> None:
+        await proj.connect()
+        assert proj.versions["application"] == "3.0.0"
+        assert (await proj.health()).state == "ok"
+        assert await proj.load_sequence({**FRINGES, "display_us": 20000}) == 9
+        await proj.play()
+        assert emu.server.firmware.running
+        images = emu.server.firmware.images()
+        expected = FringeSequence().image(4, 320, 200)
+        np.testing.assert_array_equal(images[4], expected)
+        await asyncio.sleep(9 * 0.02 + 0.3)
+        assert not emu.server.firmware.running
+        assert await proj.load_sequence({"kind": "levels", "levels": [0, 255]}) == 2
+        await proj.show(1)
+        np.testing.assert_array_equal(emu.server.firmware.images()[0], 255)
+        await proj.show(-1)
+
+    asyncio.run(run())
+
+
+def test_exposure_rule_broken_gives_the_guide_error(emulated) -> None:
+    _, proj = emulated
+
+    async def run() -> None:
+        await proj.connect()
+        if isinstance(proj, Dlpc350Projector):
+            await proj.write(c350.PAT_START_STOP, b"\x00")
+            await proj.write(c350.PAT_EXPO_PRD, c350.exposure_period(8333, 8400))
+            await proj.write(c350.LUT_VALID, b"\x00")
+            status = (await proj.read(c350.LUT_VALID))[0]
+            assert status & c350.VALID_EXPOSURE and status & c350.VALID_PERIOD_DIFFERENCE
+        else:
+            bad = c900.LutDefinition(index=0, exposure_us=100, bit_depth=8)
+            with pytest.raises(ValidationFailed, match=r"exposure time out of range .*100 us"):
+                await proj.write(c900.LUT_DEFINE, bad.pack())
+            await proj.write(c900.LUT_DEFINE, bad.pack(), check=False)
+            assert (await proj.read(c900.READ_ERROR_CODE))[0] == c900.ERR_EXPOSURE
+
+    asyncio.run(run())
+
+
+def test_injected_validation_failure_is_a_typed_error(emulated) -> None:
+    emu, proj = emulated
+    if isinstance(proj, Dlpc900Projector):
+        pytest.skip("the DLPC900 reports rules broken per command (error codes), tested above")
+
+    async def run() -> None:
+        await proj.connect()
+        emu.server.inject("validation", c350.VALID_PATTERN_NUMBER)
+        with pytest.raises(ValidationFailed, match="pattern number"):
+            await proj.load_sequence(FRINGES)
+        assert await proj.load_sequence(FRINGES) == 9
+
+    asyncio.run(run())
+
+
+def test_dropped_reply_and_disconnect(emulated) -> None:
+    emu, proj = emulated
+
+    async def run() -> None:
+        await proj.connect()
+        emu.server.inject("drop_reply")
+        with pytest.raises(Timeout, match="no reply"):
+            await proj.health()
+        assert (await proj.health()).state == "ok"  # a late reply is dropped by its sequence
+        emu.server.inject("disconnect")
+        await asyncio.sleep(0.2)
+        with pytest.raises(ConnectionLost):
+            await proj.health()
+        await proj.connect()  # what the supervisor does, with backoff
+        assert (await proj.health()).state == "ok"
+
+    asyncio.run(run())
+
+
+def test_malformed_reports_get_error_replies_and_the_emulator_keeps_serving() -> None:
+    emu = EmulatorThread("dlpc900")
+    try:
+        with socket.create_connection(("127.0.0.1", emu.server.port), timeout=2) as s:
+            def ask(report: bytes) -> bytes:
+                s.sendall(report.ljust(64, b"\0"))
+                return s.recv(64)
+
+            # a length field beyond the 512-byte buffer
+            assert ask(bytes([0xC0, 1, 0xFF, 0x7F, 0x00, 0x11]))[0] & dlp_hid.FLAG_ERROR
+            # an unknown command, then the error code names it
+            assert ask(bytes([0xC0, 2, 2, 0, 0x99, 0x99]))[0] & dlp_hid.FLAG_ERROR
+            code = ask(bytes([0xC0, 3, 2, 0, 0x00, 0x01]))
+            assert code[4] == c900.ERR_INVALID_COMMAND
+            # a write with the wrong number of data bytes
+            assert ask(bytes([0x40, 4, 3, 0, 0x1B, 0x1A]))[0] & dlp_hid.FLAG_ERROR is not None
+            bad = ask(bytes([0x40, 5, 4, 0, 0x1B, 0x1A, 3, 3]))
+            assert bad[0] & dlp_hid.FLAG_ERROR
+            # still serving: version
+            ok = ask(bytes([0xC0, 6, 2, 0, 0x05, 0x02]))
+            assert not ok[0] & dlp_hid.FLAG_ERROR and ok[1] == 6
+            s.sendall(b"\xC0\x07")  # a truncated report, then the connection closes
+        assert emu.server.bad_reports >= 3
+        with socket.create_connection(("127.0.0.1", emu.server.port), timeout=2) as s:
+            s.sendall(bytes([0xC0, 8, 2, 0, 0x05, 0x02]).ljust(64, b"\0"))
+            assert s.recv(64)[1] == 8
+    finally:
+        emu.stop()
+
+
+def test_driver_refuses_a_garbage_reply() -> None:
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+
+    def garbage() -> None:
+        conn, _ = srv.accept()
+        conn.recv(64)
+        conn.sendall(bytes([0xC0, 1, 0xFF, 0xFF]).ljust(64, b"\0"))
+        conn.recv(64)
+        conn.close()
+
+    t = threading.Thread(target=garbage, daemon=True)
+    t.start()
+    proj = Dlpc350Projector("projector", {"url": f"socket://127.0.0.1:{srv.getsockname()[1]}",
+                                          "flash": DEFAULT_FLASH})
+    with pytest.raises(BadReply, match=r"GET_VERSION.*exceeds"):
+        asyncio.run(proj.connect())
+    srv.close()
+
+
+def test_flash_layout_lookup() -> None:
+    assert locate(DEFAULT_FLASH, FRINGES)[4] == (1, 1)
+    assert locate(DEFAULT_FLASH, {"kind": "levels", "levels": [0, 255]}) == [(3, 0), (8, 2)]
+    assert "not in the projector's flash" in locate(DEFAULT_FLASH, {"kind": "levels",
+                                                                    "levels": [7]})
+    assert "pre-compensated" in locate(DEFAULT_FLASH, {**FRINGES,
+                                                       "precompensation": list(range(256))})
+
+
+def test_simulated_cell_plays_through_the_dlpc350_protocol(sim_host_factory) -> None:
+    host, world_name = sim_host_factory({"projector": {"model": "dlpc350", "port": 0,
+                                                       "flash": DEFAULT_FLASH}})
+    from scancell.sim.devices import SimCamera
+
+    async def run() -> None:
+        proj = Dlpc350Projector("projector", {
+            "url": f"socket://127.0.0.1:{host.endpoints['projector']['port']}",
+            "flash": DEFAULT_FLASH})
+        cams = [SimCamera(f"cam_{r}", {"camera": r, "world": world_name})
+                for r in ("left", "right")]
+        await proj.connect()
+        for cam in cams:
+            await cam.connect()
+        try:
+            acq = await acquire_sequence(proj, cams, {**FRINGES, "display_us": 10500}, 5.0)
+            counts = [f.trigger_count for f in acq.frames["cam_left"]]
+            assert counts == list(range(counts[0], counts[0] + 9))
+            assert [f.meta["sim_pattern"] for f in acq.frames["cam_right"]] == list(range(9))
+            assert host.world.cell.sequence.periods == (70.0, 64.0, 59.0)
+            dark_white = await acquire_sequence(proj, cams, {"kind": "levels",
+                                                             "levels": [0, 255]}, 5.0)
+            left = dark_white.frames["cam_left"]
+            assert left[1].image.mean() > left[0].image.mean() + 10
+        finally:
+            await proj.close()
+            for cam in cams:
+                await cam.close()
+
+    asyncio.run(run())
