@@ -25,6 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                            "reports over TCP (protocols/DLP_HID_PROTOCOL.md)")
     prj.add_argument("--model", choices=["dlpc350", "dlpc900"], default="dlpc350")
     prj.add_argument("--port", type=int, default=7100)
+    prj.add_argument("--dmd", help="DMD size WxH (default: 1920x1080 for the DLPC900, the "
+                                   "simulated cell's 1280x800 for the DLPC350)")
     prj.add_argument("--flash", help="DLPC350: a JSON file with the flash layout (default: the "
                                      "scanner's fringes and 18 levels, as deploy/cells/sim.toml)")
     for sp in (rob, trk, axs, prj):

@@ -96,7 +96,13 @@ async def _played(projector: Projector, cameras: Sequence[Camera], n: int, timeo
     shown.extend([t0] * n)
     for cam in cameras:
         for k in range(n):
-            frame = await _one_frame(cam, k, n, timeout_s)
+            try:
+                frame = await cam.grab(timeout_s)
+            except Timeout as exc:
+                raise CouplingError(
+                    f"{cam.name}: {k} of {n} frames for the played sequence, none more within "
+                    f"{timeout_s} s: a trigger pulse was lost (cable, trigger source or mode) "
+                    f"[{exc}]") from None
             _check_frame(cam.name, frame, k, t0, first_count)
             frames[cam.name].append(frame)
     for cam in cameras:

@@ -60,6 +60,16 @@ def locate(flash: list[dict[str, Any]], spec: dict[str, Any]) -> list[tuple[int,
             f"(a DLPC350 plays flash images only: flash them, docs/commissioning.md)")
 
 
+def images_needed(flash: list[dict[str, Any]]) -> int:
+    """How many flash images a layout describes."""
+    def patterns(e: dict[str, Any]) -> int:
+        if e["kind"] == "levels":
+            return len(e["levels"])
+        return int(e.get("steps", 3)) * len(e.get("periods", [70, 64, 59]))
+
+    return max((e["first_image"] + -(-patterns(e) // PLANES) for e in flash), default=0)
+
+
 class Dlpc350Projector(DlpProjector):
     OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
         "type": "object",
@@ -88,9 +98,7 @@ class Dlpc350Projector(DlpProjector):
         invert = int(bool(self.options.get("trigger_out_invert", False)))
         await self.write(c.TRIG_OUT1_CTL, bytes([invert, 0xBB, 0xBB]))  # 0xBB: no delay
         images = (await self.read(c.NUM_IMAGE_IN_FLASH))[0]
-        needed = max((e["first_image"] + -(-len(e.get("levels") or [0] * (
-            int(e.get("steps", 3)) * len(e.get("periods", [])))) // PLANES) for e in self.flash),
-            default=0)
+        needed = images_needed(self.flash)
         if images < needed:
             raise DeviceFault(f"{self.name}: the flash holds {images} images, the 'flash' option "
                               f"describes {needed}: the option does not match the firmware")

@@ -60,10 +60,12 @@ class Dlpc900Projector(DlpProjector):
         self._uploaded: str | None = None
         self._definitions: list[c.LutDefinition] = []
         self._full = False
+        self.min_exposure_us: tuple[int, ...] = c.MIN_EXPOSURE_US
 
     async def _on_connect(self) -> None:
         data = await self.read(c.GET_VERSION, min_bytes=16)
         self.versions = {k: str(v) for k, v in read_versions(data).items()}
+        self.min_exposure_us = c.read_min_exposures(await self.read(c.MIN_EXPOSURE, min_bytes=16))
         self._uploaded = None
         await self.write(c.POWER_MODE, b"\x00")
         await self.write(c.PAT_START_STOP, bytes([c.STOP]))
@@ -107,7 +109,7 @@ class Dlpc900Projector(DlpProjector):
             raise CommandError("out_of_range", f"{self.name}: {len(patterns)} patterns exceed "
                                                f"the {c.MAX_IMAGES * PLANES} 8-bit patterns of "
                                                f"the on-the-fly memory")
-        exposure = self._exposure_us(spec, c.MIN_EXPOSURE_US[7])
+        exposure = self._exposure_us(spec, self.min_exposure_us[7])
         dark = int(self.options.get("dark_us", 0))
         self._definitions = [c.LutDefinition(index=k, exposure_us=exposure, dark_us=dark,
                                              image_index=k // PLANES,

@@ -36,6 +36,11 @@ MBOX_CONTROL = 0x1A33       # 1 byte: 0 close, 1 image LUT, 2 pattern LUT
 MBOX_DATA = 0x1A34          # variable: image indices (1 byte each) or LUT entries (3 bytes each)
 NUM_IMAGE_IN_FLASH = 0x1A42
 FIRMWARE_TAG = 0x1AFF       # read: up to 32 ASCII characters
+#: Display settings a scanner leaves alone but a client may set (1 byte each unless stated):
+#: DMD park, long/short-axis flip, buffer freeze, test pattern, pixel format, port clock, PWM
+#: invert, gamma, invert data, channel swap, TRIG_IN1 delay (4 bytes).
+SETTINGS = {0x0609: 1, 0x1008: 1, 0x1009: 1, 0x100A: 1, 0x1203: 1, 0x1A02: 1, 0x1A03: 1,
+            0x1A05: 1, 0x1A0E: 1, 0x1A30: 1, 0x1A37: 1, 0x1A35: 4}
 
 NAMES = {
     POWER_CONTROL: "POWER_CONTROL", GET_VERSION: "GET_VERSION", SW_RESET: "SW_RESET",
@@ -53,14 +58,15 @@ WRITE_LENGTH: dict[int, int | None] = {
     POWER_CONTROL: 1, SW_RESET: 0, LED_CURRENT: 3, SOURCE_SEL: 1, LED_ENABLE: 1, LUT_VALID: 1,
     DISP_MODE: 1, TRIG_OUT1_CTL: 3, TRIG_OUT2_CTL: 2, PAT_DISP_MODE: 1, PAT_TRIG_MODE: 1,
     PAT_START_STOP: 1, PAT_EXPO_PRD: 8, PAT_CONFIG: 4, MBOX_ADDRESS: 1, MBOX_CONTROL: 1,
-    MBOX_DATA: None,
+    MBOX_DATA: None, **SETTINGS,
 }
 READABLE = {POWER_CONTROL, GET_VERSION, LED_CURRENT, SOURCE_SEL, LED_ENABLE, STATUS_HW, STATUS_SYS,
             STATUS_MAIN, LUT_VALID, DISP_MODE, TRIG_OUT1_CTL, TRIG_OUT2_CTL, PAT_DISP_MODE,
             PAT_TRIG_MODE, PAT_START_STOP, PAT_EXPO_PRD, PAT_CONFIG, NUM_IMAGE_IN_FLASH,
-            FIRMWARE_TAG}
+            FIRMWARE_TAG, *SETTINGS}
 
 START, PAUSE, STOP = 2, 1, 0
+SOURCE_VIDEO = 0            # PAT_DISP_MODE value: patterns streamed through the video port
 SOURCE_FLASH = 3            # PAT_DISP_MODE value: patterns from the flash images
 TRIGGER_INTERNAL = 1        # PAT_TRIG_MODE 1: internal (or TRIG_IN) trigger
 MAILBOX_IMAGE, MAILBOX_PATTERN = 1, 2
@@ -177,8 +183,10 @@ class PatternConfig:
 
 
 def validation_status(exposure_us: int, period_us: int, entries: list[LutEntry],
-                      image_lut: list[int], images_in_flash: int, config: PatternConfig) -> int:
-    """The Validate Data status bits the controller reports for a pattern sequence."""
+                      image_lut: list[int], images_in_flash: int, config: PatternConfig,
+                      source: int = SOURCE_FLASH) -> int:
+    """The Validate Data status bits the controller reports for a pattern sequence (the image
+    LUT counts only for patterns from flash)."""
     status = 0
     depth = max((e.bit_depth for e in entries), default=1)
     dark = period_us - exposure_us
@@ -187,10 +195,13 @@ def validation_status(exposure_us: int, period_us: int, entries: list[LutEntry],
         status |= VALID_EXPOSURE
     if 0 < dark < MIN_DARK_US:
         status |= VALID_PERIOD_DIFFERENCE
-    if (not entries or config.entries != len(entries) or config.images != len(image_lut)
+    flash = source == SOURCE_FLASH
+    if (not entries or config.entries != len(entries)
             or any(not 1 <= e.bit_depth <= 8 or e.pattern > max_pattern_number(e.bit_depth)
                    for e in entries)
-            or any(not 0 <= i < images_in_flash for i in image_lut)):
+            or (flash and (config.images != len(image_lut)
+                          or any(not 0 <= i < images_in_flash for i in image_lut)
+                          or not entries[0].buffer_swap))):
         status |= VALID_PATTERN_NUMBER
     return status
 

@@ -26,12 +26,13 @@ STATUS_SYS = 0x1A0B
 STATUS_MAIN = 0x1A0C
 DISP_MODE = 0x1A1B              # 1 byte: 0 video, 1 pre-stored pattern, 2 video pattern, 3 on-the-fly
 TRIG_OUT1_CTL = 0x1A1D          # 5 bytes: invert, rising delay (s16 us), falling delay (s16 us)
-TRIG_OUT2_CTL = 0x1A1E          # 3 bytes: invert, rising delay (s16 us)
+TRIG_OUT2_CTL = 0x1A1E          # 5 bytes: as TRIG_OUT1_CTL (TI's DLPC900 API writes five)
 PAT_START_STOP = 0x1A24         # 1 byte: 0 stop, 1 pause, 2 start
 BMP_LOAD_INIT = 0x1A2A          # 6 bytes: image index (u16), bytes incl. the 48-byte header (u32)
 BMP_LOAD = 0x1A2B               # u16 chunk length + chunk
 LUT_CONFIG = 0x1A31             # 6 bytes: LUT entries (u16, 11 bits), patterns to display (u32)
 LUT_DEFINE = 0x1A34             # 12 bytes, see LutDefinition
+MIN_EXPOSURE = 0x1A42           # read: minimum exposure (us) per bit depth: 8 x u16, 4 x u32
 
 NAMES = {
     READ_ERROR_CODE: "READ_ERROR_CODE", READ_ERROR_DESCRIPTION: "READ_ERROR_DESCRIPTION",
@@ -39,15 +40,15 @@ NAMES = {
     STATUS_HW: "STATUS_HW", STATUS_SYS: "STATUS_SYS", STATUS_MAIN: "STATUS_MAIN",
     DISP_MODE: "DISP_MODE", TRIG_OUT1_CTL: "TRIG_OUT1_CTL", TRIG_OUT2_CTL: "TRIG_OUT2_CTL",
     PAT_START_STOP: "PAT_START_STOP", BMP_LOAD_INIT: "BMP_LOAD_INIT", BMP_LOAD: "BMP_LOAD",
-    LUT_CONFIG: "LUT_CONFIG", LUT_DEFINE: "LUT_DEFINE",
+    LUT_CONFIG: "LUT_CONFIG", LUT_DEFINE: "LUT_DEFINE", MIN_EXPOSURE: "MIN_EXPOSURE",
 }
 WRITE_LENGTH: dict[int, int | None] = {
-    POWER_MODE: 1, CURTAIN_COLOR: 6, DISP_MODE: 1, TRIG_OUT1_CTL: 5, TRIG_OUT2_CTL: 3,
+    POWER_MODE: 1, CURTAIN_COLOR: 6, DISP_MODE: 1, TRIG_OUT1_CTL: 5, TRIG_OUT2_CTL: 5,
     PAT_START_STOP: 1, BMP_LOAD_INIT: 6, BMP_LOAD: None, LUT_CONFIG: 6, LUT_DEFINE: 12,
 }
 READABLE = {READ_ERROR_CODE, READ_ERROR_DESCRIPTION, POWER_MODE, GET_VERSION, CURTAIN_COLOR,
             STATUS_HW, STATUS_SYS, STATUS_MAIN, DISP_MODE, TRIG_OUT1_CTL, TRIG_OUT2_CTL,
-            LUT_CONFIG}
+            LUT_CONFIG, MIN_EXPOSURE}
 
 MODE_VIDEO, MODE_PRESTORED, MODE_VIDEO_PATTERN, MODE_ON_THE_FLY = 0, 1, 2, 3
 START, PAUSE, STOP = 2, 1, 0
@@ -59,7 +60,7 @@ MAX_IMAGES = 18
 MAX_CHUNK = 504
 
 #: Minimum pattern exposure (us) per bit depth 1 ... 8 for the DLP6500 DMD (DLPU018, pattern
-#: exposure table). Other DMDs differ: a cell states its own in the driver's options.
+#: exposure table); the controller reports its own with MIN_EXPOSURE.
 MIN_EXPOSURE_US = (105, 304, 394, 823, 1215, 1487, 1998, 4046)
 MAX_EXPOSURE_US = (1 << 24) - 1
 
@@ -149,6 +150,17 @@ def bmp_chunks(encoded: bytes) -> list[bytes]:
     """BMP_LOAD data of each message: chunk length (u16) and up to 504 bytes."""
     return [struct.pack("<H", len(c)) + c
             for c in (encoded[i:i + MAX_CHUNK] for i in range(0, len(encoded), MAX_CHUNK))]
+
+
+def min_exposures(values: tuple[int, ...] = MIN_EXPOSURE_US,
+                  extended: tuple[int, ...] = (0, 0, 0, 0)) -> bytes:
+    """MIN_EXPOSURE reply: 1 ... 8-bit minima (u16), then 10, 12, 14, 16-bit ones (u32)."""
+    return struct.pack("<8H4I", *values, *extended)
+
+
+def read_min_exposures(data: bytes) -> tuple[int, ...]:
+    """The 1 ... 8-bit minimum exposures (us) of a MIN_EXPOSURE reply."""
+    return struct.unpack_from("<8H", data)
 
 
 def exposure_problem(d: LutDefinition) -> tuple[int, str] | None:

@@ -130,6 +130,13 @@ class SimCamera(SimLink, Camera):
         if self.settings.trigger == "software":
             self._expose(self._w().cell.pattern)
 
+    @operation("sim.trigger_fault", timeout_s=2.0, exclusive=False)
+    async def op_trigger_fault(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Test hook: this camera's trigger input loses (``drop``) or doubles (``double``) the
+        next pulses (a loose cable, a bouncing line)."""
+        self._w().trigger.inject(self.name, str(request["fault"]), int(request.get("count", 1)))
+        return {"injected": request}
+
     async def pending(self) -> int:
         with self._qlock:
             return len(self._queue)
@@ -225,9 +232,3 @@ class SimProjector(SimLink, Projector):
         if (index >= 0 or index <= UNIFORM_BASE) and self.options.get("trigger_out", True):
             world.trigger.pulse(index)
 
-    @operation("sim.trigger_fault", timeout_s=2.0, exclusive=False)
-    async def op_trigger_fault(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Test hook: lose (``drop``) or double (``double``) the next pulses to one camera."""
-        self._w().trigger.inject(str(request["camera"]), str(request["fault"]),
-                                 int(request.get("count", 1)))
-        return {"injected": request}

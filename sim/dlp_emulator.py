@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import struct
+import time
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -119,6 +120,7 @@ class Dlpc350Firmware(Firmware):
         self.validated = False
         self.trig_out1 = bytes([0, 0xBB, 0xBB])
         self.trig_out2 = bytes([0, 0xBB])
+        self.settings = {cmd: bytes(n) for cmd, n in c350.SETTINGS.items()}
 
     def read(self, command: int, data: bytes) -> bytes:
         c = c350
@@ -152,6 +154,8 @@ class Dlpc350Firmware(Firmware):
             return self.trig_out2
         if command == c.LED_CURRENT:
             return bytes([0x97, 0x78, 0x7D])
+        if command in self.settings:
+            return self.settings[command]
         raise FirmwareError(f"{c.NAMES.get(command)} cannot be read")
 
     def _needs_stop(self, name: str) -> None:
@@ -213,11 +217,11 @@ class Dlpc350Firmware(Firmware):
             self._needs_stop(name)
             self.status = self.forced_validation or c.validation_status(
                 self.exposure_us, self.period_us, self.lut, self.image_lut, len(self.flash),
-                self.config)
-            if self.lut and not self.lut[0].buffer_swap:
-                self.status |= c.VALID_PATTERN_NUMBER
+                self.config, self.source)
             self.forced_validation = 0
             self.validated = True
+        elif command in self.settings:
+            self.settings[command] = data
         elif command in (c.LED_CURRENT, c.SOURCE_SEL, c.LED_ENABLE, c.SW_RESET):
             pass
 
@@ -241,6 +245,8 @@ class Dlpc350Firmware(Firmware):
         return list(range(len(self.lut)))
 
     def images(self) -> list[np.ndarray]:
+        if self.source != c350.SOURCE_FLASH:
+            return []  # the video port: no signal reaches an emulator
         out, image = [], -1
         for e in self.lut:
             if e.buffer_swap:
@@ -267,7 +273,7 @@ class Dlpc900Firmware(Firmware):
         self.error = (0, "")
         self.curtain = bytes(6)
         self.trig_out1 = bytes(5)
-        self.trig_out2 = bytes(3)
+        self.trig_out2 = bytes(5)
 
     def handle(self, req: dlp_hid.Request) -> bytes:
         try:
@@ -302,6 +308,8 @@ class Dlpc900Firmware(Firmware):
             return self.curtain
         if command == c.LUT_CONFIG:
             return c.lut_config(max(self.entries, 1), self.patterns)
+        if command == c.MIN_EXPOSURE:
+            return c.min_exposures()
         if command == c.TRIG_OUT1_CTL:
             return self.trig_out1
         return self.trig_out2
@@ -442,6 +450,7 @@ class DlpEmulatorServer:
         self._writers: set[asyncio.StreamWriter] = set()
         self._player: asyncio.Task | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._unplugged_until = 0.0
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -460,23 +469,29 @@ class DlpEmulatorServer:
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
 
-    def inject(self, fault: str, value: int = 1) -> None:
+    def inject(self, fault: str, value: float = 1) -> None:
         """``drop_reply`` (count), ``validation`` (status bits of the next validation),
-        ``disconnect`` (now). Callable from any thread."""
+        ``disconnect`` (cut every connection now and refuse new ones for ``value`` s: a pulled
+        cable). Callable from any thread."""
         if fault == "disconnect":
+            self._unplugged_until = time.monotonic() + float(value)
+
             def cut() -> None:
                 for w in list(self._writers):
                     w.close()
 
             self._loop.call_soon_threadsafe(cut)
         elif fault == "validation":
-            self.firmware.forced_validation = value
+            self.firmware.forced_validation = int(value)
         elif fault == "drop_reply":
-            self.faults["drop_reply"] = self.faults.get("drop_reply", 0) + value
+            self.faults["drop_reply"] = self.faults.get("drop_reply", 0) + int(value)
         else:
             raise ValueError(f"unknown fault {fault!r}: drop_reply, validation or disconnect")
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if time.monotonic() < self._unplugged_until:
+            writer.close()
+            return
         self._writers.add(writer)
         try:
             while True:
@@ -539,25 +554,32 @@ class DlpEmulatorServer:
 
     def _play(self) -> None:
         fw = self.firmware
-        try:
-            self.display.load(fw.images())
-        except ValueError as exc:  # an image the simulated cell cannot render
-            log.error("%s emulator: %s", self.model, exc)
-            fw.running = False
-            return
         self._player = asyncio.get_running_loop().create_task(
-            self._run(list(fw.play_order), fw.period_s, fw.repeat))
+            self._run(fw.images(), list(fw.play_order), fw.period_s, fw.repeat))
 
-    async def _run(self, order: list[int], period_s: float, repeat: bool) -> None:
+    async def _run(self, images: list[np.ndarray], order: list[int], period_s: float,
+                   repeat: bool) -> None:
+        """Play ``order`` (indices into ``images``) at ``period_s``; the display is loaded in a
+        thread, since the simulated cell may be busy rendering."""
         fw = self.firmware
+        held = repeat and len(order) == 1  # one pattern held: one exposure's trigger
         try:
-            if repeat and len(order) == 1:  # one pattern held: one exposure's trigger
-                self.display.show(order[0])
+            if not images:
+                log.info("%s emulator: sequence running on the video port, which has no "
+                         "signal here", self.model)
                 return
-            for i in order:
+            try:
+                await asyncio.to_thread(self.display.load, images)
+            except ValueError as exc:  # an image the simulated cell cannot render
+                log.error("%s emulator: %s", self.model, exc)
+                fw.running = False
+                return
+            for i in order[:1] if held else order:
                 self.display.show(i)
-                await asyncio.sleep(period_s)
-            self.display.show(-1)
+                if not held:
+                    await asyncio.sleep(period_s)
+            if not held:
+                self.display.show(-1)
         finally:
-            if not (repeat and len(order) == 1):
+            if not held and images:
                 fw.running = False

@@ -125,9 +125,10 @@ class WorldDisplay:
         self._loaded = [self._known[d] for d in digests]
 
     def show(self, i: int) -> None:
-        """Display loaded image ``i`` (-1: dark) and pulse trigger out."""
+        """Display loaded image ``i`` (-1: dark) and pulse trigger out. Never waits for the
+        world's lock (a render may hold it for seconds): the pulse carries its pattern, and the
+        shown pattern is one attribute."""
         index = -1 if i < 0 else self._loaded[i]
-        with self.world.lock:
-            self.world.cell.show(index)
+        self.world.cell.show(index)
         if i >= 0:
             self.world.trigger.pulse(index)

@@ -118,9 +118,13 @@ async def _serve(args: argparse.Namespace) -> int:
         flash = DEFAULT_FLASH
         if args.flash:
             flash = json.loads(Path(args.flash).read_text())
-        server = DlpEmulatorServer(args.model, args.host, args.port, flash=flash)
+        dmd = (1920, 1080) if args.model == "dlpc900" else (1280, 800)
+        if args.dmd:
+            w, _, h = args.dmd.lower().partition("x")
+            dmd = (int(w), int(h))
+        server = DlpEmulatorServer(args.model, args.host, args.port, flash=flash, dmd=dmd)
         await server.start()
-        print(f"emulated {args.model.upper()} (USB HID reports on TCP) on "
+        print(f"simulated {args.model.upper()} projector controller (USB HID reports on TCP) on "
               f"{args.host}:{server.port}", flush=True)
         await stop.wait()
         await server.close()

@@ -97,6 +97,16 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None,
     return raw
 
 
+def use_dlpc900(raw: dict[str, Any]) -> dict[str, Any]:
+    """Swap a sim cell's DLPC350 emulator and driver for a DLPC900 (patterns uploaded on the
+    fly, so pre-compensation applies at run time) on the same port."""
+    sim, dev = raw["simulator"]["projector"], raw["devices"]["projector"]
+    raw["simulator"]["projector"] = {"model": "dlpc900", "port": sim["port"], "dmd": [1280, 800]}
+    raw["devices"]["projector"] = {"driver": "dlpc900_projector", "url": dev["url"],
+                                   "dmd": [1280, 800]}
+    return raw
+
+
 class DaemonThread:
     """A daemon running in-process on its own event loop thread."""
 

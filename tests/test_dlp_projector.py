@@ -323,3 +323,50 @@ def test_simulated_cell_plays_through_the_dlpc350_protocol(sim_host_factory) -> 
                 await cam.close()
 
     asyncio.run(run())
+
+
+def test_a_client_written_from_the_guide_drives_the_dlpc350_emulator() -> None:
+    """Raw reports as TI's guide and pycrafter4500 build them (every write asks for a reply):
+    version and status, a 3-pattern 7-bit sequence from the video port validated clean, then
+    exposure and period that break the 230 µs rule."""
+    emu = EmulatorThread("dlpc350")
+    try:
+        with socket.create_connection(("127.0.0.1", emu.server.port), timeout=2) as s:
+            def cmd(mode: str, cmd2: int, cmd3: int, data: list[int] = ()) -> bytes:
+                flags = 0xC0 if mode == "r" else 0x40
+                n = len(data) + 2
+                s.sendall(bytes([flags, 0, n & 0xFF, n >> 8, cmd3, cmd2, *data]).ljust(64,
+                                                                                      b"\0"))
+                reply = s.recv(64)
+                assert not reply[0] & 0x20, f"{cmd2:02X}{cmd3:02X} refused"
+                return reply[4:4 + (reply[2] | reply[3] << 8)]
+
+            version = cmd("r", 0x02, 0x05)
+            assert len(version) == 16 and version[3] == 3  # application version 3.x.x
+            assert cmd("r", 0x1A, 0x0A)[0] & 0x01            # hardware status: init done
+            cmd("w", 0x1A, 0x24, [0])                          # stop
+            cmd("w", 0x1A, 0x1B, [1])                          # pattern display mode
+            cmd("w", 0x1A, 0x22, [0])                          # patterns from the video port
+            cmd("w", 0x1A, 0x31, [2, 1, 2, 0])                 # 3 entries, repeat, 3, 1 image
+            cmd("w", 0x1A, 0x23, [0])                          # VSYNC trigger
+            period = 4504
+            cmd("w", 0x1A, 0x29, list(period.to_bytes(4, "little")) * 2)
+            cmd("w", 0x1A, 0x33, [2])                          # open the pattern mailbox
+            for i, pattern in enumerate([0, 1, 2]):
+                word = (1 if i == 0 else 3) | pattern << 2 | 7 << 8 | 7 << 12
+                cmd("w", 0x1A, 0x32, [i])
+                cmd("w", 0x1A, 0x34, list(word.to_bytes(3, "little")))
+            cmd("w", 0x1A, 0x33, [0])
+            cmd("w", 0x1A, 0x1A, [0])                          # validate
+            assert cmd("r", 0x1A, 0x1A)[0] & 0x1F == 0
+            cmd("w", 0x1A, 0x24, [2])                          # start
+            assert cmd("r", 0x1A, 0x0C)[0] & 0x02              # sequencer running
+            cmd("w", 0x1A, 0x24, [0])
+            # exposure 4400 µs within a 4504 µs period: shorter, but by less than 230 µs
+            cmd("w", 0x1A, 0x29, list((4400).to_bytes(4, "little"))
+                + list(period.to_bytes(4, "little")))
+            cmd("w", 0x1A, 0x1A, [0])
+            status = cmd("r", 0x1A, 0x1A)[0]
+            assert status & 0x01 and status & 0x10 and not status & 0x80
+    finally:
+        emu.stop()

@@ -19,7 +19,7 @@ from scancell.analysis.projector_response import (
 from scancell.protocols.commands import CommandError
 from scancell.sim.world import get_world
 
-from .conftest import sim_cell_raw, start_scan_worker, wait_until
+from .conftest import sim_cell_raw, start_scan_worker, use_dlpc900, wait_until
 
 
 def _levels_images(gamma: float, levels=DEFAULT_LEVELS, seed: int = 0, gain: float = 180.0,
@@ -87,7 +87,7 @@ def _all_connected(client) -> bool:
 
 @pytest.fixture
 def realistic_daemon(make_daemon, client):
-    raw = sim_cell_raw(camera_scale=8, hdr=True)
+    raw = use_dlpc900(sim_cell_raw(camera_scale=8, hdr=True))  # uploads pre-compensated images
     raw["simulator"]["profile"] = "realistic"
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")

@@ -115,11 +115,11 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
 
 @pytest.mark.process
 def test_scan_with_broken_trigger_coupling_is_refused_and_the_next_one_works(sim_daemon, client):
-    client.call("device/projector/trigger_fault", {"camera": "cam_right", "fault": "drop"})
+    client.call("device/cam_right/trigger_fault", {"fault": "drop"})
     with pytest.raises(Exception, match="cam_right") as err:
         client.call("scan", {"station": "s2", "timeout_s": 0.5})
-    assert "device_fault" in str(err.value) and "pattern 0" in str(err.value)
-    client.call("device/projector/trigger_fault", {"camera": "cam_left", "fault": "double"})
+    assert "device_fault" in str(err.value) and "trigger pulse was lost" in str(err.value)
+    client.call("device/cam_left/trigger_fault", {"fault": "double"})
     with pytest.raises(Exception, match="extra frame"):
         client.call("scan", {"station": "s2", "timeout_s": 0.5})
     assert client.call("scan", {"station": "s2"})["patterns"] == 9

@@ -236,9 +236,24 @@ def test_faults_on_one_device_never_stop_the_others(make_daemon, client):
             client.call("device/axis/move_to", {"position": 30.0})
         client.call("device/axis/reset_fault")
         client.call("device/axis/move_to", {"position": 30.0})
+        # the projector refuses a sequence: the rule broken comes back, nothing else stops
+        host.server("projector").inject("validation", 0x01)
+        with pytest.raises(Exception, match="exposure or frame period invalid"):
+            client.call("device/projector/load_sequence", {"kind": "fringe", "steps": 3,
+                                                           "periods": [70, 64, 59]})
+        client.call("device/projector/load_sequence", {"kind": "levels", "levels": [0, 255]})
+        # its USB link drops (cable pulled): the supervisor reconnects with backoff
+        host.server("projector").inject("disconnect", 2.0)
+        wait_until(lambda: client.status()["devices"]["projector"]["state"] != "connected", 5,
+                   what="projector marked down")
+        client.call("device/tracker/measure")
+        wait_until(lambda: client.status()["devices"]["projector"]["state"] == "connected", 15,
+                   what="projector reconnected")
+        client.call("device/projector/load_sequence", {"kind": "levels", "levels": [0, 255]})
+
         # nothing published earlier was lost: every successful measurement is on the bus
-        wait_until(lambda: len(points) == 3, 5, what="3 published points")
+        wait_until(lambda: len(points) == 4, 5, what="4 published points")
         time.sleep(0.3)
-        assert len(points) == 3  # and no point for the failed ones
+        assert len(points) == 4  # and no point for the failed ones
     finally:
         sub.undeclare()

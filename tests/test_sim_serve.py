@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from scancell.devices.dlpc900_projector import Dlpc900Projector
 from scancell.devices.line_tracker import LineTracker
 from scancell.devices.simple_message_robot import SimpleMessageRobot
 
@@ -184,4 +185,26 @@ def test_a_client_from_the_document_sees_one_error_per_long_line_tags_and_inject
         assert c.until("00109")[-1].startswith("00109 ! Error(2002")
     finally:
         c.sock.close()
+        _stop(proc)
+
+
+@pytest.mark.process
+def test_serve_projector_emulator_for_a_dlpc900_client():
+    port = free_port()
+    proc, line = _start("projector", "--model", "dlpc900", "--port", str(port))
+    assert "DLPC900" in line
+
+    async def main():
+        proj = Dlpc900Projector("projector", {"url": f"socket://127.0.0.1:{port}"})
+        await proj.connect()
+        try:
+            assert (await proj.health()).state == "ok"
+            assert await proj.load_sequence({"kind": "levels", "levels": [0, 128, 255]}) == 3
+            await proj.play()
+        finally:
+            await proj.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(main(), 60))
+    finally:
         _stop(proc)
