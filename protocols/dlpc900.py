@@ -208,27 +208,31 @@ def _pixel(v: int) -> bytes:
     return bytes([(v >> 16) & 0xFF, (v >> 8) & 0xFF, v & 0xFF])
 
 
+def _run_end(mask: np.ndarray, j: int) -> int:
+    """The first index from ``j`` on where ``mask`` is False (len(mask) if none)."""
+    rest = mask[j:]
+    k = int(np.argmin(rest))
+    return len(mask) if rest[k] else j + k
+
+
 def _encode_row(row: np.ndarray, prev: np.ndarray | None) -> bytearray:
     w = len(row)
+    if prev is not None and np.array_equal(row, prev):
+        return bytearray(b"\x00\x01" + _count(w) + b"\x00\x00")
     same_prev = np.zeros(w, bool) if prev is None else row == prev
     same_next = np.append(row[1:] == row[:-1], False)
+    fresh = ~same_prev & ~same_next  # neither copied nor part of a repeat
     out = bytearray()
     j = 0
     while j < w:
         if same_prev[j]:
-            k = j
-            while k < w and same_prev[k]:
-                k += 1
+            k = _run_end(same_prev, j)
             out += b"\x00\x01" + _count(k - j)
         elif same_next[j]:
-            k = j + 1
-            while k < w and row[k] == row[j] and not same_prev[k]:
-                k += 1
+            k = _run_end(same_next & ~same_prev, j) + 1
             out += _count(k - j) + _pixel(int(row[j]))
         else:
-            k = j
-            while k < w and not same_prev[k] and not same_next[k]:
-                k += 1
+            k = _run_end(fresh, j)
             if k - j == 1:
                 out += b"\x01" + _pixel(int(row[j]))
             else:

@@ -469,12 +469,12 @@ class DlpEmulatorServer:
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
 
-    def inject(self, fault: str, value: float = 1) -> None:
+    def inject(self, fault: str, value: float | None = None) -> None:
         """``drop_reply`` (count), ``validation`` (status bits of the next validation),
-        ``disconnect`` (cut every connection now and refuse new ones for ``value`` s: a pulled
-        cable). Callable from any thread."""
+        ``disconnect`` (cut every connection now and refuse new ones for ``value`` s, default 0:
+        a pulled cable). Callable from any thread."""
         if fault == "disconnect":
-            self._unplugged_until = time.monotonic() + float(value)
+            self._unplugged_until = time.monotonic() + float(value or 0.0)
 
             def cut() -> None:
                 for w in list(self._writers):
@@ -482,9 +482,11 @@ class DlpEmulatorServer:
 
             self._loop.call_soon_threadsafe(cut)
         elif fault == "validation":
+            if not value:
+                raise ValueError("validation fault: give the status bits to report")
             self.firmware.forced_validation = int(value)
         elif fault == "drop_reply":
-            self.faults["drop_reply"] = self.faults.get("drop_reply", 0) + int(value)
+            self.faults["drop_reply"] = self.faults.get("drop_reply", 0) + int(value or 1)
         else:
             raise ValueError(f"unknown fault {fault!r}: drop_reply, validation or disconnect")
 
@@ -555,15 +557,17 @@ class DlpEmulatorServer:
     def _play(self) -> None:
         fw = self.firmware
         self._player = asyncio.get_running_loop().create_task(
-            self._run(fw.images(), list(fw.play_order), fw.period_s, fw.repeat))
+            self._run(list(fw.play_order), fw.period_s, fw.repeat))
 
-    async def _run(self, images: list[np.ndarray], order: list[int], period_s: float,
-                   repeat: bool) -> None:
-        """Play ``order`` (indices into ``images``) at ``period_s``; the display is loaded in a
-        thread, since the simulated cell may be busy rendering."""
+    async def _run(self, order: list[int], period_s: float, repeat: bool) -> None:
+        """Play ``order`` (indices into the firmware's images) at ``period_s``; the images are
+        gathered and the display loaded in a thread, since the simulated cell may be busy
+        rendering (no command changes the sequence while it runs)."""
         fw = self.firmware
         held = repeat and len(order) == 1  # one pattern held: one exposure's trigger
+        images: list[np.ndarray] = []
         try:
+            images = await asyncio.to_thread(fw.images)
             if not images:
                 log.info("%s emulator: sequence running on the video port, which has no "
                          "signal here", self.model)
