@@ -97,9 +97,20 @@ class DlpProjector(Projector):
                     log.warning("%s: dropped a stale reply (sequence %d, expected %d)", what,
                                 reply.seq, req.seq)
             except dlp_hid.HidFrameError as exc:
+                self._drain(link)
                 raise BadReply(f"{what}: {exc}") from None
             except Timeout as exc:
                 raise Timeout(f"{what}: {exc}") from None
+
+    @staticmethod
+    def _drain(link: HidLink) -> None:
+        """Drop whatever the controller still sends after a garbled reply, so the next
+        transaction starts on a report boundary."""
+        try:
+            while True:
+                link.read(0.05)
+        except Timeout:
+            pass
 
     async def write(self, command: int, data: bytes = b"", check: bool = True) -> None:
         """Write ``command``; the controller's error flag raises unless ``check`` is False."""

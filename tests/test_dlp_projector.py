@@ -370,3 +370,54 @@ def test_a_client_written_from_the_guide_drives_the_dlpc350_emulator() -> None:
             assert status & 0x01 and status & 0x10 and not status & 0x80
     finally:
         emu.stop()
+
+
+def test_hid_url_opens_through_hidapi_with_the_report_id(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``hid://VID:PID/serial`` goes through hidapi's device(): the report-ID byte 0 is added
+    on write and absent on read. A fake ``hid`` module stands in for the USB device and relays
+    the reports to the DLPC350 emulator over TCP."""
+    import sys
+    import types
+
+    from scancell.devices.hid_link import SocketLink, open_link
+
+    emu = EmulatorThread("dlpc350")
+    opened: list = []
+
+    class FakeDevice:
+        def open(self, vid: int, pid: int, serial: str | None = None) -> None:
+            opened.append((vid, pid, serial))
+            self.relay = SocketLink("127.0.0.1", emu.server.port)
+
+        def write(self, data: bytes) -> int:
+            assert data[0] == 0 and len(data) == 65
+            self.relay.write(bytes(data[1:]))
+            return len(data)
+
+        def read(self, n: int, timeout_ms: int) -> list[int]:
+            try:
+                return list(self.relay.read(timeout_ms / 1000))
+            except Timeout:
+                return []
+
+        def close(self) -> None:
+            self.relay.close()
+
+    monkeypatch.setitem(sys.modules, "hid", types.SimpleNamespace(device=FakeDevice))
+    try:
+        proj = Dlpc350Projector("projector", {"url": "hid://0451:6401/ABC123",
+                                              "flash": DEFAULT_FLASH})
+
+        async def run() -> None:
+            await proj.connect()
+            assert await proj.load_sequence(FRINGES) == 9
+            await proj.close()
+
+        asyncio.run(run())
+        assert opened == [(0x0451, 0x6401, "ABC123")]
+        with pytest.raises(ConnectionLost, match="expected hid://VID:PID"):
+            open_link("hid://lightcrafter")
+        with pytest.raises(ConnectionLost, match="unknown scheme"):
+            open_link("usb://0451:6401")
+    finally:
+        emu.stop()
