@@ -14,33 +14,49 @@ from scancell.model.paper import PAPER
 #: The seed paper's Table 2 figures for its car-body rear, for comparison.
 
 
-def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray,
-                   max_points: int = 400_000) -> Path:
-    """The fused model seen from above (world x-y) and from the side (x-z), each point coloured
-    by its true distance to the part's surface, plus the distribution of that distance."""
+def worst_error_image(u: np.ndarray, v: np.ndarray, error: np.ndarray, pixels: int = 900
+                      ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The largest ``error`` of the points falling in each cell of a grid over (u, v), about
+    ``pixels`` cells across the longer side (NaN where no point falls), and its extent."""
+    u0, u1, v0, v1 = float(u.min()), float(u.max()), float(v.min()), float(v.max())
+    cell = max(u1 - u0, v1 - v0, 1e-9) / pixels
+    nu, nv = int((u1 - u0) / cell) + 1, int((v1 - v0) / cell) + 1
+    order = np.argsort(error)  # the largest written last wins its cell
+    iu = ((u[order] - u0) / cell).astype(np.int64)
+    iv = ((v[order] - v0) / cell).astype(np.int64)
+    img = np.full((nv, nu), np.nan)
+    img[iv, iu] = error[order]
+    return img, (u0, u0 + nu * cell, v0, v0 + nv * cell)
+
+
+def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray) -> Path:
+    """The fused model seen from above (world x-y) and from the side (x-z), each cell coloured
+    by the largest true distance to the part's surface of the points in it, plus the
+    distribution of that distance."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    step = max(1, len(points) // max_points)
-    p, e = points[::step], np.abs(error_mm[::step])
+    e = np.abs(error_mm)
     vmax = float(np.percentile(e, 99)) or 1e-3
     fig, axes = plt.subplots(1, 3, figsize=(18, 5.5), gridspec_kw={"width_ratios": [1, 1, 0.8]})
     for ax, (i, j, name) in zip(axes[:2], ((0, 1, "top view (x-y)"), (0, 2, "side view (x-z)")),
                                 strict=True):
-        order = np.argsort(e)
-        sc = ax.scatter(p[order, i], p[order, j], c=e[order], s=0.3, cmap="turbo", vmin=0,
-                        vmax=vmax, rasterized=True)
+        # a raster of the worst error per cell: what a scatter of every point shows, at a
+        # fraction of matplotlib's time (800 000 points: a scatter 15 s, this 2 s with the figure)
+        img, extent = worst_error_image(points[:, i], points[:, j], e)
+        im = ax.imshow(img, origin="lower", extent=extent, cmap="turbo", vmin=0, vmax=vmax,
+                       interpolation="nearest")
         ax.set_aspect("equal")
-        ax.set_title(f"true error, {name}")
+        ax.set_title(f"true error, {name} (worst per cell)")
         ax.set_xlabel("world x (mm)")
         ax.set_ylabel(f"world {'xyz'[j]} (mm)")
-    fig.colorbar(sc, ax=axes[:2], label="|distance to the part| (mm)", shrink=0.8)
-    axes[2].hist(np.abs(error_mm), bins=100, range=(0, max(vmax, 1e-3)), color="tab:blue")
+    fig.colorbar(im, ax=axes[:2], label="|distance to the part| (mm)", shrink=0.8)
+    axes[2].hist(e, bins=100, range=(0, max(vmax, 1e-3)), color="tab:blue")
     axes[2].set_xlabel("|distance to the part| (mm)")
     axes[2].set_ylabel("points")
-    axes[2].set_title(f"mean {np.abs(error_mm).mean():.4f} mm, max {np.abs(error_mm).max():.4f} mm")
+    axes[2].set_title(f"mean {e.mean():.4f} mm, max {e.max():.4f} mm")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
