@@ -24,15 +24,25 @@ PLANES = 3  # 8-bit patterns per 24-bit flash image
 VALIDATION_POLLS = 50
 
 
-def _layout_schema() -> dict[str, Any]:
-    return {"type": "array", "items": {"type": "object", "required": ["kind", "first_image"],
-                                       "properties": {
-        "kind": {"enum": ["fringe", "levels"]},
-        "first_image": {"type": "integer", "minimum": 0, "maximum": 255},
-        "periods": {"type": "array", "items": {"type": "number", "exclusiveMinimum": 0}},
-        "steps": {"type": "integer", "minimum": 3},
-        "levels": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}},
-        "precompensation": {"type": "array", "items": {"type": "integer"}}}}}
+#: JSON Schema of a flash layout (the driver's ``flash`` option, the emulator's flash).
+FLASH_LAYOUT_SCHEMA: dict[str, Any] = {
+    "type": "array",
+    "items": {"type": "object", "required": ["kind", "first_image"],
+              "additionalProperties": False, "properties": {
+                  "kind": {"enum": ["fringe", "levels"]},
+                  "first_image": {"type": "integer", "minimum": 0, "maximum": 255},
+                  "periods": {"type": "array", "minItems": 1,
+                              "items": {"type": "number", "exclusiveMinimum": 0}},
+                  "steps": {"type": "integer", "minimum": 3},
+                  "levels": {"type": "array", "minItems": 1,
+                             "items": {"type": "integer", "minimum": 0, "maximum": 255}},
+                  "precompensation": {"type": "array", "minItems": 256, "maxItems": 256,
+                                      "items": {"type": "integer", "minimum": 0,
+                                                "maximum": 255}}},
+              "allOf": [{"if": {"properties": {"kind": {"const": "levels"}}},
+                         "then": {"required": ["levels"]},
+                         "else": {"required": ["periods"]}}]},
+}
 
 
 def locate(flash: list[dict[str, Any]], spec: dict[str, Any]) -> list[tuple[int, int]] | str:
@@ -73,7 +83,7 @@ def images_needed(flash: list[dict[str, Any]]) -> int:
 class Dlpc350Projector(DlpProjector):
     OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
         "type": "object",
-        "properties": {**DLP_OPTIONS, "flash": _layout_schema(),
+        "properties": {**DLP_OPTIONS, "flash": FLASH_LAYOUT_SCHEMA,
                        "images_in_flash": {"type": "integer", "minimum": 1}},
         "required": ["url", "flash"],
         "additionalProperties": False,

@@ -23,6 +23,7 @@ from typing import Any
 
 import jsonschema
 import numpy as np
+from scancell.devices.dlpc350_projector import FLASH_LAYOUT_SCHEMA
 from scancell.sim.ball_placer import SimBallPlacer
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.optics_profile import DEFAULT_PROFILE, EFFECTS, PROFILES, optics_profile
@@ -53,7 +54,7 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
             "host": _HOST, "port": _PORT, "model": {"enum": ["dlpc350", "dlpc900"]},
             "dmd": {"type": "array", "items": {"type": "integer", "minimum": 1},
                     "minItems": 2, "maxItems": 2},
-            "flash": {"type": "array", "items": {"type": "object"}}}},
+            "flash": FLASH_LAYOUT_SCHEMA}},
         "axis": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "port": _PORT, "node_id": {"type": "integer", "minimum": 1,
                                                      "maximum": 127},

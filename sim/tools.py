@@ -117,10 +117,28 @@ async def _serve(args: argparse.Namespace) -> int:
 
         flash = DEFAULT_FLASH
         if args.flash:
-            flash = json.loads(Path(args.flash).read_text())
+            import jsonschema
+            from scancell.devices.dlpc350_projector import FLASH_LAYOUT_SCHEMA
+
+            try:
+                flash = json.loads(Path(args.flash).read_text())
+                jsonschema.validate(flash, FLASH_LAYOUT_SCHEMA)
+            except jsonschema.ValidationError as exc:
+                print(f"scancell sim serve projector: --flash {args.flash}: "
+                      f"{'/'.join(map(str, exc.absolute_path)) or '(top)'}: {exc.message}",
+                      file=sys.stderr)
+                return 2
+            except (OSError, ValueError) as exc:
+                print(f"scancell sim serve projector: --flash {args.flash}: {exc}",
+                      file=sys.stderr)
+                return 2
         dmd = (1920, 1080) if args.model == "dlpc900" else (1280, 800)
         if args.dmd:
             w, _, h = args.dmd.lower().partition("x")
+            if not (w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+                print(f"scancell sim serve projector: --dmd {args.dmd!r}: expected WxH, e.g. "
+                      f"1920x1080", file=sys.stderr)
+                return 2
             dmd = (int(w), int(h))
         server = DlpEmulatorServer(args.model, args.host, args.port, flash=flash, dmd=dmd)
         await server.start()

@@ -208,3 +208,14 @@ def test_serve_projector_emulator_for_a_dlpc900_client():
         asyncio.run(asyncio.wait_for(main(), 60))
     finally:
         _stop(proc)
+
+
+def test_serve_projector_bad_arguments_are_named(tmp_path):
+    bad = tmp_path / "flash.json"
+    bad.write_text('[{"kind": "fringe", "first_image": 0}]')
+    for args, what in ((["--dmd", "12"], "--dmd '12': expected WxH"),
+                       (["--flash", str(bad)], "'periods' is a required property"),
+                       (["--flash", str(tmp_path / "none.json")], "No such file")):
+        out = subprocess.run([sys.executable, "-m", "scancell", "sim", "serve", "projector",
+                              *args], capture_output=True, text=True, timeout=60)
+        assert out.returncode == 2 and what in out.stderr, out.stderr
