@@ -2,8 +2,9 @@
 
 A driver programs the controller's pattern LUT for a sequence spec and validates it; then
 :meth:`play` runs the sequence once (each pattern pulses trigger out 1 to the cameras) and
-:meth:`show` displays one pattern (a one-entry LUT). Transactions run in a worker thread, one
-at a time; a reply's sequence byte must echo the request's.
+:meth:`show` displays one pattern (a one-entry LUT, after which :meth:`play` programs the whole
+sequence again). Transactions run in a worker thread, one at a time; a reply's sequence byte
+must echo the request's.
 """
 
 from __future__ import annotations
@@ -42,8 +43,6 @@ class DlpProjector(Projector):
 
     plays_sequences = True
     names: ClassVar[dict[int, str]] = {}
-    #: The version reply's command (both controllers: 0x0205).
-    version_command: ClassVar[int] = 0x0205
 
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
@@ -54,12 +53,15 @@ class DlpProjector(Projector):
         self._seq = 0
         self.versions: dict[str, str] = {}
         self.patterns = 0
+        self._full = False  # the controller holds the whole loaded sequence (not one pattern)
 
     # ---------------------------------------------------------------- link
     async def connect(self) -> None:
         await self.close()
         self._link = await asyncio.to_thread(open_link, self.url, self.timeout_s)
         try:
+            data = await self.read(dlp_hid.GET_VERSION, min_bytes=16)
+            self.versions = {k: str(v) for k, v in dlp_hid.read_versions(data).items()}
             await self._on_connect()
         except BaseException:
             await self.close()
@@ -72,7 +74,7 @@ class DlpProjector(Projector):
 
     @abstractmethod
     async def _on_connect(self) -> None:
-        """Read the versions, leave standby, enter pattern mode."""
+        """Leave standby, enter pattern mode (the versions are read)."""
 
     def _transact(self, req: dlp_hid.Request) -> dlp_hid.Reply | None:
         link = self._link
@@ -135,11 +137,11 @@ class DlpProjector(Projector):
 
     # ---------------------------------------------------------------- status
     @abstractmethod
-    async def _status(self) -> tuple[list[str], bool]:
-        """(faults the status registers report, whether a sequence is running)."""
+    async def _faults(self) -> list[str]:
+        """The faults the status registers report."""
 
     async def health(self) -> Health:
-        faults, _ = await self._status()
+        faults = await self._faults()
         if faults:
             return Health(HealthState.FAULT, "controller_fault", "; ".join(faults))
         return OK
@@ -153,15 +155,30 @@ class DlpProjector(Projector):
 
     async def show(self, index: int) -> None:
         if index < 0:
-            await self._stop()
+            await self._start_stop(dlp_hid.STOP)
             return
         if not 0 <= index < self.patterns:
             raise CommandError("out_of_range", f"{self.name}: pattern {index} outside the "
                                                f"loaded sequence of {self.patterns}")
-        await self._show_one(index)
+        await self._start_stop(dlp_hid.STOP)
+        await self._program_one(index)
+        self._full = False
+        await self._start_stop(dlp_hid.START)
+
+    async def play(self) -> None:
+        if not self._full:
+            await self._start_stop(dlp_hid.STOP)
+            await self._program_all()
+            self._full = True
+        await self._start_stop(dlp_hid.START)
+
+    async def _start_stop(self, action: int) -> None:
+        await self.write(dlp_hid.PAT_START_STOP, bytes([action]))
 
     @abstractmethod
-    async def _stop(self) -> None: ...
+    async def _program_all(self) -> None:
+        """Program the loaded sequence to play once (the sequence is stopped)."""
 
     @abstractmethod
-    async def _show_one(self, index: int) -> None: ...
+    async def _program_one(self, index: int) -> None:
+        """Program pattern ``index`` alone, held until the next command (stopped)."""

@@ -83,8 +83,7 @@ def images_needed(flash: list[dict[str, Any]]) -> int:
 class Dlpc350Projector(DlpProjector):
     OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
         "type": "object",
-        "properties": {**DLP_OPTIONS, "flash": FLASH_LAYOUT_SCHEMA,
-                       "images_in_flash": {"type": "integer", "minimum": 1}},
+        "properties": {**DLP_OPTIONS, "flash": FLASH_LAYOUT_SCHEMA},
         "required": ["url", "flash"],
         "additionalProperties": False,
     }
@@ -95,13 +94,10 @@ class Dlpc350Projector(DlpProjector):
         self.flash: list[dict[str, Any]] = list(self.options.get("flash", []))
         self._placed: list[tuple[int, int]] = []
         self._exposure = 0
-        self._full = False
 
     async def _on_connect(self) -> None:
-        data = await self.read(c.GET_VERSION, min_bytes=16)
-        self.versions = {k: str(v) for k, v in c.read_versions(data).items()}
         await self.write(c.POWER_CONTROL, b"\x00")
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+        await self._start_stop(c.STOP)
         await self.write(c.DISP_MODE, b"\x01")
         await self.write(c.PAT_DISP_MODE, bytes([c.SOURCE_FLASH]))
         await self.write(c.PAT_TRIG_MODE, bytes([c.TRIGGER_INTERNAL]))
@@ -113,14 +109,11 @@ class Dlpc350Projector(DlpProjector):
             raise DeviceFault(f"{self.name}: the flash holds {images} images, the 'flash' option "
                               f"describes {needed}: the option does not match the firmware")
 
-    async def _status(self) -> tuple[list[str], bool]:
-        hw = (await self.read(c.STATUS_HW))[0]
-        sys = (await self.read(c.STATUS_SYS))[0]
-        main = (await self.read(c.STATUS_MAIN))[0]
-        faults = c.hardware_faults(hw)
-        if not sys & c.SYS_MEMORY_TEST_PASSED:
+    async def _faults(self) -> list[str]:
+        faults = c.hardware_faults((await self.read(c.STATUS_HW))[0])
+        if not (await self.read(c.STATUS_SYS))[0] & c.SYS_MEMORY_TEST_PASSED:
             faults.append("internal memory test failed")
-        return faults, bool(main & c.MAIN_SEQUENCE_RUNNING)
+        return faults
 
     def unloadable(self, spec: dict[str, Any]) -> str | None:
         placed = locate(self.flash, spec)
@@ -131,6 +124,7 @@ class Dlpc350Projector(DlpProjector):
         if isinstance(placed, str):
             raise CommandError("invalid", f"{self.name}: {placed}")
         self._exposure = self._exposure_us(spec, c.MIN_EXPOSURE_US[7])
+        await self._start_stop(c.STOP)
         await self._program(placed, repeat=False)
         self._placed = placed
         self._full = True
@@ -138,7 +132,7 @@ class Dlpc350Projector(DlpProjector):
         return self.patterns
 
     async def _program(self, placed: list[tuple[int, int]], repeat: bool) -> None:
-        """Write the pattern and image LUTs for ``placed`` and validate them."""
+        """Write the pattern and image LUTs for ``placed`` and validate them (stopped)."""
         images: list[int] = []
         entries: list[c.LutEntry] = []
         for image, plane in placed:
@@ -146,7 +140,6 @@ class Dlpc350Projector(DlpProjector):
             if swap:
                 images.append(image)
             entries.append(c.LutEntry(pattern=plane, bit_depth=8, buffer_swap=swap))
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
         await self.write(c.PAT_EXPO_PRD, c.exposure_period(self._exposure, self._exposure))
         await self.write(c.PAT_CONFIG, c.PatternConfig(len(entries), repeat, len(entries),
                                                        len(images)).pack())
@@ -176,17 +169,8 @@ class Dlpc350Projector(DlpProjector):
             raise ValidationFailed(f"{self.name}: sequence validation failed (status "
                                    f"0x{status:02X}): " + "; ".join(errors + warnings))
 
-    async def play(self) -> None:
-        if not self._full:
-            await self._program(self._placed, repeat=False)
-            self._full = True
-        await self.write(c.PAT_START_STOP, bytes([c.START]))
+    async def _program_all(self) -> None:
+        await self._program(self._placed, repeat=False)
 
-    async def _stop(self) -> None:
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
-
-    async def _show_one(self, index: int) -> None:
-        """Pattern ``index`` alone, repeated until the next command."""
+    async def _program_one(self, index: int) -> None:
         await self._program([self._placed[index]], repeat=True)
-        self._full = False
-        await self.write(c.PAT_START_STOP, bytes([c.START]))

@@ -3,12 +3,13 @@
 The driver renders the sequence's 8-bit patterns (``model/patterns.py``, through a projector-
 response pre-compensation table when the spec has one), packs three into each 24-bit image,
 uploads them run-length encoded (pattern-on-the-fly mode) and defines one LUT entry per pattern.
-An upload is skipped when the controller already holds the same images.
+An upload is skipped when the controller already holds the same sequence (the HDR exposures
+of a station load it again with another exposure).
 """
 
 from __future__ import annotations
 
-import hashlib
+import json
 import logging
 from typing import Any, ClassVar
 
@@ -18,7 +19,6 @@ from scancell.devices.errors import DeviceFault
 from scancell.model.patterns import FringeSequence
 from scancell.protocols import dlpc900 as c
 from scancell.protocols.commands import CommandError
-from scancell.protocols.dlpc350 import read_versions  # the DLPC900 sends the same four words
 
 log = logging.getLogger(__name__)
 PLANES = 3
@@ -57,18 +57,15 @@ class Dlpc900Projector(DlpProjector):
     def __init__(self, name: str, options: dict[str, Any] | None = None) -> None:
         super().__init__(name, options)
         self.width, self.height = (int(v) for v in self.options.get("dmd", (1920, 1080)))
-        self._uploaded: str | None = None
+        self._uploaded: tuple[str, int] | None = None  # (spec key, patterns) the controller holds
         self._definitions: list[c.LutDefinition] = []
-        self._full = False
         self.min_exposure_us: tuple[int, ...] = c.MIN_EXPOSURE_US
 
     async def _on_connect(self) -> None:
-        data = await self.read(c.GET_VERSION, min_bytes=16)
-        self.versions = {k: str(v) for k, v in read_versions(data).items()}
         self.min_exposure_us = c.read_min_exposures(await self.read(c.MIN_EXPOSURE, min_bytes=16))
         self._uploaded = None
         await self.write(c.POWER_MODE, b"\x00")
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+        await self._start_stop(c.STOP)
         await self.write(c.DISP_MODE, bytes([c.MODE_ON_THE_FLY]))
         invert = int(bool(self.options.get("trigger_out_invert", False)))
         await self.write(c.TRIG_OUT1_CTL, bytes([invert, 0, 0, 0, 0]))
@@ -83,13 +80,12 @@ class Dlpc900Projector(DlpProjector):
             detail = ""
         message = (f"{self.name}: {c.NAMES.get(command, hex(command))} refused: {what}"
                    + (f" ({detail})" if detail and detail != what else ""))
-        if code in (c.ERR_EXPOSURE, c.ERR_BIT_NUMBER, c.ERR_PATTERN_NUMBER, 12, 16):
+        if code in c.RULE_ERRORS:
             return ValidationFailed(message)
         return DeviceFault(message)
 
-    async def _status(self) -> tuple[list[str], bool]:
+    async def _faults(self) -> list[str]:
         hw = (await self.read(c.STATUS_HW))[0]
-        main = (await self.read(c.STATUS_MAIN))[0]
         faults = []
         if not hw & c.HW_INIT_DONE:
             faults.append("internal initialisation failed")
@@ -98,64 +94,57 @@ class Dlpc900Projector(DlpProjector):
         if hw & (c.HW_DRC_ERROR | c.HW_FORCED_SWAP_ERROR | c.HW_SEQUENCE_ABORT
                  | c.HW_SEQUENCE_ERROR):
             faults.append(f"sequencer/DMD error (hardware status 0x{hw:02X})")
-        return faults, bool(main & c.MAIN_SEQUENCE_RUNNING)
+        return faults
 
     async def load_sequence(self, spec: dict[str, Any]) -> int:
-        try:
-            patterns = pattern_images(spec, self.width, self.height)
-        except (ValueError, TypeError, KeyError) as exc:
-            raise CommandError("invalid", f"{self.name}: {exc}") from None
-        if len(patterns) > c.MAX_IMAGES * PLANES:
-            raise CommandError("out_of_range", f"{self.name}: {len(patterns)} patterns exceed "
-                                               f"the {c.MAX_IMAGES * PLANES} 8-bit patterns of "
-                                               f"the on-the-fly memory")
+        key = json.dumps({k: v for k, v in spec.items() if k != "display_us"}, sort_keys=True)
+        cached = self._uploaded is not None and self._uploaded[0] == key
+        if cached:  # the HDR exposures of a station: the same images, another exposure
+            n = self._uploaded[1]
+        else:
+            try:
+                patterns = pattern_images(spec, self.width, self.height)
+            except (ValueError, TypeError, KeyError) as exc:
+                raise CommandError("invalid", f"{self.name}: {exc}") from None
+            n = len(patterns)
+            if n > c.MAX_IMAGES * PLANES:
+                raise CommandError("out_of_range", f"{self.name}: {n} patterns exceed the "
+                                                   f"{c.MAX_IMAGES * PLANES} 8-bit patterns of "
+                                                   f"the on-the-fly memory")
         exposure = self._exposure_us(spec, self.min_exposure_us[7])
         dark = int(self.options.get("dark_us", 0))
         self._definitions = [c.LutDefinition(index=k, exposure_us=exposure, dark_us=dark,
                                              image_index=k // PLANES,
                                              bit_position=8 * (k % PLANES))
-                             for k in range(len(patterns))]
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
+                             for k in range(n)]
+        await self._start_stop(c.STOP)
         await self._define(self._definitions)
-        images = [c.merge_planes(patterns[i:i + PLANES]) for i in range(0, len(patterns), PLANES)]
-        digest = hashlib.sha1(b"".join(im.tobytes() for im in images)).hexdigest()
-        if digest != self._uploaded:
+        if not cached:
             self._uploaded = None
+            images = [c.merge_planes(patterns[i:i + PLANES]) for i in range(0, n, PLANES)]
             for index in reversed(range(len(images))):  # DLPU018: load in reverse order
                 encoded = c.encode_image(images[index])
                 await self.write(c.BMP_LOAD_INIT, c.bmp_load_init(index, len(encoded)))
                 for chunk in c.bmp_chunks(encoded):
                     await self.write(c.BMP_LOAD, chunk)
-            self._uploaded = digest
-        await self._configure(len(self._definitions), len(self._definitions))
+            self._uploaded = (key, n)
+        await self.write(c.LUT_CONFIG, c.lut_config(n, n))
         self._full = True
-        self.patterns = len(patterns)
-        return self.patterns
+        self.patterns = n
+        return n
 
     async def _define(self, definitions: list[c.LutDefinition]) -> None:
         for d in definitions:
             await self.write(c.LUT_DEFINE, d.pack())
 
-    async def _configure(self, entries: int, patterns: int) -> None:
-        await self.write(c.LUT_CONFIG, c.lut_config(entries, patterns))
+    async def _program_all(self) -> None:
+        n = len(self._definitions)
+        await self._define(self._definitions)
+        await self.write(c.LUT_CONFIG, c.lut_config(n, n))
 
-    async def play(self) -> None:
-        if not self._full:
-            await self.write(c.PAT_START_STOP, bytes([c.STOP]))
-            await self._define(self._definitions)
-            await self._configure(len(self._definitions), len(self._definitions))
-            self._full = True
-        await self.write(c.PAT_START_STOP, bytes([c.START]))
-
-    async def _stop(self) -> None:
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
-
-    async def _show_one(self, index: int) -> None:
+    async def _program_one(self, index: int) -> None:
         d = self._definitions[index]
-        one = c.LutDefinition(index=0, exposure_us=d.exposure_us, dark_us=d.dark_us,
-                              image_index=d.image_index, bit_position=d.bit_position)
-        await self.write(c.PAT_START_STOP, bytes([c.STOP]))
-        await self._define([one])
-        await self._configure(1, 0)
-        self._full = False
-        await self.write(c.PAT_START_STOP, bytes([c.START]))
+        await self._define([c.LutDefinition(index=0, exposure_us=d.exposure_us, dark_us=d.dark_us,
+                                            image_index=d.image_index,
+                                            bit_position=d.bit_position)])
+        await self.write(c.LUT_CONFIG, c.lut_config(1, 0))  # 0: repeat until stopped

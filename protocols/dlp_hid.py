@@ -32,6 +32,13 @@ FLAG_ERROR = 0x20
 DEST_MASK = 0x07
 
 
+# Commands both controllers define alike (DLPU010, DLPU018).
+GET_VERSION = 0x0205        # read: application, API, software-config, sequence-config (4 x u32)
+PAT_START_STOP = 0x1A24     # 1 byte: 0 stop, 1 pause, 2 start
+START, PAUSE, STOP = 2, 1, 0
+VERSION_NAMES = ("application", "api", "software_config", "sequence_config")
+
+
 class HidFrameError(ValueError):
     """Bytes that are not a well-formed DLPC HID message."""
 
@@ -150,3 +157,33 @@ def read_u24(data: bytes, offset: int = 0) -> int:
 
 def command_name(names: dict[int, str], command: int) -> str:
     return names.get(command, f"0x{command:04X}")
+
+
+@dataclass(frozen=True)
+class Version:
+    """A version word: bits 31:24 major, 23:16 minor, 15:0 patch."""
+
+    major: int
+    minor: int
+    patch: int
+
+    @classmethod
+    def from_word(cls, word: int) -> Version:
+        return cls(word >> 24, (word >> 16) & 0xFF, word & 0xFFFF)
+
+    def word(self) -> int:
+        return self.major << 24 | self.minor << 16 | self.patch
+
+    def __str__(self) -> str:
+        return f"{self.major}.{self.minor}.{self.patch}"
+
+
+def read_versions(data: bytes) -> dict[str, Version]:
+    """GET_VERSION reply: application, API, software-config and sequence-config versions."""
+    words = struct.unpack_from("<4I", data)
+    return {name: Version.from_word(w) for name, w in zip(VERSION_NAMES, words, strict=True)}
+
+
+def pack_versions(versions: dict[str, Version]) -> bytes:
+    """The GET_VERSION reply data for ``versions`` (keyed as :data:`VERSION_NAMES`)."""
+    return struct.pack("<4I", *(versions[name].word() for name in VERSION_NAMES))

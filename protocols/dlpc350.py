@@ -9,12 +9,15 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from scancell.protocols.dlp_hid import GET_VERSION as GET_VERSION
+from scancell.protocols.dlp_hid import PAT_START_STOP as PAT_START_STOP
+from scancell.protocols.dlp_hid import START as START
+from scancell.protocols.dlp_hid import STOP as STOP
 from scancell.protocols.dlp_hid import read_u24, u24
 
 VID, PID = 0x0451, 0x6401
 
 POWER_CONTROL = 0x0200      # 1 byte: 0 normal, 1 standby
-GET_VERSION = 0x0205        # read: app, API, software-config, sequence-config versions (4 x u32)
 SW_RESET = 0x0802
 LED_CURRENT = 0x0B01        # 3 bytes: red, green, blue PWM
 SOURCE_SEL = 0x1A00         # 1 byte: bits 2:0 source (0 parallel, 1 test pattern, 2 flash, 3 FPD)
@@ -28,7 +31,6 @@ TRIG_OUT1_CTL = 0x1A1D      # 3 bytes: invert, rising delay, falling delay (107.
 TRIG_OUT2_CTL = 0x1A1E      # 2 bytes: invert, rising delay
 PAT_DISP_MODE = 0x1A22      # 1 byte: 0 video port (RGB/FPD-link), 3 internal flash
 PAT_TRIG_MODE = 0x1A23      # 1 byte: 0 VSYNC, 1 internal/external, 2-4 others
-PAT_START_STOP = 0x1A24     # 1 byte: 0 stop, 1 pause, 2 start
 PAT_EXPO_PRD = 0x1A29       # 8 bytes: exposure us (u32), frame period us (u32)
 PAT_CONFIG = 0x1A31         # 4 bytes: entries-1, repeat, patterns for TRIG_OUT2 - 1, images-1
 MBOX_ADDRESS = 0x1A32       # 1 byte: offset in the open mailbox
@@ -65,7 +67,6 @@ READABLE = {POWER_CONTROL, GET_VERSION, LED_CURRENT, SOURCE_SEL, LED_ENABLE, STA
             PAT_TRIG_MODE, PAT_START_STOP, PAT_EXPO_PRD, PAT_CONFIG, NUM_IMAGE_IN_FLASH,
             FIRMWARE_TAG, *SETTINGS}
 
-START, PAUSE, STOP = 2, 1, 0
 SOURCE_VIDEO = 0            # PAT_DISP_MODE value: patterns streamed through the video port
 SOURCE_FLASH = 3            # PAT_DISP_MODE value: patterns from the flash images
 TRIGGER_INTERNAL = 1        # PAT_TRIG_MODE 1: internal (or TRIG_IN) trigger
@@ -211,31 +212,6 @@ def describe_validation(status: int) -> tuple[list[str], list[str]]:
     errors = [text for bit, text in VALIDATION_ERRORS.items() if status & bit]
     warnings = [text for bit, text in VALIDATION_WARNINGS.items() if status & bit]
     return errors, warnings
-
-
-@dataclass(frozen=True)
-class Version:
-    major: int
-    minor: int
-    patch: int
-
-    @classmethod
-    def from_word(cls, word: int) -> Version:
-        return cls(word >> 24, (word >> 16) & 0xFF, word & 0xFFFF)
-
-    def word(self) -> int:
-        return self.major << 24 | self.minor << 16 | self.patch
-
-    def __str__(self) -> str:
-        return f"{self.major}.{self.minor}.{self.patch}"
-
-
-def read_versions(data: bytes) -> dict[str, Version]:
-    """GET_VERSION reply: application, API, software-config and sequence-config versions."""
-    words = struct.unpack_from("<4I", data)
-    return {name: Version.from_word(w)
-            for name, w in zip(("application", "api", "software_config", "sequence_config"),
-                               words, strict=True)}
 
 
 def hardware_faults(hw: int) -> list[str]:

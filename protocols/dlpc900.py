@@ -12,6 +12,10 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from scancell.protocols.dlp_hid import GET_VERSION as GET_VERSION
+from scancell.protocols.dlp_hid import PAT_START_STOP as PAT_START_STOP
+from scancell.protocols.dlp_hid import START as START
+from scancell.protocols.dlp_hid import STOP as STOP
 from scancell.protocols.dlp_hid import read_u24, u24
 
 VID, PID = 0x0451, 0xC900
@@ -19,7 +23,6 @@ VID, PID = 0x0451, 0xC900
 READ_ERROR_CODE = 0x0100        # read: 1 byte, the last command's error code
 READ_ERROR_DESCRIPTION = 0x0101  # read: ASCII text of the last error
 POWER_MODE = 0x0200             # 1 byte: 0 normal, 1 standby, 2 reset
-GET_VERSION = 0x0205            # read: app, API, software-config, sequence-config versions
 CURTAIN_COLOR = 0x1100          # 6 bytes: red, green, blue intensity (u16 each)
 STATUS_HW = 0x1A0A
 STATUS_SYS = 0x1A0B
@@ -27,7 +30,6 @@ STATUS_MAIN = 0x1A0C
 DISP_MODE = 0x1A1B              # 1 byte: 0 video, 1 pre-stored pattern, 2 video pattern, 3 on-the-fly
 TRIG_OUT1_CTL = 0x1A1D          # 5 bytes: invert, rising delay (s16 us), falling delay (s16 us)
 TRIG_OUT2_CTL = 0x1A1E          # 5 bytes: as TRIG_OUT1_CTL (TI's DLPC900 API writes five)
-PAT_START_STOP = 0x1A24         # 1 byte: 0 stop, 1 pause, 2 start
 BMP_LOAD_INIT = 0x1A2A          # 6 bytes: image index (u16), bytes incl. the 48-byte header (u32)
 BMP_LOAD = 0x1A2B               # u16 chunk length + chunk
 LUT_CONFIG = 0x1A31             # 6 bytes: LUT entries (u16, 11 bits), patterns to display (u32)
@@ -51,7 +53,6 @@ READABLE = {READ_ERROR_CODE, READ_ERROR_DESCRIPTION, POWER_MODE, GET_VERSION, CU
             LUT_CONFIG, MIN_EXPOSURE}
 
 MODE_VIDEO, MODE_PRESTORED, MODE_VIDEO_PATTERN, MODE_ON_THE_FLY = 0, 1, 2, 3
-START, PAUSE, STOP = 2, 1, 0
 #: Largest pattern LUT (DLPU018 LUT configuration: 400 entries for every DMD but the DLP5500).
 MAX_LUT_ENTRIES = 400
 #: 24-bit images the on-the-fly memory holds (DLPU018 BMP load: image index 0 ... 17).
@@ -78,7 +79,11 @@ ERROR_CODES = {
 }
 ERR_INVALID_COMMAND, ERR_NOT_ALLOWED, ERR_INVALID_PARAMETER = 3, 5, 6
 ERR_NOT_PRESENT, ERR_OUT_OF_RESOURCE, ERR_BAD_COMPRESSION = 7, 8, 9
-ERR_BIT_NUMBER, ERR_BMP_MISSING, ERR_EXPOSURE, ERR_PATTERN_NUMBER = 10, 11, 14, 15
+ERR_BIT_NUMBER, ERR_BMP_MISSING, ERR_DARK_TIME = 10, 11, 12
+ERR_EXPOSURE, ERR_PATTERN_NUMBER, ERR_PATTERN_DEFINITION = 14, 15, 16
+#: The codes that mean "this pattern sequence breaks a rule" rather than "the device failed".
+RULE_ERRORS = {ERR_BIT_NUMBER, ERR_DARK_TIME, ERR_EXPOSURE, ERR_PATTERN_NUMBER,
+               ERR_PATTERN_DEFINITION}
 
 HW_INIT_DONE = 0x01
 HW_INCOMPATIBLE = 0x02

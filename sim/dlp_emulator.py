@@ -15,6 +15,7 @@ import contextlib
 import logging
 import struct
 import time
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -25,7 +26,10 @@ from scancell.protocols import dlpc900 as c900
 
 log = logging.getLogger(__name__)
 
-FIRMWARE_VERSION = c350.Version(3, 0, 0)
+#: What the emulated controllers answer to GET_VERSION.
+VERSIONS = dlp_hid.pack_versions({
+    "application": dlp_hid.Version(3, 0, 0), "api": dlp_hid.Version(2, 0, 0),
+    "software_config": dlp_hid.Version(1, 0, 0), "sequence_config": dlp_hid.Version(1, 0, 0)})
 #: The flash of ``scancell sim serve projector`` and of deploy/cells/sim.toml: the scanner's
 #: fringes (images 0-2), 18 uniform levels (images 3-8).
 DEFAULT_FLASH: list[dict[str, Any]] = [
@@ -54,12 +58,7 @@ class FirmwareError(Exception):
         self.code = code
 
 
-def _versions() -> bytes:
-    return struct.pack("<4I", FIRMWARE_VERSION.word(), c350.Version(2, 0, 0).word(),
-                       c350.Version(1, 0, 0).word(), c350.Version(1, 0, 0).word())
-
-
-class Firmware:
+class Firmware(ABC):
     """Common state: power, running sequence, forced validation failure."""
 
     names: ClassVar[dict[int, str]] = {}
@@ -70,7 +69,6 @@ class Firmware:
         self.standby = False
         self.running = False
         self.forced_validation = 0
-        self.play_order: list[int] = []   # display-image index of each pattern played
         self.period_s = 0.01
         self.repeat = False
 
@@ -88,15 +86,17 @@ class Firmware:
         self.write(req.command, req.data)
         return b""
 
+    @abstractmethod
     def read(self, command: int, data: bytes) -> bytes:
-        raise NotImplementedError
+        """The reply data of a read (FirmwareError if refused)."""
 
+    @abstractmethod
     def write(self, command: int, data: bytes) -> None:
-        raise NotImplementedError
+        """Carry out a write (FirmwareError if refused)."""
 
+    @abstractmethod
     def images(self) -> list[np.ndarray]:
         """The 8-bit images of the sequence to play, in LUT order."""
-        raise NotImplementedError
 
 
 class Dlpc350Firmware(Firmware):
@@ -125,7 +125,7 @@ class Dlpc350Firmware(Firmware):
     def read(self, command: int, data: bytes) -> bytes:
         c = c350
         if command == c.GET_VERSION:
-            return _versions()
+            return VERSIONS
         if command == c.FIRMWARE_TAG:
             return b"scancell DLPC350 emulator".ljust(32, b"\0")
         if command == c.STATUS_HW:
@@ -178,7 +178,6 @@ class Dlpc350Firmware(Firmware):
                 if self.standby:
                     raise FirmwareError("start refused: the controller is in standby",
                                         c900.ERR_NOT_ALLOWED)
-                self.play_order = self._order()
                 self.period_s = self.period_us * 1e-6
                 self.repeat = self.config.repeat
                 self.running = True
@@ -240,10 +239,6 @@ class Dlpc350Firmware(Firmware):
                                 c900.ERR_NOT_ALLOWED)
         self.validated = False
 
-    def _order(self) -> list[int]:
-        """Index into :meth:`images` of each LUT entry (LUT order)."""
-        return list(range(len(self.lut)))
-
     def images(self) -> list[np.ndarray]:
         if self.source != c350.SOURCE_FLASH:
             return []  # the video port: no signal reaches an emulator
@@ -293,7 +288,7 @@ class Dlpc900Firmware(Firmware):
         if command == c.READ_ERROR_DESCRIPTION:
             return self.error[1].encode("ascii", "replace")[:127] + b"\0"
         if command == c.GET_VERSION:
-            return _versions()
+            return VERSIONS
         if command == c.STATUS_HW:
             return bytes([c.HW_INIT_DONE])
         if command == c.STATUS_SYS:
@@ -398,7 +393,6 @@ class Dlpc900Firmware(Firmware):
             if d.image_index not in self.uploaded:
                 raise FirmwareError(f"pattern {d.index}: image {d.image_index} not loaded",
                                     c900.ERR_BMP_MISSING)
-        self.play_order = list(range(self.entries))
         first = defs[0]
         self.period_s = (first.exposure_us + first.dark_us) * 1e-6
         self.repeat = self.patterns == 0
@@ -557,17 +551,16 @@ class DlpEmulatorServer:
     def _play(self) -> None:
         fw = self.firmware
         self._player = asyncio.get_running_loop().create_task(
-            self._run(list(fw.play_order), fw.period_s, fw.repeat))
+            self._run(fw.period_s, fw.repeat))
 
-    async def _run(self, order: list[int], period_s: float, repeat: bool) -> None:
-        """Play ``order`` (indices into the firmware's images) at ``period_s``; the images are
-        gathered and the display loaded in a thread, since the simulated cell may be busy
-        rendering (no command changes the sequence while it runs)."""
+    async def _run(self, period_s: float, repeat: bool) -> None:
+        """Play the firmware's images in LUT order at ``period_s``; they are gathered and the
+        display loaded in a thread, since the simulated cell may be busy rendering (no command
+        changes the sequence while it runs)."""
         fw = self.firmware
-        held = repeat and len(order) == 1  # one pattern held: one exposure's trigger
-        images: list[np.ndarray] = []
+        images: list[np.ndarray] = await asyncio.to_thread(fw.images)
+        held = repeat and len(images) == 1  # one pattern held: one exposure's trigger
         try:
-            images = await asyncio.to_thread(fw.images)
             if not images:
                 log.info("%s emulator: sequence running on the video port, which has no "
                          "signal here", self.model)
@@ -578,7 +571,7 @@ class DlpEmulatorServer:
                 log.error("%s emulator: %s", self.model, exc)
                 fw.running = False
                 return
-            for i in order[:1] if held else order:
+            for i in range(1 if held else len(images)):
                 self.display.show(i)
                 if not held:
                     await asyncio.sleep(period_s)
