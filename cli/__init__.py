@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("calibrations on files: cameras (stereo), hand-eye, ecs", "calibrate"),
     "metrics": ("the paper's overlap metric tool: translation and rotation errors", "metrics"),
     "fuse": ("station clouds -> one model in the tracker frame (PLY)", "fuse"),
+    "inspect": ("a measured cloud or recording against the part's CAD: deviation, tolerances, "
+                "report", "inspect"),
     "plan": ("stations covering a part: reachable, tracker in sight, 10-40 % overlap", "plan"),
     "worker": ("analysis workers on the bus: scan, calibrate, fuse", "worker"),
     "record": ("record the cell's bus to MCAP, one file per session; recover, info", "record"),

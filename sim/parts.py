@@ -3,6 +3,8 @@
 - ``car_rear``: a car-body-rear-like panel of 1400 (y) x 500 (z) x 400 (x) mm: smooth double
   curvature, flanks curving back 400 mm, a feature-line crease, and a 12 mm deep licence-plate
   recess with steep walls. It faces -x (the viewer stands at negative x).
+- ``car_rear_defects``: the car rear with three known form errors (:data:`CAR_REAR_DEFECTS`): a
+  dent, a twist and the right flank (a flange) out of position; its nominal is ``car_rear``.
 - ``flat``: a 300 x 300 mm plate facing -x (VDI/VDE 2634-2 flatness artefact).
 - ``dumbbell``: two 30 mm spheres, 200 mm apart on a bar (sphere-spacing artefact).
 - ``smr``: a 38.1 mm (1.5") SMR whose corner-cube opening (approximated by a cone to the
@@ -11,6 +13,8 @@
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
@@ -50,14 +54,94 @@ def car_rear_depth(Y: np.ndarray, Z: np.ndarray) -> np.ndarray:
     return np.where(plate, x + 12.0, x)
 
 
-def car_rear(spacing_mm: float = 4.0) -> o3d.geometry.TriangleMesh:
-    ys = np.arange(-700.0, 700.0 + 1e-9, spacing_mm)
-    zs = np.arange(-250.0, 250.0 + 1e-9, spacing_mm)
+#: the licence-plate recess: its walls run from these body edges (y, z) ...
+PLATE_BODY_EDGES = ((-260.2, 260.2), (-235.2, -134.8))
+#: ... to these edges of the recessed plate, 12 mm deeper
+PLATE_FLOOR_EDGES = ((-259.8, 259.8), (-234.8, -135.2))
+CAR_REAR_Y, CAR_REAR_Z = (-700.0, 700.0), (-250.0, 250.0)
+
+
+@dataclass(frozen=True)
+class FormDefect:
+    """A known form error of ``car_rear_defects``: where it is (part frame, mm) and the signed
+    deviation it makes there (mm along the nominal's outward normal; + = material outside)."""
+
+    name: str
+    at_mm: tuple[float, float, float]
+    deviation_mm: float
+
+
+#: dent: 0.5 mm deep (x += 0.5 exp(-r^2 / 2 sigma^2), sigma 25 mm) at y = -350, z = 100;
+#: twist about the y axis: x += 0.3 mm * (y / 700) * (z / 250), +-0.3 mm at the corners;
+#: flange: the right flank (y > 600) 0.6 mm further out in +y, blended in over 560 ... 600.
+DENT_YZ, DENT_SIGMA_MM, DENT_DEPTH_MM = (-350.0, 100.0), 25.0, 0.5
+TWIST_MM = 0.3
+FLANGE_Y0, FLANGE_Y1, FLANGE_SHIFT_MM = 560.0, 600.0, 0.6
+
+
+DEFECTS = ("dent", "twist", "flange")
+
+
+def car_rear_defect_depth(Y: np.ndarray, Z: np.ndarray,
+                          defects: tuple[str, ...] = DEFECTS) -> np.ndarray:
+    """Depth x (mm) of ``car_rear_defects`` at (y, z): the nominal with the named defects."""
+    x = np.zeros(np.broadcast(Y, Z).shape)
+    if "dent" in defects:
+        r2 = (Y - DENT_YZ[0]) ** 2 + (Z - DENT_YZ[1]) ** 2
+        x = x + DENT_DEPTH_MM * np.exp(-r2 / (2 * DENT_SIGMA_MM**2))
+    if "twist" in defects:
+        x = x + TWIST_MM * (Y / 700.0) * (Z / 250.0)
+    shift = 0.0
+    if "flange" in defects:
+        blend = np.clip((Y - FLANGE_Y0) / (FLANGE_Y1 - FLANGE_Y0), 0, 1)
+        shift = FLANGE_SHIFT_MM * blend * blend * (3 - 2 * blend)  # smoothstep
+    return car_rear_depth(Y - shift, Z) + x
+
+
+def car_rear_defects_truth(defects: tuple[str, ...] = DEFECTS) -> list[FormDefect]:
+    """The defects' signed deviations at telling points, from the depth functions: the dent's
+    centre; the twist near two upper corners of the body; the right flank half-way up."""
+    def along_normal(y: float, z: float) -> float:
+        h = 0.01
+        f = car_rear_depth
+        fy = float(f(np.array(y + h), np.array(z)) - f(np.array(y - h), np.array(z))) / (2 * h)
+        fz = float(f(np.array(y), np.array(z + h)) - f(np.array(y), np.array(z - h))) / (2 * h)
+        n = np.array([-1.0, fy, fz]) / np.sqrt(1 + fy**2 + fz**2)  # outward: towards -x
+        # the defect surface point over the same (y, z) line, displaced along x only; its
+        # deviation along n is -dx * n_x to first order
+        dx = (car_rear_defect_depth(np.array(y), np.array(z), defects)
+              - car_rear_depth(np.array(y), np.array(z)))
+        return float(dx * n[0])
+
+    where = {"dent": [("dent", *DENT_YZ)], "flange": [("flange", 650.0, 0.0)],
+             "twist": [(f"twist at y={y:+.0f}", y, 220.0) for y in (-450.0, 450.0)]}
+    return [FormDefect(name, (float(car_rear_depth(np.array(y), np.array(z))), y, z),
+                       along_normal(y, z))
+            for d in defects for name, y, z in where[d]]
+
+
+def _car_rear_grid(spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    ys = np.arange(CAR_REAR_Y[0], CAR_REAR_Y[1] + 1e-9, spacing_mm)
+    zs = np.arange(CAR_REAR_Z[0], CAR_REAR_Z[1] + 1e-9, spacing_mm)
     # put grid lines on the licence-plate walls so they stay steep
-    ys = np.unique(np.concatenate([ys, [-260.0 - 0.2, -260.0 + 0.2, 260.0 - 0.2, 260.0 + 0.2]]))
-    zs = np.unique(np.concatenate([zs, [-235.2, -234.8, -135.2, -134.8]]))
+    ys = np.unique(np.concatenate([ys, *PLATE_BODY_EDGES[:1], *PLATE_FLOOR_EDGES[:1]]))
+    zs = np.unique(np.concatenate([zs, *PLATE_BODY_EDGES[1:], *PLATE_FLOOR_EDGES[1:]]))
+    return ys, zs
+
+
+def car_rear(spacing_mm: float = 2.0) -> o3d.geometry.TriangleMesh:
+    """The car rear at ``spacing_mm``: 2 mm keeps the facets within 0.013 mm of the smooth
+    surface its CAD nominal (sim/cad.py) describes, on the flanks' tightest curvature."""
+    ys, zs = _car_rear_grid(spacing_mm)
     Y, Z = np.meshgrid(ys, zs)
     return heightfield(ys, zs, car_rear_depth(Y, Z))
+
+
+def car_rear_defects(spacing_mm: float = 2.0, defects: tuple[str, ...] = DEFECTS
+                     ) -> o3d.geometry.TriangleMesh:
+    ys, zs = _car_rear_grid(spacing_mm)
+    Y, Z = np.meshgrid(ys, zs)
+    return heightfield(ys, zs, car_rear_defect_depth(Y, Z, defects))
 
 
 def flat(size_mm: float = 300.0, thickness_mm: float = 20.0) -> o3d.geometry.TriangleMesh:
@@ -126,7 +210,10 @@ def scanner_body() -> o3d.geometry.TriangleMesh:
     return m
 
 
-PARTS = {"car_rear": car_rear, "flat": flat, "dumbbell": dumbbell}
+PARTS = {"car_rear": car_rear, "car_rear_defects": car_rear_defects, "flat": flat,
+         "dumbbell": dumbbell}
+#: the nominal (CAD) of each part that has one other than itself
+NOMINAL_OF = {"car_rear_defects": "car_rear"}
 
 #: paint regions (indices into OpticsProfile.paint_table): 0 the part's one paint
 REGION_DEFAULT, REGION_BODY, REGION_BUMPER, REGION_PLATE = 0, 1, 2, 3
@@ -135,7 +222,7 @@ REGION_DEFAULT, REGION_BODY, REGION_BUMPER, REGION_PLATE = 0, 1, 2, 3
 def paint_regions(part: str, mesh: o3d.geometry.TriangleMesh) -> np.ndarray | None:
     """Paint region of each triangle of a part's mesh, or None for a one-paint part. The car
     rear: the body above the feature-line crease, the bumper below it, the licence plate."""
-    if part != "car_rear":
+    if part not in ("car_rear", "car_rear_defects"):
         return None
     centre = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)
     y, z = centre[:, 1], centre[:, 2]

@@ -54,3 +54,21 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
         stations.append(Station(e["station"], clouds[scan_id], T,
                                 uncertainty=uncertainty.get(scan_id)))
     return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye
+
+
+def recorded_model(path: str | Path, voxel_mm: float = 0.5) -> tuple[np.ndarray, str]:
+    """The fused model of a recorded ``scan_part`` session (world frame, mm) and how it was
+    obtained: the fuse worker's final ``fusion/cloud`` when the recording holds one, else its
+    stations fused again."""
+    from scancell.analysis.fusion import fuse
+
+    final = None
+    for s in samples(path, ["fusion/cloud"]):
+        if s.attachment.meta.get("final"):
+            final = s
+    if final is not None:
+        job = final.attachment.meta.get("job_id", "?")
+        return fg.cloud_points(final.decode()).astype(float), f"final fused model of job {job}"
+    stations, hand_eye, _ = recorded_stations(path)
+    fused = fuse(stations, hand_eye, voxel_mm)
+    return fused.points, f"{len(stations)} recorded stations fused again"

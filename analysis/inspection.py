@@ -1,0 +1,198 @@
+"""An inspection: a measured cloud against its nominal: alignment, signed deviation of every
+point, tolerances per region, sections and the nominal surface left unmeasured.
+
+Frames: the cloud arrives in its measuring frame (the tracker's, for a fused scan); everything
+reported is in the part's frame, the nominal's, after the alignment ``T_part_from_measured``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scancell.analysis import alignment as al
+from scancell.analysis.deviation import ClosestPoints, Coverage, closest_points, coverage
+from scancell.analysis.nominal import Nominal, check_scale
+from scancell.analysis.tolerance import ToleranceSpec, judge
+
+ALIGNMENTS = ("asmeasured", "bestfit", "rps")
+
+
+class InspectionError(ValueError):
+    pass
+
+
+@dataclass
+class Section:
+    """A cut of the nominal by the plane ``axis = offset`` (part frame)."""
+
+    axis: str
+    offset_mm: float
+    segments: np.ndarray  # (S, 2, 3) the nominal's cut
+    points: np.ndarray  # (K,) indices of measured points within half_width of the plane
+
+    def to_json(self, deviation: np.ndarray) -> dict[str, Any]:
+        d = deviation[self.points]
+        out: dict[str, Any] = {"axis": self.axis, "offset_mm": self.offset_mm,
+                               "points": int(d.size)}
+        if d.size:
+            out.update(mean_mm=float(d.mean()), min_mm=float(d.min()), max_mm=float(d.max()))
+        return out
+
+
+@dataclass
+class InspectionSettings:
+    align: str = "bestfit"
+    #: T_part_from_measured: the fixture pose (asmeasured) or the start of bestfit / rps
+    transform: np.ndarray | None = None
+    rps: list[al.RpsPoint] | None = None
+    tolerance: ToleranceSpec = field(default_factory=lambda: ToleranceSpec(None, []))
+    #: points farther than this from the nominal are not part of it (fixtures, stray points)
+    max_distance_mm: float = 5.0
+    coverage_gap_mm: float = 2.0
+    #: (axis, offset mm) per section; None: three across the part's longest axis
+    sections: list[tuple[str, float]] | None = None
+    section_half_width_mm: float = 1.0
+    trim_sigma: float = 3.0
+
+
+@dataclass
+class Inspection:
+    nominal: Nominal
+    settings: InspectionSettings
+    alignment: al.Alignment
+    points: np.ndarray  # (N, 3) measured points in the part frame, input order
+    closest: ClosestPoints
+    in_range: np.ndarray  # (N,) bool: within max_distance of the nominal
+    coverage: Coverage
+    sections: list[Section]
+    tolerances: dict[str, Any]
+    seconds: dict[str, float]
+
+    @property
+    def deviation(self) -> np.ndarray:
+        return self.closest.deviation
+
+    def face_names_of_points(self) -> np.ndarray:
+        return self.nominal.face_of_triangle[self.closest.triangle]
+
+    def statistics(self) -> dict[str, Any]:
+        d = self.deviation[self.in_range]
+        if not d.size:
+            return {"points": 0}
+        p = np.percentile(d, [1, 5, 50, 95, 99])
+        return {"points": int(d.size), "points_out_of_range": int((~self.in_range).sum()),
+                "max_distance_mm": self.settings.max_distance_mm,
+                "mean_mm": float(d.mean()), "std_mm": float(d.std()),
+                "rms_mm": float(np.sqrt(np.mean(d**2))), "min_mm": float(d.min()),
+                "max_mm": float(d.max()), "p1_mm": p[0], "p5_mm": p[1], "median_mm": p[2],
+                "p95_mm": p[3], "p99_mm": p[4]}
+
+    def to_json(self) -> dict[str, Any]:
+        c = self.coverage
+        return {"nominal": self.nominal.describe(), "alignment": self.alignment.to_json(),
+                "deviation": self.statistics(), "tolerances": self.tolerances,
+                "coverage": {"nominal_covered_share": c.covered_share,
+                             "gap_threshold_mm": c.threshold_mm, "samples": len(c.gap_mm),
+                             "unmeasured_area_mm2": float(c.uncovered.mean()
+                                                          * self.nominal.area_mm2)},
+                "sections": [s.to_json(self.deviation) for s in self.sections],
+                "seconds": self.seconds}
+
+
+def _align(nominal: Nominal, points: np.ndarray, s: InspectionSettings) -> al.Alignment:
+    if s.align == "asmeasured":
+        if s.transform is None:
+            raise InspectionError("asmeasured alignment needs the fixture transform "
+                                  "(T_part_from_measured)")
+        return al.as_measured(nominal, points, s.transform)
+    if s.align == "bestfit":
+        return al.best_fit(nominal, points, s.transform, trim_sigma=s.trim_sigma)
+    if s.align == "rps":
+        if not s.rps:
+            raise InspectionError("rps alignment needs reference points")
+        return al.rps(nominal, points, s.rps, s.transform)
+    raise InspectionError(f"alignment {s.align!r} unknown: use one of {', '.join(ALIGNMENTS)}")
+
+
+def auto_sections(nominal: Nominal, count: int = 3) -> list[tuple[str, float]]:
+    """``count`` planes across the nominal's longest axis, evenly inside its extent."""
+    lo, hi = nominal.vertices.min(axis=0), nominal.vertices.max(axis=0)
+    a = int(np.argmax(hi - lo))
+    return [("xyz"[a], float(lo[a] + (hi[a] - lo[a]) * (i + 1) / (count + 1)))
+            for i in range(count)]
+
+
+def cut(nominal: Nominal, axis: str, offset: float, points: np.ndarray, half_width: float
+        ) -> Section:
+    import trimesh
+
+    if axis not in ("x", "y", "z"):
+        raise InspectionError(f"section axis {axis!r}: use x, y or z")
+    a = "xyz".index(axis)
+    normal = np.eye(3)[a]
+    mesh = trimesh.Trimesh(nominal.vertices, nominal.triangles, process=False)
+    segments = trimesh.intersections.mesh_plane(mesh, normal, normal * offset)
+    near = np.flatnonzero(np.abs(points[:, a] - offset) <= half_width)
+    return Section(axis, float(offset), np.asarray(segments).reshape(-1, 2, 3), near)
+
+
+def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
+                  settings: InspectionSettings | None = None,
+                  progress: Callable[[str], None] | None = None) -> Inspection:
+    """The whole inspection of ``points_measured`` (N, 3, measuring frame, mm)."""
+    s = settings or InspectionSettings()
+    say = progress or (lambda _msg: None)
+    pts = np.asarray(points_measured, float).reshape(-1, 3)
+    pts_finite = np.isfinite(pts).all(axis=1)
+    if pts_finite.sum() < 10:
+        raise InspectionError(f"the measured cloud has {pts_finite.sum()} usable points")
+    if not pts_finite.all():
+        raise InspectionError(f"{(~pts_finite).sum()} measured points are not finite numbers")
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    start = pts if s.transform is None else al.apply(np.asarray(s.transform, float), pts)
+    check_scale(nominal, start)
+    say(f"aligning ({s.align}) {len(pts)} points to {len(nominal.triangles)} triangles")
+    alignment = _align(nominal, pts, s)
+    seconds["align"] = time.perf_counter() - t
+    t = time.perf_counter()
+    say("signed deviation of every point")
+    part = al.apply(alignment.T_part_from_measured, pts)
+    cp = closest_points(nominal, part)
+    in_range = cp.distance <= s.max_distance_mm
+    if in_range.mean() < 0.05:
+        raise InspectionError(f"only {in_range.mean():.1%} of the points lie within "
+                              f"{s.max_distance_mm} mm of the nominal after the {s.align} "
+                              f"alignment: no overlap, nothing to report")
+    seconds["deviation"] = time.perf_counter() - t
+    t = time.perf_counter()
+    say("tolerances, sections and unmeasured surface")
+    tolerances = judge_all(nominal, part, cp, in_range, s.tolerance)
+    cov = coverage(nominal, part[in_range], s.coverage_gap_mm)
+    sections = [cut(nominal, a, o, part, s.section_half_width_mm)
+                for a, o in (s.sections if s.sections is not None else auto_sections(nominal))]
+    seconds["analysis"] = time.perf_counter() - t
+    return Inspection(nominal, s, alignment, part, cp, in_range, cov, sections, tolerances,
+                      {k: round(v, 3) for k, v in seconds.items()})
+
+
+def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: np.ndarray,
+              spec: ToleranceSpec) -> dict[str, Any]:
+    out: dict[str, Any] = {"allowed_out_share": spec.allowed_out_share, "overall": None,
+                           "regions": []}
+    d = cp.deviation
+    if spec.overall is not None:
+        out["overall"] = judge(d[in_range], spec.overall, spec.allowed_out_share)
+    faces = nominal.face_of_triangle[cp.triangle]
+    for region in spec.regions:
+        inside = region.contains(part, faces, nominal) & in_range
+        out["regions"].append({"name": region.name, "kind": region.kind,
+                               "where": region.describe(),
+                               **judge(d[inside], region.tolerance, spec.allowed_out_share)})
+    verdicts = [r["pass"] for r in [out["overall"], *out["regions"]] if r and r["pass"] is not None]
+    out["pass"] = all(verdicts) if verdicts else None
+    return out

@@ -1,0 +1,385 @@
+"""The inspection report a quality engineer hands on: one self-contained HTML file (pictures
+embedded), CSV tables and the JSON.
+
+Pictures: colour maps of the signed deviation seen from the views a person uses (front, the
+sides, the top; diverging scale centred on zero, out-of-tolerance colours beyond it, the
+nominal surface left unmeasured in grey), the histogram, the sections with deviation
+whiskers, and the unmeasured surface.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.inspection import Inspection
+
+PIXELS = 700
+OVER, UNDER, UNMEASURED = "#c000c0", "#00a0c0", "#d0d0d0"
+
+
+@dataclass(frozen=True)
+class View:
+    name: str
+    towards_viewer: np.ndarray  # unit vector from the part to the viewer (part frame)
+    up: np.ndarray
+
+    @property
+    def right(self) -> np.ndarray:
+        return np.cross(self.up, self.towards_viewer)
+
+
+def standard_views(nominal_normals: np.ndarray, areas: np.ndarray) -> list[View]:
+    """Front: the side most of the nominal's surface faces (for a closed solid, which faces
+    every way, the CAD front view from -y); then left, right, top, back, bottom."""
+    m = (nominal_normals * areas[:, None]).sum(axis=0)
+    front = m / np.linalg.norm(m) if np.linalg.norm(m) > 0.2 * areas.sum() else np.array([0, -1.0, 0])
+    axis = int(np.argmax(np.abs(front)))
+    front = np.sign(front[axis]) * np.eye(3)[axis]  # snap to the nearest part axis
+    up = np.array([0, 0, 1.0]) if axis != 2 else np.array([0, 1.0, 0])
+    right = np.cross(up, front)
+    return [View("front", front, up), View("left", -right, up), View("right", right, up),
+            View("top", up, -front), View("back", -front, up), View("bottom", -up, front)]
+
+
+def _scale(inspection: Inspection):
+    """(colour map, norm, label) of the deviation maps: the overall tolerance when there is one,
+    else symmetric about zero at the 99th percentile of |deviation|."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import colors
+
+    tol = inspection.settings.tolerance.overall
+    if tol is not None:
+        lo, hi = tol.lower_mm, tol.upper_mm
+    else:
+        d = inspection.deviation[inspection.in_range]
+        hi = float(np.percentile(np.abs(d), 99)) if d.size else 1.0
+        lo = -hi
+    cmap = matplotlib.colormaps["RdBu_r"].with_extremes(over=OVER, under=UNDER)
+    return cmap, colors.TwoSlopeNorm(0.0, min(lo, -1e-6), max(hi, 1e-6))
+
+
+def _png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _raster(u: np.ndarray, v: np.ndarray, depth: np.ndarray, values: np.ndarray,
+            extent: tuple[float, float, float, float], cell: float) -> np.ndarray:
+    """The value of the nearest point (largest depth) in each cell; NaN where none falls."""
+    u0, u1, v0, v1 = extent
+    nu, nv = int((u1 - u0) / cell) + 1, int((v1 - v0) / cell) + 1
+    order = np.argsort(depth)  # the nearest written last wins its cell
+    img = np.full((nv, nu), np.nan)
+    img[((v[order] - v0) / cell).astype(int), ((u[order] - u0) / cell).astype(int)] = values[order]
+    return img
+
+
+def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str, bytes]]:
+    """(view name, PNG) of the colour maps of the views that see at least ``min_share`` of the
+    measured points."""
+    import matplotlib.pyplot as plt
+
+    nom = inspection.nominal
+    v = nom.vertices[nom.triangles]
+    areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    ok = inspection.in_range
+    pts, dev, n_pts = inspection.points[ok], inspection.deviation[ok], inspection.closest.normals[ok]
+    cov = inspection.coverage
+    # cells no finer than the measured points' or the nominal samples' spacing, so that
+    # neither shows as speckle
+    spacing = max(np.sqrt(nom.area_mm2 * max(cov.covered_share, 1e-3) / max(len(pts), 1)),
+                  np.sqrt(nom.area_mm2 / max(len(cov.samples), 1)))
+    cmap, norm = _scale(inspection)
+    out = []
+    for view in standard_views(nom.triangle_normals, areas):
+        facing = n_pts @ view.towards_viewer > 0.1
+        if facing.mean() < min_share:
+            continue
+        R = np.stack([view.right, view.up, view.towards_viewer])
+        p = pts[facing] @ R.T
+        s = cov.samples[cov.normals @ view.towards_viewer > 0.1] @ R.T
+        both = np.concatenate([p, s])
+        extent = (both[:, 0].min(), both[:, 0].max(), both[:, 1].min(), both[:, 1].max())
+        cell = max(max(extent[1] - extent[0], extent[3] - extent[2]) / PIXELS, 1.5 * spacing)
+        # the nominal behind, the measured points 0.5 mm in front of it
+        u, w = np.concatenate([s[:, 0], p[:, 0]]), np.concatenate([s[:, 1], p[:, 1]])
+        depth = np.concatenate([s[:, 2], p[:, 2] + 0.5])
+        img = _raster(u, w, depth, np.concatenate([np.full(len(s), np.nan), dev[facing]]),
+                      extent, cell)
+        seen = _raster(u, w, depth, np.concatenate([np.ones(len(s)), np.full(len(p), 2.0)]),
+                       extent, cell)
+        ext = (extent[0], extent[0] + img.shape[1] * cell, extent[2],
+               extent[2] + img.shape[0] * cell)
+        aspect = (ext[3] - ext[2]) / max(ext[1] - ext[0], 1e-9)
+        fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 2.5, 9)) + 1.2))
+        ax.imshow(np.where(seen == 1.0, 1.0, np.nan), origin="lower", extent=ext, cmap="Greys",
+                  vmin=0, vmax=5, interpolation="nearest")
+        im = ax.imshow(img, origin="lower", extent=ext, cmap=cmap, norm=norm,
+                       interpolation="nearest")
+        ax.set_title(f"{view.name} view (from {_axis_name(view.towards_viewer)}): "
+                     f"{facing.sum()} points")
+        ax.set_xlabel(f"{_axis_name(view.right)} (mm)")
+        ax.set_ylabel(f"{_axis_name(view.up)} (mm)")
+        ax.set_aspect("equal")
+        fig.colorbar(im, ax=ax, extend="both", shrink=0.9,
+                     label="deviation (mm); grey: not measured")
+        fig.tight_layout()
+        out.append((view.name, _png(fig)))
+    return out
+
+
+def _axis_name(vec: np.ndarray) -> str:
+    a = int(np.argmax(np.abs(vec)))
+    return ("+" if vec[a] > 0 else "-") + "xyz"[a]
+
+
+def histogram(inspection: Inspection) -> bytes:
+    import matplotlib.pyplot as plt
+
+    d = inspection.deviation[inspection.in_range]
+    cmap, norm = _scale(inspection)
+    lo, hi = float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9))
+    span = max(hi - lo, 1e-3)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    _, edges, patches = ax.hist(d, bins=120, range=(lo - 0.05 * span, hi + 0.05 * span))
+    for patch, left, right in zip(patches, edges[:-1], edges[1:], strict=True):
+        patch.set_facecolor(cmap(norm(0.5 * (left + right))))
+    tol = inspection.settings.tolerance.overall
+    if tol is not None:
+        for x in (tol.lower_mm, tol.upper_mm):
+            ax.axvline(x, color="k", ls="--", lw=1)
+    ax.axvline(float(d.mean()), color="tab:green", lw=1.5, label=f"mean {d.mean():+.4f} mm")
+    ax.set_xlabel("signed deviation (mm)")
+    ax.set_ylabel("points")
+    ax.set_title(f"{d.size} points; std {d.std():.4f} mm"
+                 + (f"; tolerance {tol.lower_mm:+g} / {tol.upper_mm:+g} mm" if tol else ""))
+    ax.legend()
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _binned(q: np.ndarray, n: np.ndarray, d: np.ndarray, cell: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The section's points averaged per ``cell`` (2D): one whisker per stretch of the curve,
+    as a quality report draws them, not one per noisy point."""
+    key = np.floor(q / cell).astype(np.int64)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(counts), *a.shape[1:]))
+        np.add.at(out, inv, a)
+        return out / counts.reshape(-1, *([1] * (a.ndim - 1)))
+
+    nn = mean(n)
+    return mean(q), nn / np.maximum(np.linalg.norm(nn, axis=1, keepdims=True), 1e-12), mean(d)
+
+
+def sections_figure(inspection: Inspection, whiskers: int = 120) -> bytes | None:
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    secs = [s for s in inspection.sections if len(s.segments)]
+    if not secs:
+        return None
+    cmap, norm = _scale(inspection)
+    planes = []
+    for sec in secs:
+        a = "xyz".index(sec.axis)
+        planes.append((sec, [k for k in range(3) if k != a]))
+    span = np.ptp(np.concatenate([s.segments[:, :, ij].reshape(-1, 2) for s, ij in planes]), axis=0)
+    tall = span[1] > span[0]
+    fig, axes = plt.subplots(1 if tall else len(secs), len(secs) if tall else 1, squeeze=False,
+                             figsize=(4.5 * len(secs), 7) if tall else (11, 3.6 * len(secs)))
+    for ax, (sec, (i, j)) in zip(axes.flat, planes, strict=True):
+        seg = sec.segments[:, :, [i, j]]
+        ax.add_collection(LineCollection(seg, colors="k", linewidths=1.0))
+        extent = float(np.ptp(seg.reshape(-1, 2), axis=0).max()) or 1.0
+        idx = sec.points[inspection.in_range[sec.points]]
+        gain = 0.0
+        if idx.size:
+            q, n, d = _binned(inspection.closest.points[idx][:, [i, j]],
+                              inspection.closest.normals[idx][:, [i, j]],
+                              inspection.deviation[idx], extent / whiskers)
+            gain = 0.08 * extent / max(float(np.percentile(np.abs(d), 99)), 1e-6)
+            tips = q + n * (d * gain)[:, None]
+            ax.add_collection(LineCollection(np.stack([q, tips], axis=1), colors=cmap(norm(d)),
+                                             linewidths=1.5))
+            ax.plot(tips[:, 0], tips[:, 1], ".", ms=1.5, color="0.3")
+        ax.autoscale()
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{'xyz'[i]} (mm)")
+        ax.set_ylabel(f"{'xyz'[j]} (mm)")
+        ax.set_title(f"{sec.axis} = {sec.offset_mm:.1f} mm"
+                     + (f"\n{idx.size} points, deviation x {gain:.0f}" if gain
+                        else "\nno measured points"), fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def coverage_figure(inspection: Inspection) -> bytes:
+    import matplotlib.pyplot as plt
+
+    cov = inspection.coverage
+    nom = inspection.nominal
+    v = nom.vertices[nom.triangles]
+    areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    view = standard_views(nom.triangle_normals, areas)[0]
+    facing = cov.normals @ view.towards_viewer > 0.1
+    R = np.stack([view.right, view.up, view.towards_viewer])
+    s = cov.samples[facing] @ R.T
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    if len(s):
+        extent = (s[:, 0].min(), s[:, 0].max(), s[:, 1].min(), s[:, 1].max())
+        cell = max(extent[1] - extent[0], extent[3] - extent[2]) / 500
+        img = _raster(s[:, 0], s[:, 1], s[:, 2], cov.uncovered[facing].astype(float), extent, cell)
+        ax.imshow(img, origin="lower", cmap="RdYlGn_r", vmin=0, vmax=1, interpolation="nearest",
+                  extent=(extent[0], extent[0] + img.shape[1] * cell, extent[2],
+                          extent[2] + img.shape[0] * cell))
+    ax.set_aspect("equal")
+    ax.set_title(f"nominal surface measured (green) and not (red, no point within "
+                 f"{cov.threshold_mm:g} mm): {cov.covered_share:.1%} measured; {view.name} view")
+    ax.set_xlabel(f"{_axis_name(view.right)} (mm)")
+    ax.set_ylabel(f"{_axis_name(view.up)} (mm)")
+    fig.tight_layout()
+    return _png(fig)
+
+
+# ----------------------------------------------------------------------------- tables
+REGION_COLUMNS = ["name", "kind", "where", "points", "lower_mm", "upper_mm", "mean_mm", "std_mm",
+                  "min_mm", "max_mm", "below_share", "above_share", "out_share", "pass"]
+
+
+def region_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
+    t = report["tolerances"]
+    rows = []
+    if t.get("overall"):
+        rows.append({"name": "whole part", "kind": "all", "where": "every point in range",
+                     **t["overall"]})
+    rows += t.get("regions", [])
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, columns, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+
+
+# ----------------------------------------------------------------------------- HTML
+CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1300px;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #bbb;padding:.25em .6em;
+text-align:right}th{background:#eee}td:first-child,th:first-child{text-align:left}
+.pass{color:#fff;background:#2a2;padding:.1em .5em}.fail{color:#fff;background:#c22;padding:.1em .5em}
+.none{background:#999;color:#fff;padding:.1em .5em}img{max-width:100%}code{font-size:90%}"""
+
+
+def _verdict(v: bool | None) -> str:
+    return {True: '<span class="pass">PASS</span>', False: '<span class="fail">FAIL</span>',
+            None: '<span class="none">no tolerance</span>'}[v]
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool) or v is None:
+        return _verdict(v) if isinstance(v, bool) else "–"
+    if isinstance(v, float):
+        return f"{v:.4f}" if abs(v) < 1e4 else f"{v:.4g}"
+    return html.escape(str(v))
+
+
+def _table(rows: list[dict[str, Any]], columns: list[str]) -> str:
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{_fmt(r.get(c))}</td>" for c in columns) + "</tr>"
+                   for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _img(png: bytes | None, alt: str) -> str:
+    if png is None:
+        return f"<p><em>{html.escape(alt)}: nothing to show</em></p>"
+    return (f'<img alt="{html.escape(alt)}" src="data:image/png;base64,'
+            f'{base64.b64encode(png).decode()}">')
+
+
+def write_report(inspection: Inspection, folder: str | Path, title: str,
+                 measured_source: str, extra: dict[str, Any] | None = None) -> dict[str, str]:
+    """``folder/report.html`` (self-contained), ``regions.csv``, ``sections.csv`` and
+    ``inspection.json``; returns their paths."""
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"title": title, "measured": measured_source, **inspection.to_json(), **(extra or {})}
+    files = {"html": str(out / "report.html"), "regions_csv": str(out / "regions.csv"),
+             "sections_csv": str(out / "sections.csv"), "json": str(out / "inspection.json")}
+    rows = region_rows(report)
+    write_csv(Path(files["regions_csv"]), rows, REGION_COLUMNS)
+    write_csv(Path(files["sections_csv"]), report["sections"],
+              ["axis", "offset_mm", "points", "mean_mm", "min_mm", "max_mm"])
+    Path(files["json"]).write_text(json.dumps({**report, "files": files}, indent=2))
+    Path(files["html"]).write_text(render_html(inspection, report))
+    return files
+
+
+def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
+    a, d, cov = report["alignment"], report["deviation"], report["coverage"]
+    nominal = report["nominal"]
+    T = np.asarray(a["T_part_from_measured"])
+    align_rows = [{"": "method", "value": a["method"]}, {"": "residual RMS (mm)", "value": a["rms_mm"]},
+                  {"": "points used", "value": f"{a['used_fraction']:.1%}"},
+                  {"": "iterations", "value": a["iterations"]}]
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(report['title'])}"
+             f"</title><style>{CSS}</style></head><body>",
+             f"<h1>{html.escape(report['title'])}</h1>",
+             f"<p>Measured: <code>{html.escape(report['measured'])}</code><br>Nominal: "
+             f"<code>{html.escape(nominal['source'])}</code> ({nominal['triangles']} triangles, "
+             f"unit {html.escape(nominal['unit'])}"
+             + (f", tessellated to {nominal['chordal_tolerance_mm']} mm chordal tolerance"
+                if nominal.get("chordal_tolerance_mm") else "") + ")</p>",
+             f"<h2>Verdict: {_verdict(report['tolerances'].get('pass'))}</h2>",
+             "<h2>Deviation</h2><p>Signed, along the nominal's outward normal: + where material "
+             "lies outside the nominal. Points farther than "
+             f"{d.get('max_distance_mm', '?')} mm from it are left out "
+             f"({d.get('points_out_of_range', 0)} points).</p>",
+             _table([{k: v for k, v in d.items() if k.endswith("_mm") or k == "points"}],
+                    [k for k in d if k.endswith("_mm") or k == "points"]),
+             "<h2>Tolerances</h2>"
+             + (_table(region_rows(report), REGION_COLUMNS) if region_rows(report)
+                else "<p>No tolerance given.</p>")
+             + f"<p>A region passes while at most {report['tolerances']['allowed_out_share']:.1%} "
+               "of its points lie outside its tolerance.</p>",
+             "<h2>Colour maps</h2>",
+             *(_img(png, f"{name} view") for name, png in view_maps(inspection)),
+             "<h2>Histogram</h2>", _img(histogram(inspection), "deviation histogram"),
+             "<h2>Sections</h2>", _img(sections_figure(inspection), "sections"),
+             _table(report["sections"], ["axis", "offset_mm", "points", "mean_mm", "min_mm",
+                                         "max_mm"]),
+             "<h2>Unmeasured surface</h2>",
+             f"<p>{cov['nominal_covered_share']:.1%} of the nominal surface has a measured point "
+             f"within {cov['gap_threshold_mm']} mm; {cov['unmeasured_area_mm2'] / 100:.0f} cm² "
+             "has none.</p>", _img(coverage_figure(inspection), "coverage"),
+             "<h2>Alignment</h2>", _table(align_rows, ["", "value"]),
+             "<p>T_part_from_measured:</p><pre>" + html.escape(np.array2string(
+                 T, precision=6, suppress_small=True)) + "</pre>"]
+    if a["method"] == "rps":
+        parts.append(_table([{"name": p["name"], "lock": p["lock"], "feature": p["feature"],
+                              **{f"d{k} (mm)": v for k, v in p["residual_mm"].items()}}
+                             for p in a["points"]],
+                            ["name", "lock", "feature", "dx (mm)", "dy (mm)", "dz (mm)"]))
+    parts.append(f"<p><small>Times (s): {html.escape(json.dumps(report['seconds']))}</small></p>"
+                 "</body></html>")
+    return "\n".join(parts)

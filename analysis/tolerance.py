@@ -1,0 +1,183 @@
+"""Tolerances of an inspection: one for the whole part and one per region, each judged by the
+share of points outside it.
+
+A region is a named face set of the STEP nominal, a box or a sphere in part coordinates. A
+tolerance file (TOML) reads::
+
+    tolerance_mm = 0.5              # the whole part: -0.5 ... +0.5 (or lower_mm / upper_mm)
+    allowed_out_share = 0.01        # pass while at most 1 % of the points are outside
+
+    [[region]]
+    name = "licence plate"
+    faces = ["plate", "plate_walls"] # STEP face names
+    tolerance_mm = 0.3
+
+    [[region]]
+    name = "left corner"
+    box = [[0, -700, 100], [400, -500, 250]]   # min and max corner (mm)
+    lower_mm = -0.2
+    upper_mm = 0.4
+
+    [[region]]
+    name = "hole"
+    sphere = { centre = [100, 0, 0], radius = 25 }
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.nominal import Nominal
+
+DEFAULT_ALLOWED_OUT_SHARE = 0.01
+
+
+class ToleranceError(ValueError):
+    pass
+
+
+@dataclass
+class Tolerance:
+    lower_mm: float
+    upper_mm: float
+
+    @classmethod
+    def parse(cls, text: str) -> Tolerance:
+        """``0.5`` (symmetric) or ``-0.3,+0.5`` (lower, upper)."""
+        try:
+            values = [float(v) for v in str(text).split(",")]
+        except ValueError:
+            raise ToleranceError(f"tolerance {text!r}: give T (mm) or LOWER,UPPER (mm)") from None
+        if len(values) == 1:
+            values = [-abs(values[0]), abs(values[0])]
+        if len(values) != 2 or not values[0] < values[1] or not values[0] <= 0 <= values[1]:
+            raise ToleranceError(f"tolerance {text!r}: LOWER must be <= 0 <= UPPER, LOWER < UPPER")
+        return cls(*values)
+
+    @classmethod
+    def from_mapping(cls, m: dict[str, Any], where: str, default: Tolerance | None
+                     ) -> Tolerance:
+        if "tolerance_mm" in m:
+            return cls.parse(str(m["tolerance_mm"]))
+        if "lower_mm" in m or "upper_mm" in m:
+            try:
+                return cls.parse(f"{float(m['lower_mm'])},{float(m['upper_mm'])}")
+            except KeyError as exc:
+                raise ToleranceError(f"{where}: {exc.args[0]} missing beside the other "
+                                     f"bound") from None
+        if default is None:
+            raise ToleranceError(f"{where}: no tolerance (tolerance_mm, or lower_mm and "
+                                 f"upper_mm)")
+        return default
+
+    def to_json(self) -> dict[str, float]:
+        return {"lower_mm": self.lower_mm, "upper_mm": self.upper_mm}
+
+
+@dataclass
+class Region:
+    name: str
+    kind: str  # faces | box | sphere
+    tolerance: Tolerance
+    faces: list[str] | None = None
+    box: np.ndarray | None = None  # (2, 3) min, max
+    centre: np.ndarray | None = None
+    radius: float | None = None
+
+    def contains(self, points_part: np.ndarray, face_of_point: np.ndarray,
+                 nominal: Nominal) -> np.ndarray:
+        if self.kind == "faces":
+            return np.isin(face_of_point, nominal.faces_named(self.faces or []))
+        if self.kind == "box":
+            return np.all((points_part >= self.box[0]) & (points_part <= self.box[1]), axis=1)
+        return np.linalg.norm(points_part - self.centre, axis=1) <= self.radius
+
+    def describe(self) -> str:
+        if self.kind == "faces":
+            return "faces " + ", ".join(self.faces or [])
+        if self.kind == "box":
+            return f"box {self.box[0].tolist()} .. {self.box[1].tolist()}"
+        return f"sphere r {self.radius} at {self.centre.tolist()}"
+
+
+@dataclass
+class ToleranceSpec:
+    overall: Tolerance | None
+    regions: list[Region]
+    allowed_out_share: float = DEFAULT_ALLOWED_OUT_SHARE
+
+
+def _vector(v: Any, n: int, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(v, float).reshape(n)
+    except (ValueError, TypeError):
+        raise ToleranceError(f"{where}: expected {n} numbers, got {v!r}") from None
+    if not np.isfinite(a).all():
+        raise ToleranceError(f"{where}: numbers must be finite, got {v!r}")
+    return a
+
+
+def parse_spec(m: dict[str, Any], where: str = "tolerances",
+               overall: Tolerance | None = None) -> ToleranceSpec:
+    """A tolerance spec from its mapping (see the module docstring); ``overall`` (e.g. from the
+    command line) overrides the file's."""
+    if "tolerance_mm" in m or "lower_mm" in m:
+        overall = overall or Tolerance.from_mapping(m, where, None)
+    share = float(m.get("allowed_out_share", DEFAULT_ALLOWED_OUT_SHARE))
+    if not 0 <= share < 1:
+        raise ToleranceError(f"{where}: allowed_out_share must be in [0, 1), got {share}")
+    regions = []
+    for i, r in enumerate(m.get("region", [])):
+        w = f"{where}: region {i + 1} ({r.get('name', '?')!r})"
+        name = str(r.get("name") or f"region {i + 1}")
+        tol = Tolerance.from_mapping(r, w, overall)
+        kinds = [k for k in ("faces", "box", "sphere") if k in r]
+        if len(kinds) != 1:
+            raise ToleranceError(f"{w}: give exactly one of faces, box, sphere")
+        if kinds[0] == "faces":
+            faces = r["faces"] if isinstance(r["faces"], list) else [r["faces"]]
+            regions.append(Region(name, "faces", tol, faces=[str(f) for f in faces]))
+        elif kinds[0] == "box":
+            box = _vector(r["box"], 6, f"{w} box").reshape(2, 3)
+            if np.any(box[1] <= box[0]):
+                raise ToleranceError(f"{w}: box max corner must exceed its min corner")
+            regions.append(Region(name, "box", tol, box=box))
+        else:
+            s = r["sphere"]
+            radius = float(s.get("radius", 0)) if isinstance(s, dict) else 0.0
+            if radius <= 0:
+                raise ToleranceError(f"{w}: sphere needs a radius > 0")
+            regions.append(Region(name, "sphere", tol,
+                                  centre=_vector(s.get("centre"), 3, f"{w} sphere centre"),
+                                  radius=radius))
+    return ToleranceSpec(overall, regions, share)
+
+
+def load_spec(path: str | Path, overall: Tolerance | None = None) -> ToleranceSpec:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ToleranceError(f"{p}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ToleranceError(f"{p}: not valid TOML: {exc}") from None
+    return parse_spec(data, str(p), overall)
+
+
+def judge(deviation: np.ndarray, tolerance: Tolerance, allowed_out_share: float
+          ) -> dict[str, Any]:
+    """Statistics of ``deviation`` (mm) against ``tolerance``: share below, above, pass."""
+    d = np.asarray(deviation, float)
+    if d.size == 0:
+        return {"points": 0, **tolerance.to_json(), "pass": None,
+                "note": "no measured point in this region"}
+    below = float(np.mean(d < tolerance.lower_mm))
+    above = float(np.mean(d > tolerance.upper_mm))
+    return {"points": int(d.size), **tolerance.to_json(), "mean_mm": float(d.mean()),
+            "std_mm": float(d.std()), "min_mm": float(d.min()), "max_mm": float(d.max()),
+            "below_share": below, "above_share": above, "out_share": below + above,
+            "pass": bool(below + above <= allowed_out_share)}
