@@ -60,6 +60,8 @@ class CellConfig:
     #: ``[scanner]``: how every scan of the cell is taken unless its request says otherwise;
     #: ``exposures_us``: a list of exposure times (HDR) or "auto" (absent: one exposure)
     scanner: dict[str, Any] = field(default_factory=dict)
+    #: ``[inspection]`` (INSPECTION_KEYS), paths made absolute; empty: no nominal for the cell
+    inspection: dict[str, Any] = field(default_factory=dict)
 
     @cached_property
     def geometry(self) -> CellGeometry | None:
@@ -83,7 +85,12 @@ class CellConfig:
         return scrub(self.raw)
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner"}
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
+             "inspection"}
+#: ``[inspection]``: what the inspect worker compares each fused model with (paths relative
+#: to the config file)
+INSPECTION_KEYS = {"nominal", "unit", "chordal_mm", "align", "T_world_from_part", "tolerance_mm",
+                   "tolerances", "max_distance_mm"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:
@@ -231,7 +238,35 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         raise err("[scanner] exposures_us", f"must be 1 to 6 positive exposure times (µs) or "
                                             f"\"auto\", got {exp!r}")
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
-                      simulator, recorder, planner, dict(scanner))
+                      simulator, recorder, planner, dict(scanner),
+                      _inspection(_table(raw, "inspection", err), path, err))
+
+
+def _inspection(t: dict[str, Any], path: Path | None, err) -> dict[str, Any]:
+    unknown = set(t) - INSPECTION_KEYS
+    if unknown:
+        raise err("[inspection]", f"unknown key {sorted(unknown)[0]!r} (known: "
+                                  f"{', '.join(sorted(INSPECTION_KEYS))})")
+    out = dict(t)
+    for key in ("nominal", "tolerances"):
+        if key in out:
+            if not isinstance(out[key], str) or not out[key]:
+                raise err(f"[inspection] {key}", "must be a file path")
+            if path is not None and not Path(out[key]).is_absolute():
+                out[key] = str(path.parent / out[key])
+    if "align" in out and out["align"] not in ("asmeasured", "bestfit"):
+        raise err("[inspection] align", f"must be asmeasured or bestfit, got {out['align']!r}")
+    T = out.get("T_world_from_part")
+    if T is not None:
+        import numpy as np
+
+        try:
+            m = np.asarray(T, float).reshape(4, 4)
+        except (ValueError, TypeError):
+            raise err("[inspection] T_world_from_part", "must be a 4x4 matrix (mm)") from None
+        if not np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-6):
+            raise err("[inspection] T_world_from_part", "is not a rigid transform")
+    return out
 
 
 def _table(raw: dict[str, Any], name: str, err) -> dict[str, Any]:

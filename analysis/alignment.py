@@ -231,7 +231,7 @@ def _measure_feature(p: RpsPoint, nominal: Nominal, points: np.ndarray, tree: An
 
 
 def rps(nominal: Nominal, points: np.ndarray, reference: list[RpsPoint],
-        initial: np.ndarray | None = None, iterations: int = 10) -> Alignment:
+        initial: np.ndarray | None = None, iterations: int = 50) -> Alignment:
     """Reference-point-system alignment; ``initial`` places the cloud near the nominal for
     finding the cloud features (default identity)."""
     from scipy.optimize import least_squares

@@ -92,6 +92,7 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     """(view name, PNG) of the colour maps of the views that see at least ``min_share`` of the
     measured points."""
     import matplotlib.pyplot as plt
+    from scipy import ndimage
 
     nom = inspection.nominal
     v = nom.vertices[nom.triangles]
@@ -126,8 +127,10 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
                extent[2] + img.shape[0] * cell)
         aspect = (ext[3] - ext[2]) / max(ext[1] - ext[0], 1e-9)
         fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 2.5, 9)) + 1.2))
-        ax.imshow(np.where(seen == 1.0, 1.0, np.nan), origin="lower", extent=ext, cmap="Greys",
-                  vmin=0, vmax=5, interpolation="nearest")
+        # the nominal's samples are random: close the gaps between them
+        nominal_area = ndimage.binary_closing(np.isfinite(seen), iterations=2)
+        ax.imshow(np.where(nominal_area & ~(seen == 2.0), 1.0, np.nan), origin="lower",
+                  extent=ext, cmap="Greys", vmin=0, vmax=5, interpolation="nearest")
         im = ax.imshow(img, origin="lower", extent=ext, cmap=cmap, norm=norm,
                        interpolation="nearest")
         ax.set_title(f"{view.name} view (from {_axis_name(view.towards_viewer)}): "
@@ -383,3 +386,9 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
     parts.append(f"<p><small>Times (s): {html.escape(json.dumps(report['seconds']))}</small></p>"
                  "</body></html>")
     return "\n".join(parts)
+
+
+def deviation_colours(inspection: Inspection, deviation: np.ndarray) -> np.ndarray:
+    """(N, 4) RGBA in 0 ... 1 of ``deviation`` on the report's colour scale."""
+    cmap, norm = _scale(inspection)
+    return np.asarray(cmap(norm(np.asarray(deviation, float))), np.float32)

@@ -214,7 +214,7 @@ def check_scale(nominal: Nominal, points: np.ndarray) -> None:
     factor = min((1000.0, 25.4, 10.0), key=lambda f: abs(np.log(times / f)))
     hint = {1000.0: "metres", 25.4: "inches", 10.0: "centimetres"}[factor]
     where = (f"is the nominal in {hint}? give its unit" if ratio > 1
-             else f"is the cloud in {hint}?")
+             else f"was the nominal's unit given right, or is the cloud in {hint}?")
     raise NominalError(f"{nominal.source}: the nominal ({nominal.diagonal_mm:.4g} mm across) is "
                        f"{times:.0f}x {'smaller' if ratio > 1 else 'larger'} than the measured "
                        f"cloud: a wrong unit ({where}); no inspection made")

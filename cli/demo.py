@@ -10,7 +10,8 @@ client. Stages:
 3. hand-eye calibration, a ``calibrate_hand_eye`` job with 15 ball positions;
 4. station planning for the car-body rear (``scancell plan``);
 5. the ``scan_part`` job, fused by the fuse worker into a mesh, E57 and a report;
-6. a summary beside the paper's figures, in ``runs/<time>/summary.json``.
+6. the inspection of the fused model against the part's CAD (STEP) by the inspect worker;
+7. a summary beside the paper's figures, in ``runs/<time>/summary.json``.
 
 The simulated cell runs the profile its config names (``realistic`` in the packaged one:
 docs/simulation.md) and the scans take the exposures its ``[scanner]`` table names.
@@ -133,7 +134,7 @@ def main(args: argparse.Namespace) -> int:
     sets = [*flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port())),
             f"simulator.camera_scale={scale}"]
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
-    stage = Stage(8)
+    stage = Stage(9)
     procs = Processes(run_dir / "logs")
     t_start = time.monotonic()
     summary: dict[str, Any] = {}
@@ -160,13 +161,21 @@ def main(args: argparse.Namespace) -> int:
         print("   " + out.strip().splitlines()[-1])
         shutil.rmtree(run_dir / "targets", ignore_errors=True)
 
-        stage("workers: scan, calibrate, fuse")
+        stage("workers: scan, calibrate, fuse, inspect (the part's CAD: STEP and STL)")
+        nominal_dir = run_dir / "nominal"
+        run(["sim", "nominal", "--part", str(cfg.simulator.get("part", "car_rear")), "--out",
+             str(nominal_dir)], env, "exporting the part's CAD")
+        step = (nominal_dir / "car_rear.step").resolve()
         procs.start("worker-scan", ["worker", "scan", "--calib",
                                     str(run_dir / "calibration" / "stereo.yaml")], env)
         procs.start("worker-calibrate", ["worker", "calibrate", "--store",
                                          str(run_dir / "calibration")], env)
         procs.start("worker-fuse", ["worker", "fuse", "--out", str(run_dir / "fused"),
                                     "--truth-cell", str(config)], env)
+        procs.start("worker-inspect", ["worker", "inspect", "--nominal", str(step),
+                                       "--transform", str(nominal_dir / "T_world_from_part.json"),
+                                       "--tolerance", str(INSPECTION_TOLERANCE_MM),
+                                       "--out", str(run_dir / "fused")], env)
         time.sleep(3.0)
         scan_results: list[dict] = []
         client.bus.subscribe(client.bus.keys.scan_result("*"),
@@ -212,11 +221,15 @@ def main(args: argparse.Namespace) -> int:
         from scancell.protocols.plan import plan_from_text
 
         plan = plan_from_text((run_dir / "plan.toml").read_text(), "plan.toml")
+        plan["plan"]["nominal"] = str(step)  # the inspect worker takes the plan's nominal
         request: dict[str, Any] = {"plan": plan}
         if quick:
             request["stations"] = [s["name"] for s in plan["station"][:3]]
         reports: list[dict] = []
         client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
+        inspections: list[dict] = []
+        client.bus.subscribe(client.bus.keys.inspect_report,
+                             lambda s: inspections.append(s.decode()))
         final = client.run_job("scan_part", request, on_event=print_progress, timeout_s=1800)
         job = final["job_id"]
         if final.get("state") != "done":
@@ -227,6 +240,18 @@ def main(args: argparse.Namespace) -> int:
                           "fusion report")[-1]
         if report.get("error"):
             raise RuntimeError(f"fusion failed: {report['error']}")
+
+        stage("inspection: the fused model against the car rear's CAD (STEP), bestfit")
+        t_inspect = time.monotonic()
+        inspection = wait_for(lambda: [r for r in inspections if r.get("job_id") == job], 600,
+                              "inspection report")[-1]
+        if inspection.get("error"):
+            raise RuntimeError(f"inspection failed: {inspection['error']}")
+        summary["inspection"] = inspection_summary(inspection, time.monotonic() - t_inspect)
+        print(f"   deviation mean {inspection['deviation']['mean_mm']:+.4f} mm, std "
+              f"{inspection['deviation']['std_mm']:.4f} mm; +-{INSPECTION_TOLERANCE_MM} mm: "
+              f"{'PASS' if inspection['tolerances']['pass'] else 'FAIL'}; "
+              f"{inspection['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
 
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
@@ -249,9 +274,29 @@ def main(args: argparse.Namespace) -> int:
         summary["recordings"] = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         print(f"\noutputs in {run_dir}: summary.json, report/report.md, fused.ply, fused.e57, "
-              f"mesh.ply, recordings/, calibration/")
+              f"mesh.ply, inspection/report.html, nominal/, recordings/, calibration/")
     print(f"\ndemo {'finished' if ok else 'FAILED'} in {time.monotonic() - t_start:.1f} s")
     return 0 if ok else 1
+
+
+#: the demo's tolerance on the car rear's surface (mm): a body-in-white panel's usual +-0.5,
+#: tightened
+INSPECTION_TOLERANCE_MM = 0.3
+
+
+def inspection_summary(r: dict[str, Any], waited_s: float) -> dict[str, Any]:
+    """The inspection's figures for summary.json."""
+    d, a = r["deviation"], r["alignment"]
+    return {"nominal": r["nominal"]["source"], "alignment": a["method"],
+            "alignment_rms_mm": a["rms_mm"], "alignment_used_fraction": a["used_fraction"],
+            "deviation_mm": {k: d.get(f"{k}_mm") for k in ("mean", "std", "min", "max", "p5",
+                                                           "p95")},
+            "points": d.get("points"), "tolerance_mm": INSPECTION_TOLERANCE_MM,
+            "pass": r["tolerances"].get("pass"),
+            "out_share": (r["tolerances"].get("overall") or {}).get("out_share"),
+            "nominal_covered_share": r["coverage"]["nominal_covered_share"],
+            "seconds": r["seconds"], "waited_after_fusion_s": round(waited_s, 1),
+            "report": "inspection/report.html" if (r.get("files") or {}).get("html") else None}
 
 
 def sim_optics(simulator: dict[str, Any]):

@@ -54,6 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                      "for `scancell plan --part`")
     pt.add_argument("--part", default="car_rear", help="the simulated part (default car_rear)")
     pt.add_argument("--out", required=True)
+    nm = sub.add_parser("nominal", help="the part's nominal CAD for `scancell inspect`: "
+                                        "DIR/<part>.step (named faces), <part>.stl, and its pose "
+                                        "in the tracker frame (T_world_from_part.json)")
+    nm.add_argument("--part", default="car_rear",
+                    help="the simulated part (car_rear_defects gives car_rear's nominal)")
+    nm.add_argument("--out", required=True, help="folder")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -34,8 +34,73 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                          "against the simulated part")
 
 
+    ins = sub.add_parser("inspect", help="each job's final fusion/cloud against the nominal the "
+                                         "plan or the cell names -> inspect/report, "
+                                         "inspect/cloud")
+    add_bus_arguments(ins)
+    ins.add_argument("--config", default=None, metavar="CELL.toml",
+                     help="take the defaults below from the cell's [inspection] table")
+    ins.add_argument("--nominal", default=None,
+                     help="the part's CAD for jobs whose plan names none (STEP or mesh)")
+    ins.add_argument("--unit", default=None, help="length unit of a mesh nominal (default mm)")
+    ins.add_argument("--align", choices=["asmeasured", "bestfit"], default=None,
+                     help="default bestfit (from --transform when given)")
+    ins.add_argument("--transform", default=None, metavar="T",
+                     help="T_part_from_measured, as for scancell inspect (the fixture's pose)")
+    ins.add_argument("--tolerance", default=None, metavar="T|LO,HI", help="whole part (mm)")
+    ins.add_argument("--tolerances", default=None, metavar="TOL.toml", help="per region")
+    ins.add_argument("--out", default=None, help="folder for <job>/inspection/")
+
+
 def main(args: argparse.Namespace) -> int:
-    return {"scan": scan_main, "calibrate": calibrate_main, "fuse": fuse_main}[args.worker](args)
+    return {"scan": scan_main, "calibrate": calibrate_main, "fuse": fuse_main,
+            "inspect": inspect_main}[args.worker](args)
+
+
+def inspect_settings(args: argparse.Namespace):
+    """The inspect worker's settings: the command line over the cell's ``[inspection]``."""
+    import numpy as np
+    from scancell.analysis.inspection import InspectionSettings
+    from scancell.analysis.tolerance import Tolerance, ToleranceSpec, load_spec
+    from scancell.cli.inspect import read_transform
+    from scancell.workers.inspect import InspectSettings
+
+    table: dict = {}
+    if args.config:
+        from scancell.config import load_cell_config
+
+        table = load_cell_config(args.config).inspection
+    tol_text = args.tolerance or (str(table["tolerance_mm"]) if "tolerance_mm" in table else None)
+    overall = Tolerance.parse(tol_text) if tol_text else None
+    tolerances = args.tolerances or table.get("tolerances")
+    spec = load_spec(tolerances, overall) if tolerances else ToleranceSpec(overall, [])
+    transform = None
+    if args.transform:
+        transform = read_transform(args.transform)
+    elif table.get("T_world_from_part") is not None:
+        transform = np.linalg.inv(np.asarray(table["T_world_from_part"], float))
+    align = args.align or table.get("align", "bestfit")
+    if align == "asmeasured" and transform is None:
+        raise ValueError("asmeasured alignment needs --transform or [inspection] "
+                         "T_world_from_part")
+    inspection = InspectionSettings(align, transform, None, spec,
+                                    float(table.get("max_distance_mm", 5.0)))
+    return InspectSettings(args.nominal or table.get("nominal"), args.unit or table.get("unit"),
+                           float(table.get("chordal_mm", 0.01)), inspection,
+                           Path(args.out) if args.out else None)
+
+
+def inspect_main(args: argparse.Namespace) -> int:
+    from scancell.workers.inspect import InspectWorker
+
+    try:
+        settings = inspect_settings(args)
+    except ValueError as exc:
+        return fail("worker inspect", str(exc))
+    return serve(args, "worker inspect", lambda bus: InspectWorker(bus, settings),
+                 lambda bus: f"inspect worker on cell {bus.keys.cell!r}: waiting for fused "
+                             f"models (default nominal {settings.nominal or '-'}, "
+                             f"{settings.inspection.align})")
 
 
 def scan_main(args: argparse.Namespace) -> int:

@@ -80,6 +80,16 @@ class CellKeys:
     def fusion_report(self) -> str:
         return f"{self.prefix}/fusion/report"
 
+    @property
+    def inspect_report(self) -> str:
+        """The inspection of a job's fused model against its nominal (``scancell.InspectionReport``)."""
+        return f"{self.prefix}/inspect/report"
+
+    @property
+    def inspect_cloud(self) -> str:
+        """The inspected model in the part frame, with its signed deviation (foxglove.PointCloud)."""
+        return f"{self.prefix}/inspect/cloud"
+
     def recorder_status(self, name: str) -> str:
         return f"{self.prefix}/recorder/{name}/status"
 

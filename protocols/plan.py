@@ -7,6 +7,7 @@ TOML (or the same structure as JSON)::
     speed = 0.2                  # fraction of the robot's maximum joint speed
     j6_angles_deg = [120.0, -120.0] # the J6 turns for P2, P3 (those of the hand-eye calibration)
     tracker_repeats = 5          # tracker shots averaged per point
+    nominal = "/data/cad/car_rear.step"  # optional: the part's CAD, for the inspect worker
 
     [[station]]
     name = "s01"
@@ -62,11 +63,15 @@ class Plan:
     j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG
     tracker_repeats: int = 5
     extra: dict[str, Any] = field(default_factory=dict)  # planner's report: coverage, overlaps
+    #: the part's nominal CAD (a path the inspect worker can read), or None
+    nominal: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         head: dict[str, Any] = {"name": self.name, "speed": self.speed,
                                 "j6_angles_deg": list(self.j6_angles_deg),
                                 "tracker_repeats": self.tracker_repeats}
+        if self.nominal:
+            head["nominal"] = self.nominal
         if self.extra:
             head["report"] = self.extra
         stations = []
@@ -149,6 +154,10 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
     repeats = head.get("tracker_repeats", 5)
     if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:
         raise PlanError(f"{where}: [plan] tracker_repeats must be an integer 1..100")
+    nominal = head.get("nominal")
+    if nominal is not None and (not isinstance(nominal, str) or not nominal.strip()):
+        raise PlanError(f"{where}: [plan] nominal must be the path of the part's CAD (STEP or "
+                        f"mesh), got {nominal!r}")
     out: list[PlanStation] = []
     seen: set[str] = set()
     for i, s in enumerate(stations):
@@ -184,4 +193,5 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
         out.append(PlanStation(name, joints, None if axis is None
                                else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign))
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
-                dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {})
+                dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {},
+                nominal)

@@ -126,7 +126,15 @@ def _car_rear_grid(spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
     # put grid lines on the licence-plate walls so they stay steep
     ys = np.unique(np.concatenate([ys, *PLATE_BODY_EDGES[:1], *PLATE_FLOOR_EDGES[:1]]))
     zs = np.unique(np.concatenate([zs, *PLATE_BODY_EDGES[1:], *PLATE_FLOOR_EDGES[1:]]))
-    return ys, zs
+
+    def off_the_walls(v: np.ndarray, body: tuple[float, float], floor: tuple[float, float]):
+        inside = np.zeros(len(v), bool)
+        for a, b in zip(body, floor, strict=True):  # nothing between a wall's two edges
+            inside |= (v > min(a, b) + 1e-9) & (v < max(a, b) - 1e-9)
+        return v[~inside]
+
+    return (off_the_walls(ys, PLATE_BODY_EDGES[0], PLATE_FLOOR_EDGES[0]),
+            off_the_walls(zs, PLATE_BODY_EDGES[1], PLATE_FLOOR_EDGES[1]))
 
 
 def car_rear(spacing_mm: float = 2.0) -> o3d.geometry.TriangleMesh:

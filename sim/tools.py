@@ -201,4 +201,24 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.sim_command == "targets":
         return targets(args)
+    if args.sim_command == "nominal":
+        return nominal(args)
     return render(args)
+
+
+def nominal(args: argparse.Namespace) -> int:
+    """The part's nominal CAD (STEP with named faces, STL) in its own frame, and the part's
+    pose in the tracker frame (``T_world_from_part``: the fixture, for ``--align asmeasured``)."""
+
+    from scancell.sim.cad import export_nominal
+
+    try:
+        files = export_nominal(args.part, args.out)
+    except (ValueError, OSError) as exc:
+        print(f"scancell sim nominal: {exc}", file=sys.stderr)
+        return 2
+    pose = Path(args.out) / "T_world_from_part.json"
+    pose.write_text(json.dumps({"T_world_from_part": SimCellConfig().T_world_from_part.tolist()}))
+    for kind, path in {**files, "pose": str(pose)}.items():
+        print(f"{kind}: {path}")
+    return 0

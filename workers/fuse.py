@@ -10,7 +10,8 @@ Inputs:
 Outputs:
 - ``tf/ecs_<station>`` and ``tf/mcs_<station>``: the frame tree ``world <- ecs_i <- mcs_i``;
 - ``fusion/cloud``: the growing fused cloud in ``world``, thinned to ``display_voxel_mm`` for a
-  viewer;
+  viewer; at the end of a job the whole model (``meta.final``; with the plan's ``nominal``), which
+  the inspect worker and ``scancell inspect REC.mcap`` take;
 - at the end of a job, ``fusion/report`` (``scancell.FusionReport``) and, with ``--out DIR``,
   ``DIR/<job>/``: ``fused.ply``, ``fused.e57``, ``mesh.ply`` and ``report/report.md`` with
   pictures.
@@ -53,6 +54,8 @@ class JobStations:
     #: The stations the job's final event says were measured (its samples travel on other keys
     #: and may still be on their way).
     announced: set[str] = field(default_factory=set)
+    #: The plan's nominal CAD, when it names one (for the inspect worker).
+    nominal: str | None = None
 
 
 @dataclass
@@ -140,6 +143,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 job = self._job(e["job_id"])
                 job.ended = e["state"]
                 job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
+                job.nominal = result.get("nominal")
             self.submit(("end", e["job_id"]))
 
     # ---------------------------------------------------------------- worker thread
@@ -213,8 +217,16 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                     "error": "no station could be fused" + ("" if he else ": no hand-eye")}
             self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
             return body
-        body = build_report(job_id, stations, np.asarray(he["T_ecs_from_mcs"]), he,
-                            self.settings, job.ended)
+        body, fused = build_report(job_id, stations, np.asarray(he["T_ecs_from_mcs"]), he,
+                                   self.settings, job.ended)
+        now = messages.now_ns()
+        meta = {"job_id": job_id, "stations": len(stations), "final": True}
+        if job.nominal:
+            meta["nominal"] = job.nominal
+        extra = None if fused.uncertainty is None else {"uncertainty": fused.uncertainty}
+        self.bus.publish(self.bus.keys.fusion_cloud, fg.encode_proto(
+            fg.point_cloud(fused.points, now, "world", extra)),
+            Attachment(now, len(stations), None, meta))
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
@@ -222,8 +234,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
 
 def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarray,
                  hand_eye: dict[str, Any], settings: FuseSettings,
-                 state: str | None) -> dict[str, Any]:
-    """Fused model, overlap metrics and (in simulation) the true error; files if out_dir."""
+                 state: str | None) -> tuple[dict[str, Any], Any]:
+    """The report (overlap metrics and, in simulation, the true error; files if out_dir) and
+    the fused model."""
     from scancell.analysis.metrics import MetricsError, compare_clouds
 
     t0 = time.perf_counter()
@@ -256,7 +269,7 @@ def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarra
         body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
                                       settings.mesh)
     body["seconds"] = round(time.perf_counter() - t0, 2)
-    return body
+    return body, fused
 
 
 def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | None,

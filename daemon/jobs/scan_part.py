@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -45,8 +46,7 @@ def plan_from_request(req: dict[str, Any], geometry: CellGeometry | None = None,
         missing = sorted(set(only) - {s.name for s in plan.stations})
         if missing:
             raise CommandError("invalid", f"stations {missing} are not in plan {plan.name!r}")
-        plan = Plan(plan.name, tuple(s for s in plan.stations if s.name in only), plan.speed,
-                    plan.j6_angles_deg, plan.tracker_repeats, plan.extra)
+        plan = replace(plan, stations=tuple(s for s in plan.stations if s.name in only))
     return plan
 
 
@@ -85,8 +85,7 @@ def solve_poses(plan: Plan, geometry: CellGeometry | None, seed_rad: np.ndarray 
         seed = q
         out.append(PlanStation(st.name, tuple(float(v) for v in np.degrees(q)), st.axis_mm,
                                st.mcs_pose_world, st.j6_sign))
-    return Plan(plan.name, tuple(out), plan.speed, plan.j6_angles_deg, plan.tracker_repeats,
-                plan.extra)
+    return replace(plan, stations=tuple(out))
 
 
 def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
@@ -199,5 +198,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         except BaseException:
             await stop_motion([robot, axis])
             raise
-    return {"plan": plan.name, "stations": done, "seconds": round(time.monotonic() - t_start, 1)}
+    result = {"plan": plan.name, "stations": done, "seconds": round(time.monotonic() - t_start, 1)}
+    if plan.nominal:
+        result["nominal"] = plan.nominal
+    return result
 

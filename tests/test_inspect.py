@@ -1,0 +1,279 @@
+"""``scancell inspect``: a measured cloud against its CAD.
+
+The checks mirror how an independent one reads the result: a cloud of the simulated car rear
+with known form errors, moved by a few mm and degrees, is inspected against the nominal (STL and
+STEP) with ``--align bestfit``; the ``deviation`` property of ``--out-ply`` must give each
+defect's depth within 0.02 mm with its sign, and |mean| <= 0.01 mm elsewhere.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scancell.analysis import alignment as al
+from scancell.analysis.cloud_io import write_ply
+from scancell.analysis.inspection import InspectionError, InspectionSettings, inspect_cloud
+from scancell.analysis.nominal import NominalError, load_nominal
+from scancell.analysis.tolerance import Tolerance, ToleranceError, parse_spec
+from scancell.cli import main as cli_main
+from scancell.sim import parts
+from scancell.sim.cad import export_nominal
+from scipy.spatial.transform import Rotation
+
+pytestmark = pytest.mark.unit
+
+
+def moved(points: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The points moved by a few mm and degrees: (moved points, T_measured_from_part)."""
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-3, 3, 3), degrees=True).as_matrix()
+    T[:3, 3] = rng.uniform(-5, 5, 3)
+    return al.apply(T, points), T
+
+
+def sample(defects: tuple[str, ...], n: int = 250_000, noise_mm: float = 0.015,
+           seed: int = 1) -> np.ndarray:
+    o3d.utility.random.seed(seed)
+    mesh = parts.car_rear_defects(defects=defects)
+    pts = np.asarray(mesh.sample_points_uniformly(n).points)
+    return pts + np.random.default_rng(seed).normal(0, noise_mm, pts.shape)
+
+
+@pytest.fixture(scope="module")
+def cad(tmp_path_factory):
+    """The car rear's nominal: STEP (named faces) and STL, and the STEP loaded once."""
+    folder = tmp_path_factory.mktemp("nominal")
+    files = export_nominal("car_rear_defects", folder)
+    return {**files, "step_nominal": load_nominal(files["step"])}
+
+
+def check_defects(points_part: np.ndarray, deviation: np.ndarray,
+                  defects: tuple[str, ...]) -> None:
+    """Each defect's depth (within 5 mm of its point) within 0.02 mm, its sign right; the mean
+    elsewhere within 0.01 mm of zero."""
+    y, z = points_part[:, 1], points_part[:, 2]
+    for d in parts.car_rear_defects_truth(defects):
+        near = np.hypot(y - d.at_mm[1], z - d.at_mm[2]) < 5.0
+        assert near.sum() > 10, d.name
+        got = float(deviation[near].mean())
+        assert np.sign(got) == np.sign(d.deviation_mm), (d.name, got, d.deviation_mm)
+        assert abs(got - d.deviation_mm) < 0.02, (d.name, got, d.deviation_mm)
+    dent = np.hypot(y - parts.DENT_YZ[0], z - parts.DENT_YZ[1]) < 4 * parts.DENT_SIGMA_MM
+    elsewhere = ~dent & (y < parts.FLANGE_Y0 - 20)
+    assert abs(float(deviation[elsewhere].mean())) <= 0.01
+
+
+def test_step_nominal_has_named_faces_unit_and_outward_normals(cad):
+    n = cad["step_nominal"]
+    assert n.unit == "mm" and n.chordal_tolerance_mm == 0.01
+    assert set(n.face_names) == {"body", "bumper", "plate", "plate_walls"}
+    assert np.allclose(n.vertices.min(axis=0), [0, -700, -250], atol=0.05)
+    assert np.allclose(n.vertices.max(axis=0), [400, 700, 250], atol=0.05)
+    # a car body's outside faces the viewer at -x, as the simulated part's mesh does
+    assert np.mean(n.triangle_normals[:, 0] < 0) > 0.99
+    # the B-spline CAD and the simulated facets agree within the facets' own chord error
+    pts = sample((), 20_000, 0.0)
+    from scancell.analysis.deviation import closest_points
+
+    d = np.abs(closest_points(n, pts).deviation)
+    assert np.percentile(d, 99.9) < 0.02 and d.max() < 0.2  # the recess's corners differ most
+
+
+def test_inspect_cli_finds_each_defect_against_stl(cad, tmp_path):
+    truth = sample(("dent", "flange"))
+    measured, _ = moved(truth, seed=3)
+    write_ply(tmp_path / "measured.ply", measured)
+    code = cli_main(["inspect", str(tmp_path / "measured.ply"), "--nominal", cad["stl"],
+                     "--align", "bestfit", "--json", str(tmp_path / "out.json"),
+                     "--out-ply", str(tmp_path / "out.ply"), "--tolerance", "0.3",
+                     "--report", str(tmp_path / "report")])
+    assert code == 1  # the dent and the flange are out of +-0.3 mm
+    ply = o3d.t.io.read_point_cloud(str(tmp_path / "out.ply"))
+    for name in ("deviation", "normals", "in_range"):  # nx, ny, nz: Open3D's normals
+        assert name in ply.point, name
+    header = (tmp_path / "out.ply").read_bytes()[:400].decode("ascii", "replace")
+    assert "property float deviation" in header and "property float nx" in header
+    part = ply.point.positions.numpy().astype(float)
+    dev = ply.point["deviation"].numpy().reshape(-1).astype(float)
+    # one row per input point, in input order, in the part frame
+    assert len(dev) == len(truth)
+    assert np.abs(part - truth).max() < 0.05
+    check_defects(truth, dev, ("dent", "flange"))
+    body = json.loads((tmp_path / "out.json").read_text())
+    assert body["alignment"]["method"] == "bestfit" and body["tolerances"]["pass"] is False
+    assert 0.5 < body["alignment"]["used_fraction"] < 1.0
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert "FAIL" in html and html.count("data:image/png;base64,") >= 5
+    assert "src=\"http" not in html  # self-contained
+    rows = list(csv.DictReader(open(tmp_path / "report" / "regions.csv")))
+    assert rows[0]["name"] == "whole part" and rows[0]["pass"] == "False"
+
+
+def test_inspect_against_step_with_face_regions(cad, tmp_path):
+    truth = sample(("dent", "flange"), seed=4)
+    measured, _ = moved(truth, seed=5)
+    spec = parse_spec({"tolerance_mm": 0.3, "region": [
+        {"name": "plate", "faces": ["plate", "plate_walls"], "tolerance_mm": 0.1},
+        {"name": "dent zone", "sphere": {"centre": [104, -350, 100], "radius": 30}},
+        {"name": "flank", "box": [[0, 600, -250], [420, 700, 250]], "lower_mm": -0.1,
+         "upper_mm": 0.7}]})
+    result = inspect_cloud(measured, cad["step_nominal"], InspectionSettings(tolerance=spec))
+    check_defects(truth, result.deviation, ("dent", "flange"))
+    regions = {r["name"]: r for r in result.tolerances["regions"]}
+    assert regions["plate"]["pass"] is True and regions["plate"]["points"] > 1000
+    assert regions["dent zone"]["pass"] is False and regions["dent zone"]["min_mm"] < -0.3
+    assert regions["flank"]["pass"] is True
+    assert result.tolerances["pass"] is False
+    # the plate's points are those whose closest CAD face is named plate or plate_walls
+    faces = np.asarray(cad["step_nominal"].face_names)[result.face_names_of_points()]
+    assert regions["plate"]["points"] == int(np.isin(faces, ["plate", "plate_walls"]).sum())
+
+
+def test_inspect_cli_reads_step(cad, tmp_path):
+    truth = sample(("dent",), 120_000, seed=6)
+    measured, _ = moved(truth, seed=7)
+    write_ply(tmp_path / "m.ply", measured)
+    assert cli_main(["inspect", str(tmp_path / "m.ply"), "--nominal", cad["step"],
+                     "--out-ply", str(tmp_path / "o.ply"), "--json", str(tmp_path / "o.json")]) == 0
+    dev = o3d.t.io.read_point_cloud(str(tmp_path / "o.ply")).point["deviation"].numpy().ravel()
+    check_defects(truth, dev.astype(float), ("dent",))
+    assert json.loads((tmp_path / "o.json").read_text())["nominal"]["named_faces"] == [
+        "body", "bumper", "plate", "plate_walls"]
+
+
+def test_a_twist_shows_as_opposite_corners(cad):
+    truth = sample(("twist",), 200_000, seed=8)
+    measured, _ = moved(truth, seed=9)
+    result = inspect_cloud(measured, load_nominal(cad["stl"]))
+    y, z = truth[:, 1], truth[:, 2]
+    got = []
+    for d in parts.car_rear_defects_truth(("twist",)):
+        near = np.hypot(y - d.at_mm[1], z - d.at_mm[2]) < 5
+        got.append(float(result.deviation[near].mean()))
+        assert np.sign(got[-1]) == np.sign(d.deviation_mm)
+    want = [d.deviation_mm for d in parts.car_rear_defects_truth(("twist",))]
+    # the best fit may take up part of a twist as a tilt; the corners' difference stays
+    assert abs((got[0] - got[1]) - (want[0] - want[1])) < 0.3 * abs(want[0] - want[1])
+
+
+def test_asmeasured_and_rps_recover_the_fixture(cad):
+    nominal = load_nominal(cad["stl"])
+    truth = sample((), 150_000, 0.005, seed=10)
+    measured, T = moved(truth, seed=11)
+    exact = np.linalg.inv(T)
+    a = inspect_cloud(measured, nominal, InspectionSettings("asmeasured", exact))
+    assert a.alignment.method == "asmeasured" and a.alignment.rms_mm < 0.01
+    # 3-2-1 from probed points: 3 locked along x (the panel's normal), 2 along y, 1 along z
+    names_locks = [("A1", [100.0, -300.0, 0.0], "x"), ("A2", [100.0, 300.0, 0.0], "x"),
+                   ("A3", [30.0, 0.0, -200.0], "x"), ("B1", [50.0, -500.0, 0.0], "y"),
+                   ("B2", [50.0, -500.0, 150.0], "y"), ("C1", [80.0, 0.0, 50.0], "z")]
+    rps = [al.RpsPoint(n, np.array(p), lock, "point", al.apply(T, np.array(p)[None])[0])
+           for n, p, lock in names_locks]
+    r = al.rps(nominal, measured, rps)
+    assert np.abs(r.T_part_from_measured - exact).max() < 1e-6
+    # the same system measured on the cloud itself: surface points, found from a rough start
+    surface = []
+    for n, (y, z), lock in (("S1", (-300, 0), "x"), ("S2", (300, 0), "x"),
+                            ("S3", (0, -200), "x"), ("S4", (-650, 0), "y"),
+                            ("S5", (-650, 150), "y"), ("S6", (0, 240), "z")):
+        x = float(parts.car_rear_depth(np.array(y), np.array(z)))
+        surface.append(al.RpsPoint.from_mapping({"name": n, "nominal": [x, y, z], "lock": lock,
+                                                 "feature": "surface", "search_mm": 6.0}))
+    rough = exact.copy()
+    rough[:3, 3] += [1.0, -1.0, 0.5]
+    probed = al.RpsPoint("S6", surface[5].nominal, "z", "point",
+                         al.apply(T, surface[5].nominal[None])[0])
+    r = al.rps(nominal, measured, [*surface[:5], probed], rough)
+    err = np.linalg.norm(al.apply(r.T_part_from_measured, measured[:1000]) - truth[:1000], axis=1)
+    assert err.max() < 0.05, err.max()
+
+
+def test_bad_rps_input_is_named():
+    with pytest.raises(al.AlignmentError, match="lock"):
+        al.RpsPoint.from_mapping({"name": "A1", "nominal": [0, 0, 0], "lock": "xq"})
+    with pytest.raises(al.AlignmentError, match="needs 'radius_mm'"):
+        al.RpsPoint.from_mapping({"name": "T1", "nominal": [0, 0, 0], "lock": "x",
+                                  "feature": "sphere"})
+    pts = [al.RpsPoint(f"P{i}", np.array([0.0, float(i), 0.0]), "x", "point", np.zeros(3))
+           for i in range(3)]
+    with pytest.raises(al.AlignmentError, match=r"fix only .* of the 6 degrees"):
+        al.rps(None, np.zeros((10, 3)), pts)
+
+
+def test_rps_missing_feature_is_named(cad):
+    nominal = load_nominal(cad["stl"])
+    truth = sample((), 200_000, 0.0, seed=12)
+    holes = truth[np.hypot(truth[:, 1] - 300, truth[:, 2]) > 30]  # nothing measured at A2
+    rps = [al.RpsPoint.from_mapping({"name": n, "nominal": [float(parts.car_rear_depth(
+        np.array(y), np.array(z))), y, z], "lock": lock})
+           for n, y, z, lock in (("A1", -300, 0, "x"), ("A2", 300, 0, "x"), ("A3", 0, -200, "x"),
+                                 ("B1", -650, 0, "y"), ("B2", -650, 150, "y"),
+                                 ("C1", 0, 240, "z"))]
+    with pytest.raises(al.AlignmentError, match=r"'A2'.*missing from the scan"):
+        al.rps(nominal, holes, rps)
+
+
+def test_wrong_unit_no_overlap_no_convergence_and_bad_step_are_clear_errors(cad, tmp_path):
+    nominal = load_nominal(cad["stl"])
+    cloud = sample((), 30_000, 0.0, seed=13)
+    # the STL read in metres: the part would be 1000 x too large
+    with pytest.raises(NominalError, match=r"\d+x larger than the measured cloud: a wrong unit"):
+        inspect_cloud(cloud, load_nominal(cad["stl"], unit="m"))
+    with pytest.raises(NominalError, match=r"\d+x smaller than the measured cloud: a wrong unit \(is the nominal in metres\?"):
+        inspect_cloud(cloud * 1000.0, nominal)
+    # a cloud of something else (a ball far from the part)
+    ball = np.random.default_rng(0).normal(size=(5000, 3))
+    ball = 40 * ball / np.linalg.norm(ball, axis=1, keepdims=True) + [2000.0, 0, 0]
+    with pytest.raises((al.AlignmentError, InspectionError), match=r"overlap|not a match|does not match|converge"):
+        inspect_cloud(ball, nominal)
+    with pytest.raises(al.AlignmentError, match="did not converge"):
+        al.best_fit(nominal, moved(cloud, 1)[0], max_iterations=1)
+    bad = tmp_path / "bad.step"
+    bad.write_text("ISO-10303-21;\nthis is not STEP\n")
+    with pytest.raises(NominalError, match="cannot read this STEP"):
+        load_nominal(bad)
+    with pytest.raises(NominalError, match="no such file"):
+        load_nominal(tmp_path / "missing.stl")
+    with pytest.raises(NominalError, match="given unit 'm' contradicts"):
+        load_nominal(cad["step"], unit="m", chordal_tolerance_mm=1.0)
+
+
+def test_cli_bad_input_exits_2_and_writes_nothing(cad, tmp_path, capsys):
+    write_ply(tmp_path / "ball.ply", np.random.default_rng(1).normal(size=(2000, 3)) * 10 + 5000)
+    for args, message in (
+            (["--nominal", str(tmp_path / "bad.step")], "no such file"),
+            (["--nominal", cad["stl"], "--tolerance", "0.5,-0.5"], "LOWER must be"),
+            (["--nominal", cad["stl"], "--align", "asmeasured"], "needs --transform"),
+            (["--nominal", cad["stl"], "--align", "rps"], "needs --rps"),
+            (["--nominal", cad["stl"], "--transform", "1,2,3"], "16 numbers"),
+            (["--nominal", cad["stl"], "--sections", "q=4"], "AXIS=MM"),
+            (["--nominal", cad["stl"]], "overlap|not a match|does not match|converge")):
+        out = tmp_path / "out"
+        code = cli_main(["inspect", str(tmp_path / "ball.ply"), *args, "--json",
+                         str(out / "r.json"), "--report", str(out), "--out-ply", str(out / "o.ply")])
+        err = capsys.readouterr().err
+        assert code == 2, args
+        assert "scancell inspect:" in err
+        import re
+
+        assert re.search(message, err), (message, err)
+        assert not out.exists(), "no report claiming a result"
+
+
+def test_tolerance_spec_errors_name_the_region(cad):
+    with pytest.raises(ToleranceError, match=r"region 1 .*exactly one of"):
+        parse_spec({"tolerance_mm": 0.2, "region": [{"name": "a"}]})
+    with pytest.raises(ToleranceError, match="max corner"):
+        parse_spec({"tolerance_mm": 0.2, "region": [{"box": [[0, 0, 0], [-1, 1, 1]]}]})
+    with pytest.raises(ToleranceError, match="no tolerance"):
+        parse_spec({"region": [{"sphere": {"centre": [0, 0, 0], "radius": 2}}]})
+    spec = parse_spec({"tolerance_mm": 0.2, "region": [{"name": "x", "faces": ["hood"]}]})
+    cloud = sample((), 20_000, 0.0, seed=14)
+    with pytest.raises(NominalError, match=r"no face named 'hood'.*body, bumper, plate"):
+        inspect_cloud(cloud, cad["step_nominal"], InspectionSettings(tolerance=spec))
+    assert Tolerance.parse("-0.3,0.5").to_json() == {"lower_mm": -0.3, "upper_mm": 0.5}

@@ -1,0 +1,155 @@
+"""``scancell worker inspect``: each scan_part job's fused model against its nominal CAD.
+
+Input: the fuse worker's final ``fusion/cloud`` of a job (``meta.final``), which names the
+plan's nominal when the plan has one; otherwise the worker's own (the cell config's
+``[inspection]`` or the command line). A job with neither is not inspected.
+
+Outputs:
+- ``inspect/report`` (``scancell.InspectionReport``): alignment, deviation, tolerances,
+  coverage, sections; or ``error`` naming why there is no result;
+- ``inspect/cloud``: the model in the ``part`` frame, thinned for a viewer, with float fields
+  ``deviation`` (mm) and ``red``, ``green``, ``blue``, ``alpha`` (the report's colour scale),
+  and ``tf/part`` placing the part in ``world``;
+- with ``--out DIR``: ``DIR/<job>/inspection/`` (report.html, CSV, JSON, inspected.ply).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.inspection import InspectionSettings
+from scancell.bus.protocol import BusLike
+from scancell.protocols import foxglove_schemas as fg
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment, EncodingError
+from scancell.workers.base import ThreadedWorker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class InspectSettings:
+    #: the nominal a job gets when its plan names none (None: such jobs are not inspected)
+    nominal: str | None = None
+    unit: str | None = None
+    chordal_mm: float = 0.01
+    #: align, T_part_from_measured (the fixture, or where bestfit starts), tolerances
+    inspection: InspectionSettings = field(default_factory=InspectionSettings)
+    out_dir: Path | None = None
+    display_points: int = 300_000
+
+
+class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
+    thread_name = "inspect-worker"
+    join_timeout_s = 300.0
+
+    def __init__(self, bus: BusLike, settings: InspectSettings) -> None:
+        super().__init__(bus)
+        self.settings = settings
+        self.reports: list[dict[str, Any]] = []
+        self._nominals: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def on_start(self) -> None:
+        if self.settings.nominal:  # a STEP takes seconds to tessellate: before the first job
+            self.submit(("", None, self.settings.nominal))
+        self.subscribe(self.bus.keys.fusion_cloud, self._on_cloud)
+
+    def _on_cloud(self, sample: Any) -> None:
+        meta = sample.attachment.meta
+        if not meta.get("final"):
+            return  # the growing display cloud
+        try:
+            pts = fg.cloud_points(sample.decode()).astype(float)
+        except EncodingError as exc:
+            log.warning("%s: %s", sample.key, exc)
+            return
+        self.submit((str(meta.get("job_id", "?")), pts, meta.get("nominal")))
+
+    def _nominal(self, path: str):
+        from scancell.analysis.nominal import load_nominal
+
+        if path not in self._nominals:
+            self._nominals[path] = load_nominal(path, self.settings.unit, self.settings.chordal_mm)
+        return self._nominals[path]
+
+    def handle(self, item: tuple[str, np.ndarray | None, str | None]) -> None:
+        from scancell.analysis.nominal import NominalError
+
+        job_id, points, nominal = item
+        if points is not None:
+            self.inspect(job_id, points, nominal)
+            return
+        try:
+            self._nominal(nominal or "")
+        except NominalError as exc:
+            log.error("default nominal: %s", exc)
+
+    def inspect(self, job_id: str, points: np.ndarray, plan_nominal: str | None = None
+                ) -> dict[str, Any] | None:
+        from scancell.analysis.alignment import AlignmentError
+        from scancell.analysis.inspection import InspectionError, inspect_cloud
+        from scancell.analysis.nominal import NominalError
+        from scancell.analysis.tolerance import ToleranceError
+
+        path = plan_nominal or self.settings.nominal
+        if not path:
+            log.info("job %s: no nominal named by the plan or the cell; not inspected", job_id)
+            return None
+        log.info("job %s: inspecting %d points against %s", job_id, len(points), path)
+        try:
+            result = inspect_cloud(points, self._nominal(path), self.settings.inspection,
+                                   progress=lambda m: log.info("job %s: %s", job_id, m))
+            body: dict[str, Any] = {"job_id": job_id, "measured": f"fusion/cloud of {job_id}",
+                                    **result.to_json()}
+            if self.settings.out_dir is not None:
+                body["files"] = self._write(result, job_id)
+        except (NominalError, AlignmentError, InspectionError, ToleranceError, OSError) as exc:
+            log.error("job %s: inspection against %s failed: %s", job_id, path, exc)
+            body = {"job_id": job_id, "nominal": path, "error": str(exc)}
+            self.bus.publish_json(self.bus.keys.inspect_report, body, "scancell.InspectionReport")
+            self.reports.append(body)
+            return body
+        self._publish_cloud(result, job_id)
+        self.bus.publish_json(self.bus.keys.inspect_report, body, "scancell.InspectionReport")
+        self.reports.append(body)
+        verdict = body["tolerances"].get("pass")
+        log.info("job %s: deviation mean %+.4f mm, std %.4f mm; %s", job_id,
+                 body["deviation"]["mean_mm"], body["deviation"]["std_mm"],
+                 {True: "PASS", False: "FAIL", None: "no tolerance"}[verdict])
+        return body
+
+    def _write(self, result: Any, job_id: str) -> dict[str, str]:
+        from scancell.analysis.cloud_io import write_ply
+        from scancell.analysis.inspection_report import write_report
+
+        folder = self.settings.out_dir / job_id / "inspection"
+        files = write_report(result, folder, f"Inspection of job {job_id}",
+                             f"fusion/cloud of job {job_id}")
+        files["ply"] = str(folder / "inspected.ply")
+        write_ply(files["ply"], result.points, {
+            "deviation": result.deviation, "nx": result.closest.normals[:, 0],
+            "ny": result.closest.normals[:, 1], "nz": result.closest.normals[:, 2],
+            "in_range": result.in_range.astype(np.float32)})
+        return files
+
+    def _publish_cloud(self, result: Any, job_id: str) -> None:
+        from scancell.analysis.inspection_report import deviation_colours
+
+        ok = np.flatnonzero(result.in_range)
+        keep = ok[np.linspace(0, len(ok) - 1, min(len(ok), self.settings.display_points)).astype(int)]
+        rgba = deviation_colours(result, result.deviation[keep])
+        now = messages.now_ns()
+        T_world_from_part = np.linalg.inv(result.alignment.T_part_from_measured)
+        self.bus.publish(self.bus.keys.transform("part"), fg.encode_proto(
+            fg.frame_transform(T_world_from_part, now, "world", "part")))
+        self.bus.publish(self.bus.keys.inspect_cloud, fg.encode_proto(fg.point_cloud(
+            result.points[keep], now, "part",
+            {"deviation": result.deviation[keep], "red": rgba[:, 0], "green": rgba[:, 1],
+             "blue": rgba[:, 2], "alpha": rgba[:, 3]})),
+            Attachment(now, 0, None, {"job_id": job_id}))
