@@ -150,7 +150,7 @@ def main(args: argparse.Namespace) -> int:
         wait_for(lambda: all(s["state"] == "connected" for s in
                              client.status()["devices"].values()), 90, "connected devices")
         procs.start("recorder", ["record", "--dir", str(run_dir / "recordings"),
-                                 "--job-linger-s", "5"], env)
+                                 "--job-linger-s", "30"], env)
 
         stage("stereo calibration from rendered chessboard views")
         print("   " + run(["sim", "targets", "--out", str(run_dir / "targets"), "--scale",

@@ -29,8 +29,15 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert s["true_error_mm"]["mean"] < 0.2 and s["stations"] == 3 and s["points"] > 1000
     assert s["seconds"] > 0
     assert "dominant" in s["error_budget"] and "error budget:" in out.stdout
+    # the demo ends with the inspection of the fused model against the part's STEP
+    ins = s["inspection"]
+    assert ins["nominal"].endswith("nominal/car_rear.step") and ins["alignment"] == "bestfit"
+    assert abs(ins["deviation_mm"]["mean"]) < 0.1 and ins["points"] == s["points"]
+    assert isinstance(ins["pass"], bool) and 0 < ins["nominal_covered_share"] < 1
     for name in ("fused.ply", "fused.e57", "mesh.ply", "report/report.md", "plan.toml",
-                 "calibration/stereo.yaml", "calibration/hand_eye/active.json"):
+                 "calibration/stereo.yaml", "calibration/hand_eye/active.json",
+                 "inspection/report.html", "inspection/inspected.ply", "nominal/car_rear.step",
+                 "nominal/car_rear.stl"):
         assert (run / name).exists(), name
     mcaps = sorted((run / "recordings").glob("*.mcap"))
     assert any(p.name.startswith("calibrate_hand_eye-") for p in mcaps)

@@ -76,7 +76,17 @@ def sim(make_daemon, client, tmp_path):
     fuse = FuseWorker(client.bus, FuseSettings(tmp_path / "fused", voxel_mm=1.0, mesh=False,
                                                truth=world.cell.surface_distance))
     fuse.start()
+    from scancell.analysis.inspection import InspectionSettings
+    from scancell.sim.cad import export_nominal
+    from scancell.workers.inspect import InspectSettings, InspectWorker
+
+    world.nominal = export_nominal("car_rear", tmp_path / "nominal")  # the plan names the STL
+    fixture = np.linalg.inv(world.cell.cfg.T_world_from_part)
+    inspect = InspectWorker(client.bus, InspectSettings(
+        None, inspection=InspectionSettings("bestfit", fixture), out_dir=tmp_path / "fused"))
+    inspect.start()
     yield world
+    inspect.stop()
     fuse.stop()
     scan_worker.stop()
     he.close()
@@ -92,8 +102,13 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     client.bus.subscribe(client.bus.keys.transform("*"), lambda s: tfs.append(s.decode()))
     rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=2.0))
     rec.start()
+    inspections: list = []
+    client.bus.subscribe(client.bus.keys.inspect_report, lambda s: inspections.append(s.decode()))
+    coloured: list = []
+    client.bus.subscribe(client.bus.keys.inspect_cloud, lambda s: coloured.append(s.decode()))
     with world.lock:
         plan = plan_for(world.cell)
+    plan["plan"]["nominal"] = world.nominal["stl"]
     job = client.call("job/scan_part", {"plan": plan})["job_id"]
     with pytest.raises(CommandError, match="busy"):
         client.call("home", {"joints_deg": [0, 0, 0, 0, 0, 0]})
@@ -122,6 +137,17 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     pts, fields = read_ply(files["ply"])
     assert len(pts) == r["points"] and "true_error_mm" in fields
 
+    # the plan named the part's CAD: the inspect worker compares the final fused model with it
+    ins = wait_until(lambda: inspections, 120, period_s=0.5, what="inspection report")[0]
+    assert ins["job_id"] == job and ins["nominal"]["source"] == world.nominal["stl"]
+    assert ins["alignment"]["method"] == "bestfit" and ins["deviation"]["points"] == r["points"]
+    # a perfect part: the signed deviation is the scan's error, as small as the true error
+    assert abs(ins["deviation"]["mean_mm"]) < 0.05 and ins["deviation"]["std_mm"] < 0.1, ins
+    cloud = wait_until(lambda: coloured, 30, what="inspect/cloud")[0]
+    assert cloud.frame_id == "part" and {f.name for f in cloud.fields} >= {
+        "deviation", "red", "green", "blue", "alpha"}
+    assert (tmp_path / "fused" / job / "inspection" / "report.html").exists()
+
     # the recorded session fuses to the same model offline, from its recorded clouds ...
     wait_until(lambda: rec.session is None or rec.session.job_id != job, 30, what="file closed")
     rec.stop()
@@ -132,6 +158,15 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     assert out.returncode == 0, out.stderr
     offline, _ = read_ply(tmp_path / "offline.ply")
     np.testing.assert_array_equal(offline, pts)
+    # the recording holds the final fused model: `scancell inspect REC.mcap` inspects it
+    out = subprocess.run([sys.executable, "-m", "scancell", "inspect", str(mcap), "--nominal",
+                          world.nominal["stl"], "--json", str(tmp_path / "offline.json")],
+                         capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    offline_ins = json.loads((tmp_path / "offline.json").read_text())
+    assert "final fused model of job" in offline_ins["measured"]
+    assert offline_ins["deviation"]["points"] == ins["deviation"]["points"]
+    assert abs(offline_ins["deviation"]["mean_mm"] - ins["deviation"]["mean_mm"]) < 1e-3
     # ... and from its raw frames and tracker points, decoded again
     out = subprocess.run([sys.executable, "-m", "scancell", "reprocess", str(mcap), "--out",
                           str(tmp_path / "re"), "--no-progress"], capture_output=True, text=True,

@@ -217,8 +217,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                     "error": "no station could be fused" + ("" if he else ": no hand-eye")}
             self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
             return body
-        body, fused = build_report(job_id, stations, np.asarray(he["T_ecs_from_mcs"]), he,
-                                   self.settings, job.ended)
+        # the model first, within the recorder's linger of the job's file; then the report
+        fused = fuse(stations, np.asarray(he["T_ecs_from_mcs"]), self.settings.voxel_mm)
         now = messages.now_ns()
         meta = {"job_id": job_id, "stations": len(stations), "final": True}
         if job.nominal:
@@ -227,20 +227,19 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.bus.publish(self.bus.keys.fusion_cloud, fg.encode_proto(
             fg.point_cloud(fused.points, now, "world", extra)),
             Attachment(now, len(stations), None, meta))
+        body = build_report(job_id, fused, stations, he, self.settings, job.ended)
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
 
 
-def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarray,
-                 hand_eye: dict[str, Any], settings: FuseSettings,
-                 state: str | None) -> tuple[dict[str, Any], Any]:
-    """The report (overlap metrics and, in simulation, the true error; files if out_dir) and
-    the fused model."""
+def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dict[str, Any],
+                 settings: FuseSettings, state: str | None) -> dict[str, Any]:
+    """Overlap metrics of the fused model and, in simulation, its true error; files if
+    out_dir."""
     from scancell.analysis.metrics import MetricsError, compare_clouds
 
     t0 = time.perf_counter()
-    fused = fuse(stations, T_ecs_from_mcs, settings.voxel_mm)
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
                             "points_merged": fused.merged_count, "points": len(fused.points),
                             "hand_eye_job": hand_eye.get("job_id"),
@@ -269,7 +268,7 @@ def build_report(job_id: str, stations: list[Station], T_ecs_from_mcs: np.ndarra
         body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
                                       settings.mesh)
     body["seconds"] = round(time.perf_counter() - t0, 2)
-    return body, fused
+    return body
 
 
 def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | None,
