@@ -62,6 +62,8 @@ class CellConfig:
     scanner: dict[str, Any] = field(default_factory=dict)
     #: ``[inspection]`` (INSPECTION_KEYS), paths made absolute; empty: no nominal for the cell
     inspection: dict[str, Any] = field(default_factory=dict)
+    #: ``[acceptance]`` (ACCEPTANCE_KEYS); empty: the cell states no acceptance test
+    acceptance: dict[str, Any] = field(default_factory=dict)
 
     @cached_property
     def geometry(self) -> CellGeometry | None:
@@ -86,7 +88,12 @@ class CellConfig:
 
 
 _TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
-             "inspection"}
+             "inspection", "acceptance"}
+#: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
+#: sizes (their certificates) and the MPEs, all mm
+ACCEPTANCE_NUMBERS = {"sphere_diameter_mm", "ballbar_length_mm", "ballbar_sphere_diameter_mm"}
+ACCEPTANCE_KEYS = ACCEPTANCE_NUMBERS | {"volume_size_mm", "volume_centre_mm", "plane_size_mm",
+                                        "positions", "mpe_mm"}
 #: ``[inspection]``: what the inspect worker compares each fused model with (paths relative
 #: to the config file)
 INSPECTION_KEYS = {"nominal", "unit", "chordal_mm", "align", "T_world_from_part", "tolerance_mm",
@@ -239,7 +246,39 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
                                             f"\"auto\", got {exp!r}")
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
                       simulator, recorder, planner, dict(scanner),
-                      _inspection(_table(raw, "inspection", err), path, err))
+                      _inspection(_table(raw, "inspection", err), path, err),
+                      _acceptance(_table(raw, "acceptance", err), err))
+
+
+def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
+    if not t:
+        return {}
+    unknown = set(t) - ACCEPTANCE_KEYS
+    if unknown:
+        raise err("[acceptance]", f"unknown key {sorted(unknown)[0]!r} (known: "
+                                  f"{', '.join(sorted(ACCEPTANCE_KEYS))})")
+    missing = sorted((ACCEPTANCE_KEYS - {"positions", "mpe_mm"}) - set(t))
+    if missing:
+        raise err("[acceptance]", f"missing {', '.join(missing)}")
+
+    def positive(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and v > 0
+
+    for key, n in (("volume_size_mm", 3), ("plane_size_mm", 2)):
+        if not (isinstance(t[key], list) and len(t[key]) == n and all(map(positive, t[key]))):
+            raise err(f"[acceptance] {key}", f"must be {n} positive lengths (mm)")
+    if not (isinstance(t["volume_centre_mm"], list) and len(t["volume_centre_mm"]) == 3):
+        raise err("[acceptance] volume_centre_mm", "must be x, y, z in the scanner frame (mm)")
+    for key in ACCEPTANCE_NUMBERS:
+        if not positive(t[key]):
+            raise err(f"[acceptance] {key}", f"must be a positive length (mm), got {t[key]!r}")
+    for table, known in (("positions", {"sphere", "ballbar", "plane"}),
+                         ("mpe_mm", {"PF", "PS", "SD", "F"})):
+        sub = t.get(table, {})
+        if not isinstance(sub, dict) or set(sub) - known or not all(map(positive, sub.values())):
+            raise err(f"[acceptance] {table}", f"must map {', '.join(sorted(known))} to "
+                                               f"positive numbers")
+    return dict(t)
 
 
 def _inspection(t: dict[str, Any], path: Path | None, err) -> dict[str, Any]:

@@ -28,7 +28,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("a measured cloud or recording against the part's CAD: deviation, tolerances, "
                 "report", "inspect"),
     "plan": ("stations covering a part: reachable, tracker in sight, 10-40 % overlap", "plan"),
-    "worker": ("analysis workers on the bus: scan, calibrate, fuse, inspect", "worker"),
+    "worker": ("analysis workers on the bus: scan, calibrate, fuse, inspect, acceptance",
+               "worker"),
+    "acceptance": ("VDI/VDE 2634 acceptance test of the scanner: run it on the cell, or evaluate "
+                   "a recording", "acceptance"),
     "record": ("record the cell's bus to MCAP, one file per session; recover, info", "record"),
     "replay": ("publish a recording again, as the live cell did", "replay"),
     "reprocess": ("run the analysis workers on a recording, without a bus", "reprocess"),

@@ -34,6 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                          "against the simulated part")
 
 
+    acc = sub.add_parser("acceptance", help="acceptance jobs' artefact scans -> the VDI/VDE 2634 "
+                                            "figures on acceptance/report")
+    add_bus_arguments(acc)
+    acc.add_argument("--out", default=None, help="folder for <job>/acceptance.json, .html")
     ins = sub.add_parser("inspect", help="each job's final fusion/cloud against the nominal the "
                                          "plan or the cell names -> inspect/report, "
                                          "inspect/cloud")
@@ -54,7 +58,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     return {"scan": scan_main, "calibrate": calibrate_main, "fuse": fuse_main,
-            "inspect": inspect_main}[args.worker](args)
+            "inspect": inspect_main, "acceptance": acceptance_main}[args.worker](args)
+
+
+def acceptance_main(args: argparse.Namespace) -> int:
+    from scancell.workers.acceptance import AcceptanceWorker
+
+    return serve(args, "worker acceptance",
+                 lambda bus: AcceptanceWorker(bus, Path(args.out) if args.out else None),
+                 lambda bus: f"acceptance worker on cell {bus.keys.cell!r}: waiting for "
+                             f"acceptance jobs (out {args.out or '-'})")
 
 
 def inspect_settings(args: argparse.Namespace):

@@ -19,6 +19,7 @@ import zenoh
 from scancell.bus import Bus, BusConfig
 from scancell.config import CellConfig
 from scancell.daemon.buslog import BusLogHandler
+from scancell.daemon.jobs.acceptance import acceptance
 from scancell.daemon.jobs.devices import stop_motion
 from scancell.daemon.jobs.hand_eye import calibrate_hand_eye
 from scancell.daemon.jobs.home import home
@@ -134,6 +135,8 @@ class Daemon:
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
                                                                  self.simulator, setup),
             "calibrate_projector": lambda ctx: calibrate_projector(ctx, self.supervisors),
+            "acceptance": lambda ctx: acceptance(ctx, self.supervisors, self.simulator,
+                                                 self.cfg.acceptance, setup),
             "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
@@ -145,6 +148,7 @@ class Daemon:
                  lambda r: self.jobs.start("calibrate_hand_eye", r)),
              "job/calibrate_projector": CellVerb(
                  lambda r: self.jobs.start("calibrate_projector", r)),
+             "job/acceptance": CellVerb(lambda r: self.jobs.start("acceptance", r)),
              "job/scan_part": CellVerb(self._cmd_scan_part),
              "home": CellVerb(lambda r: self.jobs.start("home", r)),
              "estop": CellVerb(self._cmd_estop, timeout_s=5.0),

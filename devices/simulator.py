@@ -26,6 +26,17 @@ class BallPlacer(Protocol):
     async def remove(self) -> None: ...
 
 
+class ArtefactPlacer(Protocol):
+    """Who puts the VDI/VDE 2634 artefacts in the scanner's measuring volume."""
+
+    async def place(self, kind: str, centre_mcs: np.ndarray, direction_mcs: np.ndarray) -> None:
+        """Place artefact ``kind`` (sphere, ballbar, plane) at ``centre_mcs`` (scanner frame,
+        mm); ``direction_mcs``: a ball bar's axis or a plane's normal."""
+        ...
+
+    async def remove(self) -> None: ...
+
+
 class Simulator(Protocol):
     """A simulated cell started from a ``[simulator]`` table; its servers speak the real
     devices' protocols on sockets, so the daemon's drivers cannot tell it from hardware."""
@@ -53,6 +64,10 @@ class Simulator(Protocol):
 
     def ball_placer(self) -> BallPlacer:
         """The simulated world placing the calibration ball, as an operator would."""
+        ...
+
+    def artefact_placer(self) -> ArtefactPlacer:
+        """The simulated world placing the acceptance test's artefacts."""
         ...
 
 

@@ -81,6 +81,16 @@ class CellKeys:
         return f"{self.prefix}/fusion/report"
 
     @property
+    def acceptance_sample(self) -> str:
+        """One scan of an acceptance job with its artefact's placement (``scancell.AcceptanceSample``)."""
+        return f"{self.prefix}/acceptance/sample"
+
+    @property
+    def acceptance_report(self) -> str:
+        """The VDI/VDE 2634 figures of an acceptance job (``scancell.AcceptanceReport``)."""
+        return f"{self.prefix}/acceptance/report"
+
+    @property
     def inspect_report(self) -> str:
         """The inspection of a job's fused model against its nominal (``scancell.InspectionReport``)."""
         return f"{self.prefix}/inspect/report"

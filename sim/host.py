@@ -24,6 +24,7 @@ from typing import Any
 import jsonschema
 import numpy as np
 from scancell.devices.dlpc350_projector import FLASH_LAYOUT_SCHEMA
+from scancell.sim.artefact_placer import SimArtefactPlacer
 from scancell.sim.ball_placer import SimBallPlacer
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.optics_profile import DEFAULT_PROFILE, EFFECTS, PROFILES, optics_profile
@@ -183,6 +184,11 @@ class SimHost:
         if self.world is None:
             raise RuntimeError("simulated cell not running")
         return SimBallPlacer(self.world, int(self.options.get("seed", 0)))
+
+    def artefact_placer(self) -> SimArtefactPlacer:
+        if self.world is None:
+            raise RuntimeError("simulated cell not running")
+        return SimArtefactPlacer(self.world, int(self.options.get("seed", 0)))
 
     def stop(self) -> None:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():

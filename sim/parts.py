@@ -218,6 +218,29 @@ def scanner_body() -> o3d.geometry.TriangleMesh:
     return m
 
 
+#: VDI/VDE 2634-2 artefacts as the simulated cell's calibration certificates state them (mm);
+#: deploy/cells/sim.toml [acceptance] repeats these values
+ACCEPTANCE_SPHERE_DIAMETER_MM = 50.0
+BALLBAR_LENGTH_MM, BALLBAR_SPHERE_DIAMETER_MM = 200.0, 30.0
+PLANE_SIZE_MM = (200.0, 50.0)
+
+
+def plane_artefact(size_mm: tuple[float, float] = PLANE_SIZE_MM, thickness_mm: float = 15.0
+                   ) -> o3d.geometry.TriangleMesh:
+    """A flatness standard: its front face at x = 0 facing -x, long along y, centred."""
+    m = o3d.geometry.TriangleMesh.create_box(thickness_mm, size_mm[0], size_mm[1])
+    m.translate([0.0, -size_mm[0] / 2, -size_mm[1] / 2])
+    m.compute_triangle_normals()
+    return m
+
+
+#: artefact -> its mesh in its own frame: front towards -x; a ball bar's spheres along y
+ARTEFACTS = {
+    "sphere": lambda: sphere(ACCEPTANCE_SPHERE_DIAMETER_MM / 2, 192),
+    "ballbar": lambda: dumbbell(BALLBAR_SPHERE_DIAMETER_MM / 2, BALLBAR_LENGTH_MM),
+    "plane": plane_artefact,
+}
+
 PARTS = {"car_rear": car_rear, "car_rear_defects": car_rear_defects, "flat": flat,
          "dumbbell": dumbbell}
 #: the nominal (CAD) of each part that has one other than itself

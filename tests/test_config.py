@@ -38,6 +38,10 @@ def _write(tmp_path: Path, text: str) -> Path:
     ("[cell]\nname='x'\n[bus]\nlisten='tcp/1.2.3.4:1'\n", "[bus]: listen must be a list"),
     ("[cell]\nname='x'\n[bus]\nuser='u'\n", "[bus]: give both user and password"),
     ("[cell]\nname='x'\n[devices.'a b']\ndriver='mock_robot'\n", "invalid device name"),
+    ("[cell]\nname='x'\n[inspection]\nnominl='a.step'\n", "[inspection]: unknown key 'nominl'"),
+    ("[cell]\nname='x'\n[inspection]\nalign='rps'\n", "[inspection] align: must be"),
+    ("[cell]\nname='x'\n[inspection]\nT_world_from_part=[1,2]\n",
+     "[inspection] T_world_from_part: must be a 4x4"),
 ])
 def test_errors_name_file_key_and_problem(tmp_path, text, expected):
     path = _write(tmp_path, text)
@@ -45,6 +49,15 @@ def test_errors_name_file_key_and_problem(tmp_path, text, expected):
         load_cell_config(path)
     assert str(path) in str(ei.value)
     assert expected in str(ei.value)
+
+
+@pytest.mark.unit
+def test_inspection_table_paths_are_relative_to_the_config(tmp_path):
+    path = _write(tmp_path, "[cell]\nname='x'\n[inspection]\nnominal='cad/part.step'\n"
+                            "tolerance_mm=0.5\nalign='asmeasured'\n"
+                            "T_world_from_part=[[1,0,0,3300],[0,1,0,0],[0,0,1,-100],[0,0,0,1]]\n")
+    t = load_cell_config(path).inspection
+    assert t["nominal"] == str(tmp_path / "cad" / "part.step") and t["tolerance_mm"] == 0.5
 
 
 @pytest.mark.unit

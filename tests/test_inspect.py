@@ -277,3 +277,27 @@ def test_tolerance_spec_errors_name_the_region(cad):
     with pytest.raises(NominalError, match=r"no face named 'hood'.*body, bumper, plate"):
         inspect_cloud(cloud, cad["step_nominal"], InspectionSettings(tolerance=spec))
     assert Tolerance.parse("-0.3,0.5").to_json() == {"lower_mm": -0.3, "upper_mm": 0.5}
+
+
+def test_worker_settings_from_the_cell_config(tmp_path):
+    import argparse
+
+    from scancell.cli.worker import inspect_settings
+
+    (tmp_path / "tol.toml").write_text("tolerance_mm = 0.4\n[[region]]\nname = 'plate'\n"
+                                       "faces = ['plate']\n")
+    (tmp_path / "cell.toml").write_text(
+        "[cell]\nname='x'\n[inspection]\nnominal='part.step'\nalign='asmeasured'\n"
+        "tolerances='tol.toml'\n"
+        "T_world_from_part=[[1,0,0,3300],[0,1,0,0],[0,0,1,-100],[0,0,0,1]]\n")
+    args = argparse.Namespace(config=str(tmp_path / "cell.toml"), nominal=None, unit=None,
+                              align=None, transform=None, tolerance=None, tolerances=None,
+                              out=None)
+    s = inspect_settings(args)
+    assert s.nominal == str(tmp_path / "part.step") and s.inspection.align == "asmeasured"
+    assert np.allclose(s.inspection.transform[:3, 3], [-3300, 0, 100])
+    assert s.inspection.tolerance.overall.upper_mm == 0.4
+    assert s.inspection.tolerance.regions[0].faces == ["plate"]
+    args.config, args.align = None, "asmeasured"
+    with pytest.raises(ValueError, match="needs --transform"):
+        inspect_settings(args)

@@ -1,0 +1,260 @@
+"""Acceptance test of an optical 3D scanner after VDI/VDE 2634 Part 2 (single view) and Part 3
+(multiple views): the quality parameters from the clouds of calibrated artefacts.
+
+Our reading of the guideline (2012 editions), with where it is uncertain:
+- **Measuring volume.** A box in the scanner frame (MCS), centred on the scanner's axis at its
+  working distance; L0 is its space diagonal.
+- **Probing error, form PF and size PS** on a sphere of diameter 0.1–0.2 L0: a least-squares
+  sphere with free radius through the sphere's points; PF is the range of the radial
+  residuals, PS the fitted diameter minus the calibrated one. The guideline lets up to 0.3 %
+  of the points go as outliers: we drop the 0.3 % with the largest |residual|. We take the
+  sphere at 10 positions spread over the volume (centre, corners); how many positions the
+  guideline asks for PF/PS we read as "several" (uncertain).
+- **Sphere-spacing error SD** on a ball bar (dumbbell) as long as the volume allows (we read
+  the guideline's minimum as about 0.3 L0; uncertain), in 7 positions: the
+  4 space diagonals and 3 face diagonals of the volume (the guideline's figure shows
+  diagonals and positions parallel to the sides; which 3 besides the space diagonals is our
+  choice). SD is the distance of the two least-squares centres minus the calibrated one.
+- **Flatness F** on a plane of length >= 0.5 L0, in 6 positions (frontal at three depths and
+  tilted about both axes: our choice of the 6): the range of the distances from a
+  least-squares plane, 0.3 % outliers dropped.
+- **Part 3** repeats SD with the ball bar's two spheres seen from different robot stations,
+  fused through the laser tracker: the error of the whole chain.
+- Each parameter's figure is the largest |value| over its positions, compared with the MPE
+  from the cell config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scancell.analysis.fit import FitError, detect_sphere, fit_plane, fit_sphere
+
+OUTLIER_SHARE = 0.003
+PARAMETERS = ("PF", "PS", "SD", "F")
+
+
+class AcceptanceError(ValueError):
+    """An artefact not found in its scan, or a measurement that cannot be evaluated."""
+
+
+@dataclass(frozen=True)
+class MeasuringVolume:
+    """A box in MCS (mm): ``size`` = (x, y, z) extent, centred at ``centre``."""
+
+    size: tuple[float, float, float]
+    centre: tuple[float, float, float]
+
+    @property
+    def l0(self) -> float:
+        return float(np.linalg.norm(self.size))
+
+    def corner(self, signs: np.ndarray, shrink: float = 1.0) -> np.ndarray:
+        return np.asarray(self.centre) + 0.5 * shrink * np.asarray(signs) * np.asarray(self.size)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One artefact position: where it goes in MCS and how it lies."""
+
+    kind: str  # sphere | ballbar | plane
+    index: int
+    centre_mcs: np.ndarray  # mm
+    direction_mcs: np.ndarray  # unit: ball bar axis, or plane normal (towards the scanner)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "index": self.index,
+                "centre_mcs": [round(float(v), 3) for v in self.centre_mcs],
+                "direction_mcs": [round(float(v), 6) for v in self.direction_mcs]}
+
+
+def _unit(v: Any) -> np.ndarray:
+    a = np.asarray(v, float)
+    return a / np.linalg.norm(a)
+
+
+CORNERS = np.array([[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)], float)
+
+
+def sphere_positions(volume: MeasuringVolume, n: int = 10) -> list[Placement]:
+    """The centre, then the corners of the volume shrunk to 70 %, then to 35 %."""
+    shrink = 0.7
+    pts = [np.asarray(volume.centre, float)] + [volume.corner(c, shrink) for c in CORNERS]
+    pts += [volume.corner(c, shrink / 2) for c in CORNERS]
+    return [Placement("sphere", i, p, np.array([0.0, 0.0, -1.0])) for i, p in enumerate(pts[:n])]
+
+
+def ballbar_positions(volume: MeasuringVolume, n: int = 7) -> list[Placement]:
+    """The 4 space diagonals, then the face diagonals x-y, x-z, y-z, through the centre."""
+    sx, sy, sz = volume.size
+    dirs = [_unit([sx, sy, sz]), _unit([-sx, sy, sz]), _unit([sx, -sy, sz]), _unit([-sx, -sy, sz]),
+            _unit([sx, sy, 0]), _unit([sx, 0, sz]), _unit([0, sy, sz])]
+    c = np.asarray(volume.centre, float)
+    return [Placement("ballbar", i, c, d) for i, d in enumerate(dirs[:n])]
+
+
+def plane_positions(volume: MeasuringVolume, n: int = 6) -> list[Placement]:
+    """Frontal at the far, middle and near third of the depth; tilted 30 deg either way about
+    the vertical axis and 30 deg about the horizontal one."""
+    c = np.asarray(volume.centre, float)
+    dz = np.array([0.0, 0.0, volume.size[2] / 3])
+    t = np.radians(30.0)
+    out = [(c + dz, [0, 0, -1.0]), (c, [0, 0, -1.0]), (c - dz, [0, 0, -1.0]),
+           (c, [np.sin(t), 0, -np.cos(t)]), (c, [-np.sin(t), 0, -np.cos(t)]),
+           (c, [0, np.sin(t), -np.cos(t)])]
+    return [Placement("plane", i, p, _unit(d)) for i, (p, d) in enumerate(out[:n])]
+
+
+def _trim(residuals: np.ndarray, share: float = OUTLIER_SHARE) -> np.ndarray:
+    """The residuals without the ``share`` with the largest magnitude."""
+    r = np.asarray(residuals, float)
+    keep = int(np.ceil(len(r) * (1 - share)))
+    return r[np.argsort(np.abs(r))[:keep]]
+
+
+def _near(points: np.ndarray, approx: np.ndarray | None, reach: float) -> np.ndarray:
+    if approx is None:
+        return points
+    return points[np.linalg.norm(points - approx, axis=1) < reach]
+
+
+def probing(points: np.ndarray, diameter_mm: float, approx_centre: np.ndarray | None = None
+            ) -> dict[str, Any]:
+    """PF and PS of one sphere scan (mm)."""
+    r = diameter_mm / 2
+    pts = _near(points, approx_centre, 3 * r)
+    try:
+        det = detect_sphere(pts, radius=r, inlier_mm=0.3)
+        band = pts[np.abs(np.linalg.norm(pts - det.center, axis=1) - r) < max(1.0, 0.1 * r)]
+        fit = fit_sphere(band)
+    except FitError as exc:
+        raise AcceptanceError(f"sphere (diameter {diameter_mm} mm) not found: {exc}") from None
+    res = _trim(np.linalg.norm(band - fit.center, axis=1) - fit.radius)
+    return {"PF": float(res.max() - res.min()), "PS": float(2 * fit.radius - diameter_mm),
+            "points": len(band), "centre_mm": fit.center.round(4).tolist(),
+            "diameter_mm": 2 * fit.radius}
+
+
+def _sphere_centre(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    det = detect_sphere(points, radius=radius, inlier_mm=0.3)
+    band = np.abs(np.linalg.norm(points - det.center, axis=1) - radius) < max(1.0, 0.1 * radius)
+    return fit_sphere(points[band]).center, band
+
+
+def sphere_spacing(points: np.ndarray, length_mm: float, sphere_diameter_mm: float,
+                   approx_ends: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+    """SD of one ball-bar scan (mm): the two least-squares centres' distance minus the
+    calibrated length. ``approx_ends``: roughly where the two spheres are (else found)."""
+    r = sphere_diameter_mm / 2
+    centres = []
+    try:
+        if approx_ends is not None:
+            for end in approx_ends:
+                centres.append(_sphere_centre(_near(points, np.asarray(end), 3 * r), r)[0])
+        else:
+            c1, band = _sphere_centre(points, r)
+            rest = points[~band & (np.linalg.norm(points - c1, axis=1) > 1.5 * r)]
+            centres = [c1, _sphere_centre(rest, r)[0]]
+    except FitError as exc:
+        raise AcceptanceError(f"ball bar sphere (diameter {sphere_diameter_mm} mm) not found: "
+                              f"{exc}") from None
+    d = float(np.linalg.norm(centres[0] - centres[1]))
+    if abs(d - length_mm) > 0.1 * length_mm:
+        raise AcceptanceError(f"ball bar: the two spheres found are {d:.1f} mm apart, not about "
+                              f"{length_mm} mm: a wrong sphere?")
+    return {"SD": d - length_mm, "length_mm": d,
+            "centres_mm": [c.round(4).tolist() for c in centres]}
+
+
+def flatness(points: np.ndarray, approx_centre: np.ndarray | None = None,
+             approx_normal: np.ndarray | None = None, size_mm: float = 300.0) -> dict[str, Any]:
+    """F of one plane scan (mm): the range of the distances from the least-squares plane of
+    the plane's points (found by RANSAC within 1 mm), 0.3 % outliers dropped."""
+    import open3d as o3d
+
+    pts = _near(points, approx_centre, 0.75 * size_mm)
+    if len(pts) < 100:
+        raise AcceptanceError(f"plane: only {len(pts)} points near its position")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    _, inliers = pcd.segment_plane(1.0, 3, 500)
+    if len(inliers) < 100:
+        raise AcceptanceError("plane: no plane found in its scan")
+    on = pts[inliers]
+    try:
+        fit = fit_plane(on)
+        # the points within 1 mm of the least-squares plane: the plane's, not its edges' halo
+        on = pts[np.abs((pts - fit.centroid) @ fit.normal) < 1.0]
+        fit = fit_plane(on)
+    except FitError as exc:
+        raise AcceptanceError(f"plane: {exc}") from None
+    if approx_normal is not None and abs(fit.normal @ _unit(approx_normal)) < 0.8:
+        raise AcceptanceError("plane: the plane found does not face the way the artefact was "
+                              "placed")
+    res = _trim(fit.residuals)
+    return {"F": float(res.max() - res.min()), "points": len(on),
+            "rms_mm": float(np.sqrt(np.mean(res**2)))}
+
+
+@dataclass
+class AcceptanceResult:
+    """Per parameter: each position's value and the figure (largest |value|) against its MPE."""
+
+    values: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    mpe: dict[str, float] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+    def add(self, parameter: str, value: float, **info: Any) -> None:
+        self.values.setdefault(parameter, []).append({"value_mm": float(value), **info})
+
+    def figure(self, parameter: str) -> float | None:
+        v = self.values.get(parameter)
+        return None if not v else float(max(abs(x["value_mm"]) for x in v))
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for p, v in self.values.items():
+            fig = self.figure(p)
+            mpe = self.mpe.get(p)
+            out[p] = {"figure_mm": fig, "mpe_mm": mpe, "positions": len(v),
+                      "pass": None if mpe is None else bool(fig <= mpe), "values": v}
+        verdicts = [x["pass"] for x in out.values() if x["pass"] is not None]
+        return {"parameters": out, "errors": self.errors,
+                "pass": (all(verdicts) and not self.errors) if verdicts else None}
+
+
+def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The acceptance report of a job: ``samples`` (``scancell.AcceptanceSample``) and each
+    scan's cloud (scan id -> MCS points, mm). A scan that cannot be evaluated is named in
+    ``errors`` and fails the test."""
+    result = AcceptanceResult(mpe=dict(samples[0].get("mpe_mm", {})) if samples else {})
+    for s in sorted(samples, key=lambda s: (s["placement"]["kind"], s["placement"]["index"])):
+        p, art, sid = s["placement"], s["artefact"], s["scan_id"]
+        where = f"{p['kind']} position {p['index'] + 1} (scan {sid})"
+        cloud = clouds.get(sid)
+        if cloud is None or len(cloud) == 0:
+            result.errors.append(f"{where}: no cloud")
+            continue
+        centre, direction = np.asarray(p["centre_mcs"]), np.asarray(p["direction_mcs"])
+        try:
+            if p["kind"] == "sphere":
+                r = probing(cloud, art["diameter_mm"], centre)
+                result.add("PF", r["PF"], position=p["index"], points=r["points"], scan=sid)
+                result.add("PS", r["PS"], position=p["index"], diameter_mm=r["diameter_mm"],
+                           scan=sid)
+            elif p["kind"] == "ballbar":
+                half = 0.5 * art["length_mm"] * direction / np.linalg.norm(direction)
+                r = sphere_spacing(cloud, art["length_mm"], art["sphere_diameter_mm"],
+                                   (centre - half, centre + half))
+                result.add("SD", r["SD"], position=p["index"], length_mm=r["length_mm"],
+                           scan=sid)
+            else:
+                r = flatness(cloud, centre, direction, float(max(art["size_mm"])))
+                result.add("F", r["F"], position=p["index"], points=r["points"], scan=sid)
+        except AcceptanceError as exc:
+            result.errors.append(f"{where}: {exc}")
+    out = result.to_json()
+    if samples:
+        out["volume"] = samples[0].get("volume")
+    return out

@@ -1,0 +1,147 @@
+"""VDI/VDE 2634 Part 2 acceptance: the quality parameters from artefact clouds (unit), and the
+whole test on the simulated cell: the job places and scans the artefacts, the acceptance worker
+evaluates them, and a recording of the job gives the same figures offline."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scancell.analysis import vdi2634 as v
+from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.sim import parts
+from scancell.sim.artefact_placer import artefact_pose_mcs
+from scancell.sim.world import get_world
+from scancell.workers.acceptance import AcceptanceWorker
+from scancell.workers.scan import ScanWorker
+
+from .conftest import sim_cell_raw, wait_until
+
+VOLUME = v.MeasuringVolume((240.0, 200.0, 120.0), (0.0, 0.0, 620.0))
+
+
+def sphere_cloud(centre, radius, n=20_000, noise=0.01, seed=0):
+    """The half of a sphere facing the scanner at the origin."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = d[d @ (-np.asarray(centre) / np.linalg.norm(centre)) > 0.1]
+    return centre + d * (radius + rng.normal(0, noise, len(d)))[:, None]
+
+
+@pytest.mark.unit
+def test_parameters_from_synthetic_artefacts():
+    rng = np.random.default_rng(1)
+    c = np.array([10.0, -5.0, 620.0])
+    r = v.probing(sphere_cloud(c, 25.02, noise=0.01), 50.0, c + 2.0)
+    assert abs(r["PS"] - 0.04) < 0.005 and 0.04 < r["PF"] < 0.09
+    assert np.allclose(r["centre_mm"], c, atol=0.01)
+    # a ball bar 200.03 mm long along a space diagonal: SD = +0.03
+    d = np.array([240.0, 200, 120]) / np.linalg.norm([240.0, 200, 120])
+    a, b = c - 100.015 * d, c + 100.015 * d
+    bar = np.concatenate([sphere_cloud(a, 15, seed=2), sphere_cloud(b, 15, seed=3)])
+    s = v.sphere_spacing(bar, 200.0, 30.0, (a + 1, b - 1))
+    assert abs(s["SD"] - 0.03) < 0.005
+    assert abs(v.sphere_spacing(bar, 200.0, 30.0)["SD"] - 0.03) < 0.005  # found unaided
+    # a plane with a 0.05 mm bow and 0.005 mm noise, and a stray outlier
+    u, w = rng.uniform(-100, 100, 30_000), rng.uniform(-25, 25, 30_000)
+    z = 620 + 0.05 * (u / 100) ** 2 + rng.normal(0, 0.005, len(u))
+    plane = np.column_stack([u, w, z])
+    plane[0, 2] += 0.5
+    f = v.flatness(plane, np.array([0, 0, 620.0]), np.array([0, 0, -1.0]), 200.0)
+    assert 0.05 < f["F"] < 0.08  # the outlier is among the 0.3 % dropped
+    with pytest.raises(v.AcceptanceError, match="not found"):
+        v.probing(plane, 50.0, np.array([0, 0, 620.0]))
+    with pytest.raises(v.AcceptanceError, match="apart, not about"):
+        v.sphere_spacing(bar, 300.0, 30.0)
+
+
+@pytest.mark.unit
+def test_positions_fill_the_volume_and_artefacts_fit():
+    spheres = v.sphere_positions(VOLUME, 10)
+    bars = v.ballbar_positions(VOLUME, 7)
+    planes = v.plane_positions(VOLUME, 6)
+    assert (len(spheres), len(bars), len(planes)) == (10, 7, 6)
+    lo = np.asarray(VOLUME.centre) - np.asarray(VOLUME.size) / 2
+    hi = np.asarray(VOLUME.centre) + np.asarray(VOLUME.size) / 2
+    for p in spheres:
+        assert np.all(p.centre_mcs >= lo) and np.all(p.centre_mcs <= hi)
+    for p in bars:  # both sphere centres inside the volume
+        for end in (p.centre_mcs - 100 * p.direction_mcs, p.centre_mcs + 100 * p.direction_mcs):
+            assert np.all(end >= lo - 1e-6) and np.all(end <= hi + 1e-6), (p.index, end)
+    assert len({tuple(p.direction_mcs.round(3)) for p in bars}) == 7
+    for p in planes:
+        T = artefact_pose_mcs("plane", p.centre_mcs, p.direction_mcs)
+        assert np.allclose(-T[:3, 0], p.direction_mcs)  # its front faces the scanner
+    T = artefact_pose_mcs("ballbar", bars[0].centre_mcs, bars[0].direction_mcs)
+    assert np.allclose(T[:3, 1], bars[0].direction_mcs) and T[2, 0] > 0  # the bar behind
+
+
+@pytest.mark.unit
+def test_evaluate_names_what_it_could_not_evaluate():
+    c = np.array([0.0, 0.0, 620.0])
+    sample = {"job_id": "j", "scan_id": "j-sphere00", "artefact": {"diameter_mm": 50.0},
+              "placement": {"kind": "sphere", "index": 0, "centre_mcs": c.tolist(),
+                            "direction_mcs": [0, 0, -1]}, "mpe_mm": {"PF": 0.2, "PS": 0.05}}
+    missing = dict(sample, scan_id="j-sphere01",
+                   placement=dict(sample["placement"], index=1))
+    out = v.evaluate([sample, missing], {"j-sphere00": sphere_cloud(c, 25.0)})
+    assert out["parameters"]["PF"]["pass"] is True and out["parameters"]["PS"]["positions"] == 1
+    assert out["errors"] == ["sphere position 2 (scan j-sphere01): no cloud"]
+    assert out["pass"] is False  # a position not evaluated fails the test
+
+
+@pytest.mark.e2e
+def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon, client,
+                                                                     tmp_path):
+    from scancell.recorder.recorder import Recorder, RecorderSettings
+
+    d = make_daemon(sim_cell_raw(camera_scale=4))
+    wait_until(lambda: all(s["state"] == "connected" for s in client.status()["devices"].values()),
+               30, what="sim devices connected")
+    world = get_world(d.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
+    worker = AcceptanceWorker(client.bus, tmp_path / "acc")
+    rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=1.0))
+    reports: list = []
+    client.bus.subscribe(client.bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
+    for w in (scan_worker, worker, rec):
+        w.start()
+    try:
+        final = client.run_job("acceptance", {"positions": {"sphere": 2, "ballbar": 2,
+                                                            "plane": 2}}, timeout_s=400)
+        assert final["state"] == "done", final
+        assert final["result"]["positions"] == {"sphere": 2, "ballbar": 2, "plane": 2}
+        report = wait_until(lambda: reports, 120, period_s=0.5, what="acceptance/report")[0]
+        # the part is back in the cell and the artefacts gone
+        names = {o.name for o in world.cell.scene.objects}
+        assert "car_rear" in names and not names & set(parts.ARTEFACTS)
+        wait_until(lambda: rec.session is None or rec.session.job_id != final["job_id"], 30,
+                   what="recording closed")
+    finally:
+        for w in (rec, worker, scan_worker):
+            w.stop()
+    assert report["job_id"] == final["job_id"] and not report["errors"], report
+    p = report["parameters"]
+    assert set(p) == {"PF", "PS", "SD", "F"} and p["SD"]["positions"] == 2
+    # at 1/4 camera resolution (0.5 mm pixels): the sizes stay within a few hundredths
+    assert abs(p["PS"]["figure_mm"]) < 0.1 and abs(p["SD"]["figure_mm"]) < 0.15, p
+    assert 0 < p["PF"]["figure_mm"] < 0.5 and 0 < p["F"]["figure_mm"] < 0.5, p
+    html = (tmp_path / "acc" / final["job_id"] / "acceptance.html").read_text()
+    assert "sphere-spacing error" in html
+    # the recording alone gives the same figures
+    mcap = next((tmp_path / "rec").glob("acceptance-*.mcap"))
+    out = subprocess.run([sys.executable, "-m", "scancell", "acceptance", str(mcap), "--json",
+                          str(tmp_path / "offline.json")], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode in (0, 1), out.stderr
+    offline = json.loads((tmp_path / "offline.json").read_text())["parameters"]
+    for k in ("PF", "PS", "SD", "F"):
+        assert offline[k]["figure_mm"] == pytest.approx(p[k]["figure_mm"], abs=1e-9), k
+    bad = subprocess.run([sys.executable, "-m", "scancell", "acceptance", str(tmp_path / "x.mcap")],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "scancell acceptance:" in bad.stderr

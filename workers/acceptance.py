@@ -1,0 +1,150 @@
+"""``scancell worker acceptance``: the VDI/VDE 2634 figures of acceptance jobs.
+
+Inputs: ``acceptance/sample`` (each scan's artefact placement, calibrated size and the MPEs),
+the scan worker's ``scan/*/cloud`` of the job's scans, and ``job/*/event`` (its end).
+Output: ``acceptance/report`` (``scancell.AcceptanceReport``) and, with ``--out DIR``,
+``DIR/<job>/acceptance.json`` and ``acceptance.html``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scancell.analysis.vdi2634 import evaluate
+from scancell.bus.protocol import BusLike
+from scancell.protocols import foxglove_schemas as fg
+from scancell.protocols.encoding import EncodingError
+from scancell.workers.base import ThreadedWorker
+
+log = logging.getLogger(__name__)
+JOB_KIND = "acceptance"
+
+
+@dataclass
+class AcceptanceJob:
+    samples: dict[str, dict[str, Any]] = field(default_factory=dict)  # scan_id -> sample
+    clouds: dict[str, np.ndarray] = field(default_factory=dict)  # scan_id -> MCS points
+    expected: int = 0
+
+
+class AcceptanceWorker(ThreadedWorker[str]):
+    thread_name = "acceptance-worker"
+    join_timeout_s = 120.0
+
+    def __init__(self, bus: BusLike, out_dir: Path | None = None, cloud_wait_s: float = 120.0
+                 ) -> None:
+        super().__init__(bus)
+        self.out_dir = out_dir
+        self.cloud_wait_s = cloud_wait_s
+        self.jobs: dict[str, AcceptanceJob] = {}
+        self.reports: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+
+    def on_start(self) -> None:
+        k = self.bus.keys
+        self.subscribe(k.acceptance_sample, self._on_sample)
+        self.subscribe(k.scan_cloud("*"), self._on_cloud)
+        self.subscribe(k.job_event("*"), self._on_event)
+
+    def _on_sample(self, sample: Any) -> None:
+        s = sample.decode()
+        with self._lock:
+            job = self.jobs.setdefault(s["job_id"], AcceptanceJob())
+            job.samples[s["scan_id"]] = s
+            job.expected = max(job.expected, int(s.get("total", 0)))
+
+    def _on_cloud(self, sample: Any) -> None:
+        meta = sample.attachment.meta
+        if meta.get("job_kind") != JOB_KIND or not meta.get("job_id"):
+            return
+        try:
+            pts = fg.cloud_points(sample.decode()).astype(float)
+        except EncodingError as exc:
+            log.warning("%s: %s", sample.key, exc)
+            return
+        with self._lock:
+            self.jobs.setdefault(str(meta["job_id"]), AcceptanceJob()).clouds[
+                str(meta.get("scan_id", ""))] = pts
+
+    def _on_event(self, sample: Any) -> None:
+        e = sample.decode()
+        if e.get("kind") == JOB_KIND and e.get("state") in ("done", "failed", "aborted"):
+            if e["state"] != "done":
+                log.warning("acceptance job %s %s: %s", e["job_id"], e["state"], e.get("error"))
+            self.submit(e["job_id"])
+
+    def handle(self, job_id: str) -> None:
+        deadline = time.monotonic() + self.cloud_wait_s
+        while time.monotonic() < deadline:  # the last clouds may still be decoding
+            with self._lock:
+                job = self.jobs.setdefault(job_id, AcceptanceJob())
+                waiting = [s for s in job.samples if s not in job.clouds]
+            if not waiting and len(job.samples) >= job.expected:
+                break
+            time.sleep(0.2)
+        self.process(job_id)
+
+    def process(self, job_id: str) -> dict[str, Any]:
+        with self._lock:
+            job = self.jobs.pop(job_id, AcceptanceJob())
+        if not job.samples:
+            body: dict[str, Any] = {"job_id": job_id, "error": "no acceptance samples"}
+        else:
+            body = {"job_id": job_id, **evaluate(list(job.samples.values()), job.clouds)}
+            if self.out_dir is not None:
+                body["files"] = write_acceptance(self.out_dir / job_id, body)
+        self.bus.publish_json(self.bus.keys.acceptance_report, body, "scancell.AcceptanceReport")
+        self.reports.append(body)
+        log.info("acceptance job %s: %s", job_id, summary_line(body))
+        return body
+
+
+def summary_line(body: dict[str, Any]) -> str:
+    if body.get("error"):
+        return body["error"]
+    parts = [f"{p} {v['figure_mm']:.4f} mm" + (f" (MPE {v['mpe_mm']})" if v.get("mpe_mm") else "")
+             for p, v in body["parameters"].items()]
+    verdict = {True: "PASS", False: "FAIL", None: "no MPE"}[body.get("pass")]
+    return f"{', '.join(parts)}: {verdict}" + (f"; {len(body['errors'])} scans not evaluated"
+                                                if body.get("errors") else "")
+
+
+def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
+    """``acceptance.json`` and a self-contained ``acceptance.html`` with each figure, its
+    positions and the verdict."""
+    import html
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {"json": str(folder / "acceptance.json"), "html": str(folder / "acceptance.html")}
+    Path(files["json"]).write_text(json.dumps(body, indent=2))
+    names = {"PF": "probing error, form (sphere)", "PS": "probing error, size (sphere)",
+             "SD": "sphere-spacing error (ball bar)", "F": "flatness error (plane)"}
+    rows = []
+    for p, v in body["parameters"].items():
+        verdict = {True: "PASS", False: "FAIL", None: "–"}[v["pass"]]
+        values = ", ".join(f"{x['value_mm']:+.4f}" for x in v["values"])
+        rows.append(f"<tr><td>{p}</td><td>{names.get(p, p)}</td><td>{v['figure_mm']:.4f}</td>"
+                    f"<td>{v['mpe_mm'] if v['mpe_mm'] is not None else '–'}</td>"
+                    f"<td>{verdict}</td><td>{v['positions']}</td><td>{values}</td></tr>")
+    errors = "".join(f"<li>{html.escape(e)}</li>" for e in body.get("errors", []))
+    vol = body.get("volume") or {}
+    Path(files["html"]).write_text(
+        "<!doctype html><html><head><meta charset='utf-8'><title>VDI/VDE 2634 acceptance "
+        f"{html.escape(body['job_id'])}</title><style>body{{font-family:sans-serif;margin:2em}}"
+        "td,th{border:1px solid #bbb;padding:.3em .6em}table{border-collapse:collapse}</style>"
+        f"</head><body><h1>VDI/VDE 2634 Part 2 acceptance: job {html.escape(body['job_id'])}"
+        f"</h1><h2>{ {True: 'PASS', False: 'FAIL', None: 'no MPE given'}[body.get('pass')] }</h2>"
+        f"<p>Measuring volume {vol.get('size_mm')} mm at {vol.get('centre_mm')} mm in the "
+        "scanner frame. Each figure is the largest |value| over its positions (mm); see "
+        "docs/acceptance.md for our reading of the guideline.</p>"
+        "<table><tr><th>parameter</th><th></th><th>figure (mm)</th><th>MPE (mm)</th><th></th>"
+        f"<th>positions</th><th>values (mm)</th></tr>{''.join(rows)}</table>"
+        + (f"<h2>Not evaluated</h2><ul>{errors}</ul>" if errors else "") + "</body></html>")
+    return files
