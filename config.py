@@ -92,8 +92,11 @@ _TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "record
 #: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
 #: sizes (their certificates) and the MPEs, all mm
 ACCEPTANCE_NUMBERS = {"sphere_diameter_mm", "ballbar_length_mm", "ballbar_sphere_diameter_mm"}
-ACCEPTANCE_KEYS = ACCEPTANCE_NUMBERS | {"volume_size_mm", "volume_centre_mm", "plane_size_mm",
-                                        "positions", "mpe_mm"}
+#: Part 3 (multiple views), optional: a long ball bar at positions in the tracker frame
+ACCEPTANCE_PART3 = {"ballbar3_length_mm", "ballbar3_sphere_diameter_mm", "part3_positions_world",
+                    "mpe3_mm"}
+ACCEPTANCE_KEYS = ACCEPTANCE_NUMBERS | ACCEPTANCE_PART3 | {
+    "volume_size_mm", "volume_centre_mm", "plane_size_mm", "positions", "mpe_mm"}
 #: ``[inspection]``: what the inspect worker compares each fused model with (paths relative
 #: to the config file)
 INSPECTION_KEYS = {"nominal", "unit", "chordal_mm", "align", "T_world_from_part", "tolerance_mm",
@@ -257,7 +260,7 @@ def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
     if unknown:
         raise err("[acceptance]", f"unknown key {sorted(unknown)[0]!r} (known: "
                                   f"{', '.join(sorted(ACCEPTANCE_KEYS))})")
-    missing = sorted((ACCEPTANCE_KEYS - {"positions", "mpe_mm"}) - set(t))
+    missing = sorted((ACCEPTANCE_KEYS - ACCEPTANCE_PART3 - {"positions", "mpe_mm"}) - set(t))
     if missing:
         raise err("[acceptance]", f"missing {', '.join(missing)}")
 
@@ -272,8 +275,19 @@ def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
     for key in ACCEPTANCE_NUMBERS:
         if not positive(t[key]):
             raise err(f"[acceptance] {key}", f"must be a positive length (mm), got {t[key]!r}")
+    part3 = set(t) & (ACCEPTANCE_PART3 - {"mpe3_mm"})
+    if part3 and part3 != ACCEPTANCE_PART3 - {"mpe3_mm"}:
+        raise err("[acceptance]", f"a Part 3 test needs all of "
+                                  f"{', '.join(sorted(ACCEPTANCE_PART3 - {'mpe3_mm'}))}")
+    for key in part3 - {"part3_positions_world"}:
+        if not positive(t[key]):
+            raise err(f"[acceptance] {key}", f"must be a positive length (mm), got {t[key]!r}")
+    for pos in t.get("part3_positions_world", []):
+        if not (isinstance(pos, list) and len(pos) == 6 and any(pos[3:])):
+            raise err("[acceptance] part3_positions_world", "each must be x, y, z (mm) and a "
+                                                            "direction dx, dy, dz")
     for table, known in (("positions", {"sphere", "ballbar", "plane"}),
-                         ("mpe_mm", {"PF", "PS", "SD", "F"})):
+                         ("mpe_mm", {"PF", "PS", "SD", "F"}), ("mpe3_mm", {"SD"})):
         sub = t.get(table, {})
         if not isinstance(sub, dict) or set(sub) - known or not all(map(positive, sub.values())):
             raise err(f"[acceptance] {table}", f"must map {', '.join(sorted(known))} to "

@@ -20,6 +20,7 @@ Our reading of the guideline (2012 editions), with where it is uncertain:
   least-squares plane, 0.3 % outliers dropped.
 - **Part 3** repeats SD with the ball bar's two spheres seen from different robot stations,
   fused through the laser tracker: the error of the whole chain.
+- Part 3's figure is reported as ``SD3``.
 - Each parameter's figure is the largest |value| over its positions, compared with the MPE
   from the cell config.
 """
@@ -224,12 +225,37 @@ class AcceptanceResult:
                 "pass": (all(verdicts) and not self.errors) if verdicts else None}
 
 
-def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray]) -> dict[str, Any]:
+def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray],
+             world_clouds: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """The acceptance report of a job: ``samples`` (``scancell.AcceptanceSample``) and each
-    scan's cloud (scan id -> MCS points, mm). A scan that cannot be evaluated is named in
-    ``errors`` and fails the test."""
-    result = AcceptanceResult(mpe=dict(samples[0].get("mpe_mm", {})) if samples else {})
-    for s in sorted(samples, key=lambda s: (s["placement"]["kind"], s["placement"]["index"])):
+    scan's cloud (scan id -> MCS points, mm); for Part 3 samples, each station scan's cloud in
+    the tracker frame (``world_clouds``: fused through the ECS and the hand-eye calibration).
+    A scan that cannot be evaluated is named in ``errors`` and fails the test."""
+    part2 = [s for s in samples if s.get("part", 2) != 3]
+    part3 = [s for s in samples if s.get("part", 2) == 3]
+    mpe = dict((part2 or samples or [{}])[0].get("mpe_mm", {}))
+    if part3 and "SD" in part3[0].get("mpe_mm", {}):
+        mpe["SD3"] = part3[0]["mpe_mm"]["SD"]
+    result = AcceptanceResult(mpe=mpe)
+    for s in part3:
+        p, art = s["placement"], s["artefact"]
+        scans = [st["scan_id"] for st in s["stations"]]
+        where = f"ball bar (part 3) position {p['index'] + 1} (scans {', '.join(scans)})"
+        missing = [sid for sid in scans if (world_clouds or {}).get(sid) is None]
+        if missing:
+            result.errors.append(f"{where}: no fused cloud for {', '.join(missing)}")
+            continue
+        c, d = np.asarray(p["centre_world"]), np.asarray(p["direction_world"])
+        half = 0.5 * art["length_mm"] * d / np.linalg.norm(d)
+        try:
+            r = sphere_spacing(np.concatenate([world_clouds[sid] for sid in scans]),
+                               art["length_mm"], art["sphere_diameter_mm"], (c - half, c + half))
+        except AcceptanceError as exc:
+            result.errors.append(f"{where}: {exc}")
+            continue
+        result.add("SD3", r["SD"], position=p["index"], length_mm=r["length_mm"],
+                   scans=scans)
+    for s in sorted(part2, key=lambda s: (s["placement"]["kind"], s["placement"]["index"])):
         p, art, sid = s["placement"], s["artefact"], s["scan_id"]
         where = f"{p['kind']} position {p['index'] + 1} (scan {sid})"
         cloud = clouds.get(sid)
@@ -255,6 +281,6 @@ def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray]) -> di
         except AcceptanceError as exc:
             result.errors.append(f"{where}: {exc}")
     out = result.to_json()
-    if samples:
-        out["volume"] = samples[0].get("volume")
+    if part2:
+        out["volume"] = part2[0].get("volume")
     return out

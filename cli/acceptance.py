@@ -23,6 +23,9 @@ from scancell.cli._common import add_bus_arguments, bus_config, cell_name, fail
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", nargs="?", help="an acceptance job's recording (.mcap)")
     p.add_argument("--run", action="store_true", help="run the test on the cell instead")
+    p.add_argument("--part", type=int, choices=[2, 3], default=2,
+                   help="2: single view (PF, PS, SD, F); 3: multiple views (SD3, a long ball "
+                        "bar from two robot stations, fused through the tracker)")
     p.add_argument("--artefacts", default=None, help="only these, e.g. sphere,plane")
     p.add_argument("--positions", default=None,
                    help="positions per artefact, e.g. sphere=3,ballbar=7,plane=6")
@@ -49,24 +52,34 @@ def from_recording(path: str) -> dict:
     from scancell.analysis.vdi2634 import evaluate
     from scancell.protocols import foxglove_schemas as fg
     from scancell.recorder.reading import samples
+    from scancell.workers.acceptance import world_clouds
 
-    recorded, clouds, job = [], {}, None
-    for s in samples(path, ["acceptance/sample", "scan/*/cloud"]):
+    recorded, clouds, ecs, hand_eye, job = [], {}, {}, None, None
+    for s in samples(path, ["acceptance/sample", "scan/*/cloud", "scan/*/ecs",
+                            "calib/hand_eye"]):
         if s.key.endswith("/acceptance/sample"):
             body = json.loads(s.payload)
             recorded.append(body)
             job = body["job_id"]
+        elif s.key.endswith("/ecs"):
+            e = json.loads(s.payload)
+            ecs[e["scan_id"]] = e
+        elif s.key.endswith("/calib/hand_eye"):
+            body = json.loads(s.payload)
+            if body.get("T_ecs_from_mcs") is not None:
+                hand_eye = body
         elif s.attachment.meta.get("job_kind") == "acceptance":
             clouds[str(s.attachment.meta.get("scan_id"))] = fg.cloud_points(s.decode()).astype(float)
     if not recorded:
         raise ValueError(f"{path}: no acceptance samples (acceptance/sample) in the recording")
-    return {"job_id": job, "recording": str(path), **evaluate(recorded, clouds)}
+    return {"job_id": job, "recording": str(path),
+            **evaluate(recorded, clouds, world_clouds(ecs, clouds, hand_eye))}
 
 
 def run_on_cell(args: argparse.Namespace) -> dict:
     from scancell.client import CellClient
 
-    request: dict = {}
+    request: dict = {"part": args.part}
     if args.artefacts:
         request["artefacts"] = [a.strip() for a in args.artefacts.split(",")]
     if args.positions:

@@ -136,7 +136,7 @@ class Daemon:
                                                                  self.simulator, setup),
             "calibrate_projector": lambda ctx: calibrate_projector(ctx, self.supervisors),
             "acceptance": lambda ctx: acceptance(ctx, self.supervisors, self.simulator,
-                                                 self.cfg.acceptance, setup),
+                                                 self.cfg.acceptance, setup, self.cfg.geometry),
             "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(

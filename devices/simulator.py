@@ -34,6 +34,11 @@ class ArtefactPlacer(Protocol):
         mm); ``direction_mcs``: a ball bar's axis or a plane's normal."""
         ...
 
+    async def place_world(self, kind: str, centre_world: np.ndarray,
+                          direction_world: np.ndarray) -> None:
+        """Place a ball bar in the cell (tracker frame, mm), for a multiple-view test."""
+        ...
+
     async def remove(self) -> None: ...
 
 

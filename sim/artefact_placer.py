@@ -41,22 +41,32 @@ class SimArtefactPlacer:
         self._part: SceneObject | None = None
 
     async def place(self, kind: str, centre_mcs: np.ndarray, direction_mcs: np.ndarray) -> None:
-        def put() -> None:
-            with self.world.lock:
-                cell = self.world.cell
-                if self._part is None and cell.cfg.part:
-                    self._part = cell.scene.get(cell.cfg.part)
-                    cell.remove_object(cell.cfg.part)  # a free measuring volume
-                for name in parts.ARTEFACTS:
-                    if any(o.name == name for o in cell.scene.objects):
-                        cell.remove_object(name)
-                T = artefact_pose_mcs(kind, centre_mcs, direction_mcs)
-                jitter = make_T(Rotation.from_rotvec(np.radians(self.rng.normal(
-                    0, PLACEMENT_DEG, 3))).as_matrix(), self.rng.normal(0, PLACEMENT_MM, 3))
-                T_world = cell.T_world_from_mcs() @ T @ jitter
-                cell.add_object(SceneObject(kind, parts.ARTEFACTS[kind](), T_world, 0.6))
+        await asyncio.to_thread(self._put, kind, artefact_pose_mcs(kind, centre_mcs,
+                                                                   direction_mcs), True)
 
-        await asyncio.to_thread(put)
+    async def place_world(self, kind: str, centre_world: np.ndarray,
+                          direction_world: np.ndarray) -> None:
+        """A ball bar (axis along ``direction_world``) facing -x of the world, where the robot
+        looks at the part from."""
+        y = np.asarray(direction_world, float) / np.linalg.norm(direction_world)
+        x = np.array([1.0, 0.0, 0.0]) - y[0] * y
+        x /= np.linalg.norm(x)
+        T = make_T(np.stack([x, y, np.cross(x, y)], axis=1), centre_world)
+        await asyncio.to_thread(self._put, kind, T, False)
+
+    def _put(self, kind: str, T: np.ndarray, in_mcs: bool) -> None:
+        with self.world.lock:
+            cell = self.world.cell
+            if self._part is None and cell.cfg.part:
+                self._part = cell.scene.get(cell.cfg.part)
+                cell.remove_object(cell.cfg.part)  # a free measuring volume
+            for name in parts.ARTEFACTS:
+                if any(o.name == name for o in cell.scene.objects):
+                    cell.remove_object(name)
+            jitter = make_T(Rotation.from_rotvec(np.radians(self.rng.normal(
+                0, PLACEMENT_DEG, 3))).as_matrix(), self.rng.normal(0, PLACEMENT_MM, 3))
+            T_world = (cell.T_world_from_mcs() @ T if in_mcs else T) @ jitter
+            cell.add_object(SceneObject(kind, parts.ARTEFACTS[kind](), T_world, 0.6))
 
     async def remove(self) -> None:
         def take() -> None:

@@ -223,6 +223,8 @@ def scanner_body() -> o3d.geometry.TriangleMesh:
 ACCEPTANCE_SPHERE_DIAMETER_MM = 50.0
 BALLBAR_LENGTH_MM, BALLBAR_SPHERE_DIAMETER_MM = 200.0, 30.0
 PLANE_SIZE_MM = (200.0, 50.0)
+#: VDI/VDE 2634-3: a ball bar longer than one view, measured from two robot stations
+BALLBAR3_LENGTH_MM, BALLBAR3_SPHERE_DIAMETER_MM = 800.0, 30.0
 
 
 def plane_artefact(size_mm: tuple[float, float] = PLANE_SIZE_MM, thickness_mm: float = 15.0
@@ -239,6 +241,7 @@ ARTEFACTS = {
     "sphere": lambda: sphere(ACCEPTANCE_SPHERE_DIAMETER_MM / 2, 192),
     "ballbar": lambda: dumbbell(BALLBAR_SPHERE_DIAMETER_MM / 2, BALLBAR_LENGTH_MM),
     "plane": plane_artefact,
+    "ballbar3": lambda: dumbbell(BALLBAR3_SPHERE_DIAMETER_MM / 2, BALLBAR3_LENGTH_MM),
 }
 
 PARTS = {"car_rear": car_rear, "car_rear_defects": car_rear_defects, "flat": flat,

@@ -1,7 +1,9 @@
 """``scancell worker acceptance``: the VDI/VDE 2634 figures of acceptance jobs.
 
 Inputs: ``acceptance/sample`` (each scan's artefact placement, calibrated size and the MPEs),
-the scan worker's ``scan/*/cloud`` of the job's scans, and ``job/*/event`` (its end).
+the scan worker's ``scan/*/cloud`` of the job's scans, and ``job/*/event`` (its end); for a
+Part 3 job also each station's tracker points (``scan/*/ecs``) and the hand-eye calibration in
+force (``calib/hand_eye``), which put its clouds in the tracker frame.
 Output: ``acceptance/report`` (``scancell.AcceptanceReport``) and, with ``--out DIR``,
 ``DIR/<job>/acceptance.json`` and ``acceptance.html``.
 """
@@ -31,7 +33,12 @@ JOB_KIND = "acceptance"
 class AcceptanceJob:
     samples: dict[str, dict[str, Any]] = field(default_factory=dict)  # scan_id -> sample
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # scan_id -> MCS points
+    ecs: dict[str, dict[str, Any]] = field(default_factory=dict)  # scan_id -> StationEcs
     expected: int = 0
+
+    def scan_ids(self) -> list[str]:
+        return [st["scan_id"] for s in self.samples.values()
+                for st in s.get("stations", [{"scan_id": s["scan_id"]}])]
 
 
 class AcceptanceWorker(ThreadedWorker[str]):
@@ -45,13 +52,30 @@ class AcceptanceWorker(ThreadedWorker[str]):
         self.cloud_wait_s = cloud_wait_s
         self.jobs: dict[str, AcceptanceJob] = {}
         self.reports: list[dict[str, Any]] = []
+        self.hand_eye: dict[str, Any] | None = None
         self._lock = threading.Lock()
 
     def on_start(self) -> None:
         k = self.bus.keys
+        for s in self.bus.fetch_latched(k.hand_eye, 1.0):
+            self._on_hand_eye(s)
+        self.subscribe(k.hand_eye, self._on_hand_eye)
+        self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.acceptance_sample, self._on_sample)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.job_event("*"), self._on_event)
+
+    def _on_hand_eye(self, sample: Any) -> None:
+        body = sample.decode()
+        if body.get("T_ecs_from_mcs") is not None:
+            with self._lock:
+                self.hand_eye = body
+
+    def _on_ecs(self, sample: Any) -> None:
+        e = sample.decode()
+        if str(e.get("job_id", "")).startswith("acceptance-"):
+            with self._lock:
+                self.jobs.setdefault(e["job_id"], AcceptanceJob()).ecs[e["scan_id"]] = e
 
     def _on_sample(self, sample: Any) -> None:
         s = sample.decode()
@@ -85,7 +109,7 @@ class AcceptanceWorker(ThreadedWorker[str]):
         while time.monotonic() < deadline:  # the last clouds may still be decoding
             with self._lock:
                 job = self.jobs.setdefault(job_id, AcceptanceJob())
-                waiting = [s for s in job.samples if s not in job.clouds]
+                waiting = [s for s in job.scan_ids() if s not in job.clouds]
             if not waiting and len(job.samples) >= job.expected:
                 break
             time.sleep(0.2)
@@ -97,13 +121,46 @@ class AcceptanceWorker(ThreadedWorker[str]):
         if not job.samples:
             body: dict[str, Any] = {"job_id": job_id, "error": "no acceptance samples"}
         else:
-            body = {"job_id": job_id, **evaluate(list(job.samples.values()), job.clouds)}
+            body = {"job_id": job_id, **evaluate(list(job.samples.values()), job.clouds,
+                                                 self.world_clouds(job))}
             if self.out_dir is not None:
                 body["files"] = write_acceptance(self.out_dir / job_id, body)
         self.bus.publish_json(self.bus.keys.acceptance_report, body, "scancell.AcceptanceReport")
         self.reports.append(body)
         log.info("acceptance job %s: %s", job_id, summary_line(body))
         return body
+
+
+    def world_clouds(self, job: AcceptanceJob) -> dict[str, np.ndarray]:
+        with self._lock:
+            he = self.hand_eye
+        return world_clouds(job.ecs, job.clouds, he)
+
+
+def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],
+                 hand_eye: dict[str, Any] | None) -> dict[str, np.ndarray]:
+    """Each station scan (scan id -> its ``scancell.StationEcs``) in the tracker frame: its ECS
+    from P1..P3 and the hand-eye calibration in force, as the fuse worker puts scan_part
+    stations there."""
+    from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
+    from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+
+    if hand_eye is None or not ecs:
+        return {}
+    frame = [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
+    T_ecs_from_mcs = np.asarray(hand_eye["T_ecs_from_mcs"], float)
+    out = {}
+    for scan_id, e in ecs.items():
+        cloud = clouds.get(scan_id)
+        if cloud is None:
+            continue
+        try:
+            T = ecs_for_frame(np.asarray(e["points_mm"]), e["j6_deg"], frame) @ T_ecs_from_mcs
+        except DegenerateGeometry as exc:
+            log.error("acceptance %s, station %s: no ECS: %s", e["job_id"], e["station"], exc)
+            continue
+        out[scan_id] = cloud @ T[:3, :3].T + T[:3, 3]
+    return out
 
 
 def summary_line(body: dict[str, Any]) -> str:
@@ -125,7 +182,9 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
     files = {"json": str(folder / "acceptance.json"), "html": str(folder / "acceptance.html")}
     Path(files["json"]).write_text(json.dumps(body, indent=2))
     names = {"PF": "probing error, form (sphere)", "PS": "probing error, size (sphere)",
-             "SD": "sphere-spacing error (ball bar)", "F": "flatness error (plane)"}
+             "SD": "sphere-spacing error (ball bar)", "F": "flatness error (plane)",
+             "SD3": "sphere-spacing error across robot stations, fused through the tracker "
+                    "(Part 3)"}
     rows = []
     for p, v in body["parameters"].items():
         verdict = {True: "PASS", False: "FAIL", None: "–"}[v["pass"]]

@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -125,6 +125,72 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
     check_plan(plan, robot, axis)
 
 
+@dataclass(frozen=True)
+class Station:
+    """What measuring a station takes: the devices and the plan's motion and ECS settings."""
+
+    robot: Robot
+    tracker: Tracker
+    axis: Axis | None
+    projector: str
+    cameras: list[str]
+    speed: float
+    repeats: int
+    turns: list[float]
+    setup: ScannerSetup | None
+
+
+async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
+                          st: PlanStation, how: Station, i: int, n: int, eta: float | None,
+                          plan_name: str) -> dict[str, Any]:
+    """The paper's procedure at one station: move, tracker P1, scan, J6 turns for P2 and P3;
+    publishes ``scan/<station>/ecs`` (``scancell.StationEcs``) and returns it. A failure is a
+    StepFailed naming the station and the step."""
+    step = "move"
+
+    def event(step: str, msg: str, **extra: Any) -> None:
+        ctx.event("running", step, msg, i, n, station=st.name,
+                  eta_s=None if eta is None else round(eta, 1), **extra)
+
+    try:
+        event("move", f"station {st.name} ({i + 1}/{n}): moving")
+        if st.axis_mm is not None and how.axis is not None:
+            await how.axis.move_to(st.axis_mm)
+        q0 = np.radians(st.joints_deg)
+        await how.robot.move_joints(q0, how.speed)
+        step = "p1"
+        event("p1", f"station {st.name}: tracker P1")
+        meta = {"job_id": ctx.job_id, "station": st.name}
+        p, s = await averaged(how.tracker, how.repeats, {**meta, "ecs": 0, "j6_deg": 0.0})
+        step = "scan"
+        event("scan", f"station {st.name}: scanning")
+        reply = await scan(supervisors, {
+            "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
+            "projector": how.projector, "cameras": how.cameras},
+            hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=how.setup)
+        step = "ecs"
+        ecs = await measure_ecs(
+            how.robot, how.tracker, q0, [st.j6_sign * a for a in how.turns], how.speed,
+            how.repeats, meta,
+            lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 {turn:+.1f} deg"),
+            p1=EcsPoint(0.0, p, s))
+    except asyncio.CancelledError:
+        raise
+    except Exception as exc:
+        why = exc.message if isinstance(exc, CommandError) else f"{exc}"
+        raise StepFailed(st.name, step, why) from exc
+    record = {"job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"],
+              "index": i, "total": n, "plan": plan_name,
+              "points_mm": [[float(v) for v in e.point_mm] for e in ecs],
+              "sigma_mm": [[float(v) for v in e.sigma_mm] for e in ecs],
+              "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": how.repeats,
+              "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
+              "stamp_ns": messages.now_ns()}
+    ctx.bus.publish_json(ctx.bus.keys.station_ecs(st.name), record, "scancell.StationEcs")
+    event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
+    return record
+
+
 async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     geometry: CellGeometry | None = None,
                     setup: ScannerSetup | None = None) -> dict[str, Any]:
@@ -151,50 +217,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         try:
             for i, st in enumerate(plan.stations):
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
-                step = "move"
-
-                def event(step: str, msg: str, **extra: Any) -> None:
-                    ctx.event("running", step, msg, i, n, station=st.name,  # noqa: B023
-                              eta_s=None if eta is None else round(eta, 1), **extra)  # noqa: B023
-
-                try:
-                    event("move", f"station {st.name} ({i + 1}/{n}): moving")
-                    if st.axis_mm is not None and axis is not None:
-                        await axis.move_to(st.axis_mm)
-                    q0 = np.radians(st.joints_deg)
-                    await robot.move_joints(q0, speed)
-                    step = "p1"
-                    event("p1", f"station {st.name}: tracker P1")
-                    meta = {"job_id": ctx.job_id, "station": st.name}
-                    p, s = await averaged(tracker, repeats, {**meta, "ecs": 0, "j6_deg": 0.0})
-                    step = "scan"
-                    event("scan", f"station {st.name}: scanning")
-                    reply = await scan(supervisors, {
-                        "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
-                        "projector": proj_s.name, "cameras": [c.name for c in cam_s]},
-                        hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=setup)
-                    step = "ecs"
-                    ecs = await measure_ecs(
-                        robot, tracker, q0, [st.j6_sign * a for a in turns], speed, repeats, meta,
-                        lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 "  # noqa: B023
-                                                                   f"{turn:+.1f} deg"),
-                        p1=EcsPoint(0.0, p, s))
-                except asyncio.CancelledError:
-                    raise
-                except Exception as exc:
-                    why = exc.message if isinstance(exc, CommandError) else f"{exc}"
-                    raise StepFailed(st.name, step, why) from exc
-                record = {"job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"],
-                          "index": i, "total": n, "plan": plan.name,
-                          "points_mm": [[float(v) for v in e.point_mm] for e in ecs],
-                          "sigma_mm": [[float(v) for v in e.sigma_mm] for e in ecs],
-                          "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": repeats,
-                          "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
-                          "stamp_ns": messages.now_ns()}
-                ctx.bus.publish_json(ctx.bus.keys.station_ecs(st.name), record,
-                                     "scancell.StationEcs")
-                done.append({"station": st.name, "scan_id": reply["scan_id"]})
-                event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
+                record = await measure_station(ctx, supervisors, st, Station(
+                    robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed, repeats,
+                    turns, setup), i, n, eta, plan.name)
+                done.append({"station": st.name, "scan_id": record["scan_id"]})
         except BaseException:
             await stop_motion([robot, axis])
             raise
