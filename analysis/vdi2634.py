@@ -215,7 +215,9 @@ class AcceptanceResult:
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
-        for p, v in self.values.items():
+        order = [*PARAMETERS, "SD3"]
+        for p, v in sorted(self.values.items(), key=lambda kv: order.index(kv[0])
+                           if kv[0] in order else len(order)):
             fig = self.figure(p)
             mpe = self.mpe.get(p)
             out[p] = {"figure_mm": fig, "mpe_mm": mpe, "positions": len(v),

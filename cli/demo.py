@@ -11,7 +11,10 @@ client. Stages:
 4. station planning for the car-body rear (``scancell plan``);
 5. the ``scan_part`` job, fused by the fuse worker into a mesh, E57 and a report;
 6. the inspection of the fused model against the part's CAD (STEP) by the inspect worker;
-7. a summary beside the paper's figures, in ``runs/<time>/summary.json``.
+7. the VDI/VDE 2634 acceptance test of the scanner (Part 2: sphere, ball bar in 7 positions,
+   plane in 6) and of the cell (Part 3: a long ball bar from two stations), the acceptance
+   worker evaluating;
+8. a summary beside the paper's figures, in ``runs/<time>/summary.json``.
 
 The simulated cell runs the profile its config names (``realistic`` in the packaged one:
 docs/simulation.md) and the scans take the exposures its ``[scanner]`` table names.
@@ -101,7 +104,8 @@ def wait_for(pred, timeout_s: float, what: str, period_s: float = 0.3) -> Any:
 
 def print_progress(e: dict[str, Any]) -> None:
     """A job's progress line (station i/N, step, time left), for the steps worth a line."""
-    if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs"):
+    if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
+                                                 "ballbar", "plane"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
         print(f"   {where}{e['message']}{eta}", flush=True)
@@ -134,7 +138,7 @@ def main(args: argparse.Namespace) -> int:
     sets = [*flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port())),
             f"simulator.camera_scale={scale}"]
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
-    stage = Stage(9)
+    stage = Stage(10)
     procs = Processes(run_dir / "logs")
     t_start = time.monotonic()
     summary: dict[str, Any] = {}
@@ -172,6 +176,8 @@ def main(args: argparse.Namespace) -> int:
                                          str(run_dir / "calibration")], env)
         procs.start("worker-fuse", ["worker", "fuse", "--out", str(run_dir / "fused"),
                                     "--truth-cell", str(config)], env)
+        procs.start("worker-acceptance", ["worker", "acceptance", "--out",
+                                          str(run_dir / "fused")], env)
         procs.start("worker-inspect", ["worker", "inspect", "--nominal", str(step),
                                        "--transform", str(nominal_dir / "T_world_from_part.json"),
                                        "--tolerance", str(INSPECTION_TOLERANCE_MM),
@@ -253,6 +259,9 @@ def main(args: argparse.Namespace) -> int:
               f"{'PASS' if inspection['tolerances']['pass'] else 'FAIL'}; "
               f"{inspection['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
 
+        stage("VDI/VDE 2634 acceptance: Part 2 (sphere, ball bar, plane), Part 3 (two stations)")
+        summary["acceptance"] = run_acceptance(client, quick)
+
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
         summary["scanner"] = scanner_summary([r for r in scan_results
@@ -265,18 +274,58 @@ def main(args: argparse.Namespace) -> int:
         codes = procs.stop()
         print(f"\nprocesses stopped: {codes}")
     if ok:
-        fused = next((run_dir / "fused").iterdir(), None)
-        if fused is not None:
-            for f in fused.iterdir():
+        job_dirs = {p.name: p for p in (run_dir / "fused").iterdir()}
+        scan_dir = job_dirs.pop(summary.get("job_id", ""), None)
+        if scan_dir is not None:  # the scan job's model, report and inspection at the top
+            for f in scan_dir.iterdir():
                 shutil.move(str(f), run_dir / f.name)
-            fused.rmdir()
+            scan_dir.rmdir()
+        if job_dirs:  # the acceptance jobs' reports
+            (run_dir / "acceptance").mkdir(exist_ok=True)
+            for name, folder in job_dirs.items():
+                shutil.move(str(folder), run_dir / "acceptance" / name)
+        for part in (summary.get("acceptance") or {}).values():
+            part["report"] = f"acceptance/{part['report']}"
+        (run_dir / "fused").rmdir()
         summary["seconds"] = round(time.monotonic() - t_start, 1)
         summary["recordings"] = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         print(f"\noutputs in {run_dir}: summary.json, report/report.md, fused.ply, fused.e57, "
-              f"mesh.ply, inspection/report.html, nominal/, recordings/, calibration/")
+              f"mesh.ply, inspection/report.html, acceptance/, nominal/, recordings/, calibration/")
     print(f"\ndemo {'finished' if ok else 'FAILED'} in {time.monotonic() - t_start:.1f} s")
     return 0 if ok else 1
+
+
+#: the acceptance test's positions: the guideline's 7 ball-bar and 6 plane positions; the sphere
+#: at 3 of the 10 the job would take by default (each scan costs the demo ~10 s)
+ACCEPTANCE_POSITIONS = {"sphere": 3, "ballbar": 7, "plane": 6}
+QUICK_ACCEPTANCE_POSITIONS = {"sphere": 1, "ballbar": 2, "plane": 2}
+
+
+def run_acceptance(client: CellClient, quick: bool) -> dict[str, Any]:
+    """Part 2 then Part 3 on the cell; the acceptance worker's figures for summary.json."""
+    reports: list[dict] = []
+    client.bus.subscribe(client.bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
+    out: dict[str, Any] = {}
+    for part, request in ((2, {"positions": QUICK_ACCEPTANCE_POSITIONS if quick
+                               else ACCEPTANCE_POSITIONS}), (3, {"part": 3})):
+        t0 = time.monotonic()
+        final = client.run_job("acceptance", request, on_event=print_progress, timeout_s=1800)
+        if final.get("state") != "done":
+            raise RuntimeError(f"acceptance part {part} {final.get('state')}: {final.get('error')}")
+        r = wait_for(lambda j=final["job_id"]: [x for x in reports if x.get("job_id") == j], 300,
+                     f"acceptance part {part} report")[-1]
+        if r.get("error"):
+            raise RuntimeError(f"acceptance part {part}: {r['error']}")
+        figures = {p: {"figure_mm": v["figure_mm"], "mpe_mm": v["mpe_mm"], "pass": v["pass"],
+                       "positions": v["positions"]} for p, v in r["parameters"].items()}
+        out[f"part{part}"] = {"parameters": figures, "pass": r["pass"], "errors": r["errors"],
+                              "seconds": round(time.monotonic() - t0, 1),
+                              "report": f"{final['job_id']}/acceptance.html"}
+        print("   part " + str(part) + ": " + ", ".join(
+            f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']})" for p, v in figures.items())
+            + f": {'PASS' if r['pass'] else 'FAIL'} ({out[f'part{part}']['seconds']:.0f} s)")
+    return out
 
 
 #: the demo's tolerance on the car rear's surface (mm): a body-in-white panel's usual +-0.5,
@@ -371,6 +420,21 @@ def table(s: dict[str, Any]) -> str:
     if sc:
         rows.append(("lit camera pixels decoded, mean / worst", f"{sc['decoded_of_lit_mean']:.1%}"
                      f" / {sc['decoded_of_lit_min']:.1%}", "-"))
+    ins = s.get("inspection") or {}
+    if ins:
+        d = ins["deviation_mm"]
+        rows.append(("deviation from the CAD, mean / std (mm)",
+                     f"{d['mean']:+.4f} / {d['std']:.4f}", "-"))
+        rows.append((f"  within +-{ins['tolerance_mm']} mm; CAD surface measured",
+                     f"{1 - (ins['out_share'] or 0):.2%}; {ins['nominal_covered_share']:.1%}",
+                     "-"))
+    for part in ("part2", "part3"):
+        acc = (s.get("acceptance") or {}).get(part)
+        if acc:
+            figs = acc["parameters"]
+            rows.append((f"VDI/VDE 2634-{part[-1]} {' / '.join(figs)} (mm)",
+                         " / ".join(f"{v['figure_mm']:.3f}" for v in figs.values()),
+                         "PASS" if acc["pass"] else "FAIL"))
     pr = s.get("projector_response") or {}
     if pr:
         rows.append(("projector gamma: calibrated / simulated", f"{pr['gamma']:.3f} / "

@@ -42,6 +42,16 @@ def _write(tmp_path: Path, text: str) -> Path:
     ("[cell]\nname='x'\n[inspection]\nalign='rps'\n", "[inspection] align: must be"),
     ("[cell]\nname='x'\n[inspection]\nT_world_from_part=[1,2]\n",
      "[inspection] T_world_from_part: must be a 4x4"),
+    ("[cell]\nname='x'\n[acceptance]\nsphere_diameter_mm=50\n", "[acceptance]: missing"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\n", "[acceptance] volume_size_mm: must be 3 positive lengths"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\nmpe_mm={PX=1}\n", "[acceptance] mpe_mm: must map F, PF, PS, SD"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\nballbar3_length_mm=800\n", "a Part 3 test needs all of"),
 ])
 def test_errors_name_file_key_and_problem(tmp_path, text, expected):
     path = _write(tmp_path, text)

@@ -34,6 +34,12 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert ins["nominal"].endswith("nominal/car_rear.step") and ins["alignment"] == "bestfit"
     assert abs(ins["deviation_mm"]["mean"]) < 0.1 and ins["points"] == s["points"]
     assert isinstance(ins["pass"], bool) and 0 < ins["nominal_covered_share"] < 1
+    # ... and with the VDI/VDE 2634 acceptance of the scanner (part 2) and the cell (part 3)
+    acc = s["acceptance"]
+    assert set(acc["part2"]["parameters"]) == {"PF", "PS", "SD", "F"}
+    assert set(acc["part3"]["parameters"]) == {"SD3"} and not acc["part3"]["errors"]
+    for part in acc.values():
+        assert (run / part["report"]).exists(), part["report"]
     for name in ("fused.ply", "fused.e57", "mesh.ply", "report/report.md", "plan.toml",
                  "calibration/stereo.yaml", "calibration/hand_eye/active.json",
                  "inspection/report.html", "inspection/inspected.ply", "nominal/car_rear.step",
