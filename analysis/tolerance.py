@@ -25,12 +25,12 @@ tolerance file (TOML) reads::
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis.json_file import read_toml
 from scancell.analysis.nominal import Nominal
 
 DEFAULT_ALLOWED_OUT_SHARE = 0.01
@@ -158,14 +158,7 @@ def parse_spec(m: dict[str, Any], where: str = "tolerances",
 
 
 def load_spec(path: str | Path, overall: Tolerance | None = None) -> ToleranceSpec:
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ToleranceError(f"{p}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ToleranceError(f"{p}: not valid TOML: {exc}") from None
-    return parse_spec(data, str(p), overall)
+    return parse_spec(read_toml(path, ToleranceError), str(path), overall)
 
 
 def judge(deviation: np.ndarray, tolerance: Tolerance, allowed_out_share: float

@@ -17,8 +17,6 @@ Run: .venv/bin/python benchmarks/bench_inspect.py  (or `make bench`)
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -27,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from cloudcompare import run_cloudcompare
 from scancell.analysis.alignment import apply
 from scancell.analysis.cloud_io import read_ply, write_ply
 from scancell.analysis.deviation import closest_points
@@ -39,19 +38,7 @@ FACET_MM = 1.67  # ~500 k triangles
 
 
 def cloudcompare(args: list[str], cwd: Path) -> float | None:
-    exe = shutil.which("CloudCompare")
-    if exe is None:
-        print("CloudCompare not installed (Debian package cloudcompare): no reference")
-        return None
-    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
-    t0 = time.perf_counter()
-    r = subprocess.run([exe, "-SILENT", "-NO_TIMESTAMP", "-AUTO_SAVE", "OFF", *args],
-                       capture_output=True, text=True, env=env, timeout=3600, cwd=cwd)
-    elapsed = time.perf_counter() - t0
-    if r.returncode != 0:
-        print(f"CloudCompare failed ({r.returncode}): {(r.stdout + r.stderr)[-400:]}")
-        return None
-    return elapsed
+    return run_cloudcompare(["-AUTO_SAVE", "OFF", *args], cwd)
 
 
 def main() -> None:

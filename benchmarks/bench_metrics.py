@@ -12,14 +12,12 @@ Run: .venv/bin/python benchmarks/bench_metrics.py  (or `make bench`)
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from cloudcompare import run_cloudcompare
 from scancell.analysis.cloud_io import read_ply, write_ply
 from scancell.analysis.fusion import Station, fuse
 from scancell.analysis.metrics import compare_clouds
@@ -34,20 +32,8 @@ def surface(n: int, seed: int, offset: float = 0.0, tilt_deg: float = 0.0) -> np
 
 
 def cloudcompare(a: Path, b: Path) -> float | None:
-    exe = shutil.which("CloudCompare")
-    if exe is None:
-        print("CloudCompare not installed (Debian package cloudcompare): no reference")
-        return None
-    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
-    t0 = time.perf_counter()
-    r = subprocess.run([exe, "-SILENT", "-NO_TIMESTAMP", "-O", str(b), "-O", str(a), "-C2C_DIST",
-                        "-MODEL", "LS", "KNN", "12"], capture_output=True, text=True, env=env,
-                       timeout=1800, cwd=a.parent)
-    elapsed = time.perf_counter() - t0
-    if r.returncode != 0:
-        print(f"CloudCompare failed ({r.returncode}): {r.stderr[-300:]}")
-        return None
-    return elapsed
+    return run_cloudcompare(["-O", str(b), "-O", str(a), "-C2C_DIST", "-MODEL", "LS", "KNN",
+                             "12"], a.parent)
 
 
 def main() -> dict[str, float]:

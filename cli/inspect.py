@@ -59,15 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def read_transform(text: str):
     """A 4x4 matrix from a JSON file or 16 numbers."""
     import numpy as np
+    from scancell.analysis.json_file import read_json
 
     path = Path(text)
     if path.suffix == ".json" or path.is_file():
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ValueError(f"--transform: {path}: no such file") from None
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--transform: {path}: not JSON ({exc})") from None
+        data = read_json(path, ValueError)
         if isinstance(data, dict):
             if "T_part_from_measured" in data:
                 data = data["T_part_from_measured"]
@@ -177,15 +173,9 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _load_rps(path: str, RpsPoint):
-    import tomllib
+    from scancell.analysis.json_file import read_toml
 
-    try:
-        data = tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ValueError(f"--rps: {path}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"--rps: {path}: not valid TOML: {exc}") from None
-    points = data.get("point", [])
+    points = read_toml(path, ValueError).get("point", [])
     if not isinstance(points, list) or not points:
         raise ValueError(f"--rps: {path}: no [[point]] tables")
     return [RpsPoint.from_mapping(m) for m in points]

@@ -32,6 +32,17 @@ def sphere_cloud(centre, radius, n=20_000, noise=0.01, seed=0):
     return centre + d * (radius + rng.normal(0, noise, len(d)))[:, None]
 
 
+def sim_world(make_daemon, client, tmp_path):
+    """A daemon on the simulated cell at 1/4 camera size, its devices connected, and the true
+    stereo calibration at tmp_path/stereo.yaml."""
+    d = make_daemon(sim_cell_raw(camera_scale=4))
+    wait_until(lambda: all(s["state"] == "connected" for s in client.status()["devices"].values()),
+               30, what="sim devices connected")
+    world = get_world(d.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    return world
+
+
 @pytest.mark.unit
 def test_parameters_from_synthetic_artefacts():
     rng = np.random.default_rng(1)
@@ -99,11 +110,7 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
                                                                      tmp_path):
     from scancell.recorder.recorder import Recorder, RecorderSettings
 
-    d = make_daemon(sim_cell_raw(camera_scale=4))
-    wait_until(lambda: all(s["state"] == "connected" for s in client.status()["devices"].values()),
-               30, what="sim devices connected")
-    world = get_world(d.cfg.simulator["world"])
-    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    world = sim_world(make_daemon, client, tmp_path)
     scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
     worker = AcceptanceWorker(client.bus, tmp_path / "acc")
     rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=1.0))
@@ -152,11 +159,7 @@ def test_part3_ball_bar_across_two_stations_fused_through_the_tracker(make_daemo
                                                                       tmp_path):
     from scancell.protocols import messages
 
-    d = make_daemon(sim_cell_raw(camera_scale=4))
-    wait_until(lambda: all(s["state"] == "connected" for s in client.status()["devices"].values()),
-               30, what="sim devices connected")
-    world = get_world(d.cfg.simulator["world"])
-    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    world = sim_world(make_daemon, client, tmp_path)
     # the true mounting as the calibration in force (the hand-eye job has its own tests)
     he = client.bus.latched(client.bus.keys.hand_eye)
     he.publish(messages.encode_json({

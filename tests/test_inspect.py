@@ -224,12 +224,14 @@ def test_wrong_unit_no_overlap_no_convergence_and_bad_step_are_clear_errors(cad,
     # the STL read in metres: the part would be 1000 x too large
     with pytest.raises(NominalError, match=r"\d+x larger than the measured cloud: a wrong unit"):
         inspect_cloud(cloud, load_nominal(cad["stl"], unit="m"))
-    with pytest.raises(NominalError, match=r"\d+x smaller than the measured cloud: a wrong unit \(is the nominal in metres\?"):
+    with pytest.raises(NominalError,
+                       match=r"\d+x smaller than the measured cloud: a wrong unit \(is the nominal in m"):
         inspect_cloud(cloud * 1000.0, nominal)
     # a cloud of something else (a ball far from the part)
     ball = np.random.default_rng(0).normal(size=(5000, 3))
     ball = 40 * ball / np.linalg.norm(ball, axis=1, keepdims=True) + [2000.0, 0, 0]
-    with pytest.raises((al.AlignmentError, InspectionError), match=r"overlap|not a match|does not match|converge"):
+    with pytest.raises((al.AlignmentError, InspectionError),
+                       match=r"overlap|not a match|does not match|converge"):
         inspect_cloud(ball, nominal)
     with pytest.raises(al.AlignmentError, match="did not converge"):
         al.best_fit(nominal, moved(cloud, 1)[0], max_iterations=3, tolerance_mm=1e-12)
@@ -301,3 +303,16 @@ def test_worker_settings_from_the_cell_config(tmp_path):
     args.config, args.align = None, "asmeasured"
     with pytest.raises(ValueError, match="needs --transform"):
         inspect_settings(args)
+
+
+def test_a_plan_names_its_nominal():
+    from scancell.protocols.plan import PlanError, parse_plan
+
+    station = {"name": "s01", "joints_deg": [0, 0, 0, 0, -60, 0]}
+    plan = parse_plan({"plan": {"name": "p", "nominal": "/cad/car_rear.step"},
+                       "station": [station]})
+    assert plan.nominal == "/cad/car_rear.step"
+    assert parse_plan(plan.to_json()).nominal == plan.nominal  # round trip
+    assert "nominal = \"/cad/car_rear.step\"" in plan.to_toml()
+    with pytest.raises(PlanError, match="nominal must be the path"):
+        parse_plan({"plan": {"nominal": 3}, "station": [station]})

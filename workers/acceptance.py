@@ -23,7 +23,7 @@ from scancell.analysis.vdi2634 import evaluate
 from scancell.bus.protocol import BusLike
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import EncodingError
-from scancell.workers.base import ThreadedWorker
+from scancell.workers.base import HandEyeInForce, ThreadedWorker
 
 log = logging.getLogger(__name__)
 JOB_KIND = "acceptance"
@@ -52,24 +52,16 @@ class AcceptanceWorker(ThreadedWorker[str]):
         self.cloud_wait_s = cloud_wait_s
         self.jobs: dict[str, AcceptanceJob] = {}
         self.reports: list[dict[str, Any]] = []
-        self.hand_eye: dict[str, Any] | None = None
+        self.hand_eye = HandEyeInForce()
         self._lock = threading.Lock()
 
     def on_start(self) -> None:
         k = self.bus.keys
-        for s in self.bus.fetch_latched(k.hand_eye, 1.0):
-            self._on_hand_eye(s)
-        self.subscribe(k.hand_eye, self._on_hand_eye)
+        self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.acceptance_sample, self._on_sample)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.job_event("*"), self._on_event)
-
-    def _on_hand_eye(self, sample: Any) -> None:
-        body = sample.decode()
-        if body.get("T_ecs_from_mcs") is not None:
-            with self._lock:
-                self.hand_eye = body
 
     def _on_ecs(self, sample: Any) -> None:
         e = sample.decode()
@@ -132,9 +124,7 @@ class AcceptanceWorker(ThreadedWorker[str]):
 
 
     def world_clouds(self, job: AcceptanceJob) -> dict[str, np.ndarray]:
-        with self._lock:
-            he = self.hand_eye
-        return world_clouds(job.ecs, job.clouds, he)
+        return world_clouds(job.ecs, job.clouds, self.hand_eye.body)
 
 
 def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],

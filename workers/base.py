@@ -80,3 +80,38 @@ class ThreadedWorker(ABC, Generic[Item]):
                 log.exception("%s: unexpected error on %r", self.thread_name, item)
             finally:
                 self._queue.task_done()
+
+
+class HandEyeInForce:
+    """The hand-eye calibration in force: the latched ``calib/hand_eye``, followed. A failed
+    calibration (no transform) or one ``check`` refuses does not replace it."""
+
+    def __init__(self, check: Callable[[dict[str, Any]], None] | None = None) -> None:
+        self.check = check
+        self._body: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def body(self) -> dict[str, Any] | None:
+        with self._lock:
+            return self._body
+
+    def follow(self, worker: ThreadedWorker) -> None:
+        """The last published calibration, then every new one (from ``worker.on_start``)."""
+        key = worker.bus.keys.hand_eye
+        for s in worker.bus.fetch_latched(key, 1.0):
+            self.on_sample(s)
+        worker.subscribe(key, self.on_sample)
+
+    def on_sample(self, sample: BusSample) -> None:
+        body = sample.decode()
+        if body.get("T_ecs_from_mcs") is None:
+            return
+        if self.check is not None:
+            try:
+                self.check(body)
+            except ValueError as exc:
+                log.error("%s", exc)
+                return
+        with self._lock:
+            self._body = body

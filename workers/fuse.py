@@ -29,14 +29,14 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.error_budget import budget, ecs_noise_effect
-from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
+from scancell.analysis.fusion import Station, check_rigid, fuse
 from scancell.bus.protocol import BusLike
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
-from scancell.workers.base import ThreadedWorker
+from scancell.workers.base import HandEyeInForce, ThreadedWorker
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     def __init__(self, bus: BusLike, settings: FuseSettings | None = None) -> None:
         super().__init__(bus)
         self.settings = settings or FuseSettings()
-        self.hand_eye: dict[str, Any] | None = None
+        self.hand_eye = HandEyeInForce(lambda body: check_rigid(
+            np.asarray(body["T_ecs_from_mcs"]), "calib/hand_eye T_ecs_from_mcs"))
         self.jobs: dict[str, JobStations] = {}
         self.reports: list[dict[str, Any]] = []
         self._lock = threading.Lock()
@@ -87,25 +88,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
         k = self.bus.keys
-        for s in self.bus.fetch_latched(k.hand_eye, 1.0):
-            self._on_hand_eye(s)
-        self.subscribe(k.hand_eye, self._on_hand_eye)
+        self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.job_event("*"), self._on_event)
 
     # ---------------------------------------------------------------- bus callbacks
-    def _on_hand_eye(self, sample: Any) -> None:
-        body = sample.decode()
-        if body.get("T_ecs_from_mcs") is None:
-            return  # a failed calibration does not replace the one in force
-        try:
-            check_rigid(np.asarray(body["T_ecs_from_mcs"]), "calib/hand_eye T_ecs_from_mcs")
-        except FusionError as exc:
-            log.error("%s", exc)
-            return
-        with self._lock:
-            self.hand_eye = body
 
     def _job(self, job_id: str) -> JobStations:
         return self.jobs.setdefault(job_id, JobStations(job_id))
@@ -158,7 +146,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in."""
         with self._lock:
             job = self._job(job_id)
-            ecs, cloud, he = job.ecs.get(station), job.clouds.get(station), self.hand_eye
+            ecs, cloud, he = job.ecs.get(station), job.clouds.get(station), self.hand_eye.body
             if ecs is None or cloud is None or station in job.fused:
                 return None
         if he is None:
@@ -211,7 +199,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self.add_station(job_id, station)
         with self._lock:
             stations = list(job.fused.values())
-            he = self.hand_eye
+            he = self.hand_eye.body
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
                     "error": "no station could be fused" + ("" if he else ": no hand-eye")}
