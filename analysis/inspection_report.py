@@ -88,6 +88,19 @@ def _raster(u: np.ndarray, v: np.ndarray, depth: np.ndarray, values: np.ndarray,
     return img
 
 
+def _mean_raster(u: np.ndarray, v: np.ndarray, values: np.ndarray,
+                 extent: tuple[float, float, float, float], cell: float) -> np.ndarray:
+    """The mean of the values falling in each cell (NaN where none): a colour map of millions
+    of noisy points shows the deviation of the surface, not one point's noise per pixel."""
+    u0, u1, v0, v1 = extent
+    nu, nv = int((u1 - u0) / cell) + 1, int((v1 - v0) / cell) + 1
+    idx = ((v - v0) / cell).astype(int) * nu + ((u - u0) / cell).astype(int)
+    total = np.bincount(idx, values, nu * nv)
+    count = np.bincount(idx, None, nu * nv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (total / count).reshape(nv, nu)
+
+
 def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str, bytes]]:
     """(view name, PNG) of the colour maps of the views that see at least ``min_share`` of the
     measured points."""
@@ -119,8 +132,7 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
         # the nominal behind, the measured points 0.5 mm in front of it
         u, w = np.concatenate([s[:, 0], p[:, 0]]), np.concatenate([s[:, 1], p[:, 1]])
         depth = np.concatenate([s[:, 2], p[:, 2] + 0.5])
-        img = _raster(u, w, depth, np.concatenate([np.full(len(s), np.nan), dev[facing]]),
-                      extent, cell)
+        img = _mean_raster(p[:, 0], p[:, 1], dev[facing], extent, cell)
         seen = _raster(u, w, depth, np.concatenate([np.ones(len(s)), np.full(len(p), 2.0)]),
                        extent, cell)
         ext = (extent[0], extent[0] + img.shape[1] * cell, extent[2],

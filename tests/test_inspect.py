@@ -316,3 +316,31 @@ def test_a_plan_names_its_nominal():
     assert "nominal = \"/cad/car_rear.step\"" in plan.to_toml()
     with pytest.raises(PlanError, match="nominal must be the path"):
         parse_plan({"plan": {"nominal": 3}, "station": [station]})
+
+
+def test_a_scan_of_the_dented_part_through_the_simulator_shows_the_dent(cad):
+    """The real path: the simulated scanner renders the defect part (realistic optics, the
+    dark paint exposed 4x), the decoder makes the cloud, the fixture's pose puts it in the
+    part frame (asmeasured: one view is too small a patch for a best fit to hold)."""
+    from scancell.analysis.scanner import ScanDecoder
+    from scancell.analysis.stereo_calibration import StereoCalibration
+    from scancell.model.patterns import FringeSequence
+    from scancell.sim.cell import SimCell, SimCellConfig
+
+    cell = SimCell(SimCellConfig(camera_scale=2, part="car_rear_defects", seed=3))
+    T_world_from_part = cell.cfg.T_world_from_part
+    dent = next(d for d in parts.car_rear_defects_truth() if d.name == "dent")
+    target = al.apply(T_world_from_part, np.array([dent.at_mm]))[0]
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(target, 650.0)))
+    cell.load_sequence(FringeSequence())
+    left, right = ([cell.render(c, k, brightness=4.0) for k in range(len(cell.sequence))]
+                   for c in ("left", "right"))
+    cell.rig.write_opencv_yaml(cad["step"] + ".rig.yaml")
+    scan = ScanDecoder(StereoCalibration.read(cad["step"] + ".rig.yaml"), FringeSequence())
+    points = al.apply(cell.T_world_from_mcs(), scan.decode(left, right).cloud.points.astype(float))
+    result = inspect_cloud(points, load_nominal(cad["stl"]),
+                           InspectionSettings("asmeasured", np.linalg.inv(T_world_from_part)))
+    y, z = result.points[:, 1], result.points[:, 2]
+    near = np.hypot(y - dent.at_mm[1], z - dent.at_mm[2]) < 5
+    assert near.sum() > 200
+    assert abs(result.deviation[near].mean() - dent.deviation_mm) < 0.03
