@@ -79,6 +79,10 @@ def main() -> None:
                 return
         t_icp = cloudcompare(["-O", "moved.ply", "-O", "nominal.stl", "-ICP",
                               "-RANDOM_SAMPLING_LIMIT", "200000", "-C2M_DIST"], tmp)
+        import json
+
+        parts_s = json.loads((tmp / "o.json").read_text())["seconds"]
+        print(f"inside scancell inspect (s): {parts_s}")
         for name, t in runs.items():
             print(f"scancell {name} (bestfit, deviation, tolerances, coverage, sections, PLY): "
                   f"{t:.1f} s" + (f"; CloudCompare -ICP -C2M_DIST {t_icp:.1f} s; ratio "
