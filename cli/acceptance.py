@@ -112,13 +112,14 @@ def run_on_cell(args: argparse.Namespace) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
+    from scancell.protocols.commands import CommandError
     from scancell.workers.acceptance import summary_line, write_acceptance
 
     try:
         if args.run == bool(args.recording):
             raise ValueError("give a recording, or --run to test on the cell")
         body = run_on_cell(args) if args.run else from_recording(args.recording)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, CommandError) as exc:
         return fail("acceptance", str(exc))
     except ConnectionError as exc:
         return fail("acceptance", str(exc), 3)
