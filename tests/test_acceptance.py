@@ -1,6 +1,8 @@
 """VDI/VDE 2634 Part 2 acceptance: the quality parameters from artefact clouds (unit), and the
 whole test on the simulated cell: the job places and scans the artefacts, the acceptance worker
-evaluates them, and a recording of the job gives the same figures offline."""
+evaluates them, and a recording of the job gives the same figures offline. Part 3 (the long
+ball bar from two stations, fused through the tracker) runs in the quick demo
+(tests/test_demo.py), after a real hand-eye calibration."""
 
 from __future__ import annotations
 
@@ -152,37 +154,3 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
     bad = subprocess.run([sys.executable, "-m", "scancell", "acceptance", str(tmp_path / "x.mcap")],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "scancell acceptance:" in bad.stderr
-
-
-@pytest.mark.e2e
-def test_part3_ball_bar_across_two_stations_fused_through_the_tracker(make_daemon, client,
-                                                                      tmp_path):
-    from scancell.protocols import messages
-
-    world = sim_world(make_daemon, client, tmp_path)
-    # the true mounting as the calibration in force (the hand-eye job has its own tests)
-    he = client.bus.latched(client.bus.keys.hand_eye)
-    he.publish(messages.encode_json({
-        "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((120.0, -120.0)).tolist(),
-        "j6_angles_deg": [120.0, -120.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
-    scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
-    worker = AcceptanceWorker(client.bus)
-    reports: list = []
-    client.bus.subscribe(client.bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
-    scan_worker.start()
-    worker.start()
-    try:
-        final = client.run_job("acceptance", {"part": 3}, timeout_s=400)
-        assert final["state"] == "done", final
-        report = wait_until(lambda: reports, 120, period_s=0.5, what="acceptance/report")[0]
-    finally:
-        worker.stop()
-        scan_worker.stop()
-        he.close()
-    assert final["result"] == {"part": 3, "positions": 1, "stations": 2}
-    assert not report["errors"], report
-    sd3 = report["parameters"]["SD3"]
-    assert sd3["positions"] == 1 and sd3["mpe_mm"] == 0.2
-    # 800 mm between two stations: the tracker's ECS and the robot between the J6 turns
-    assert sd3["figure_mm"] < 0.3, sd3
-    assert abs(sd3["values"][0]["length_mm"] - parts.BALLBAR3_LENGTH_MM) < 0.3

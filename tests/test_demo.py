@@ -38,6 +38,9 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     acc = s["acceptance"]
     assert set(acc["part2"]["parameters"]) == {"PF", "PS", "SD", "F"}
     assert set(acc["part3"]["parameters"]) == {"SD3"} and not acc["part3"]["errors"]
+    # 800 mm across two stations at 1/4 camera size, through the tracker and the quick hand-eye
+    sd3 = acc["part3"]["parameters"]["SD3"]
+    assert sd3["positions"] == 1 and sd3["mpe_mm"] == 0.2 and sd3["figure_mm"] < 0.3, sd3
     for part in acc.values():
         assert (run / part["report"]).exists(), part["report"]
     for name in ("fused.ply", "fused.e57", "mesh.ply", "report/report.md", "plan.toml",
