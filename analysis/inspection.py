@@ -76,6 +76,16 @@ class Inspection:
     def deviation(self) -> np.ndarray:
         return self.closest.deviation
 
+    def write_ply(self, path: str) -> None:
+        """The measured points in the part frame, input order, with float properties
+        ``deviation`` (mm), ``nx``/``ny``/``nz`` (the nominal's normal) and ``in_range``."""
+        from scancell.analysis.cloud_io import write_ply
+
+        n = self.closest.normals
+        write_ply(path, self.points, {"deviation": self.deviation, "nx": n[:, 0], "ny": n[:, 1],
+                                      "nz": n[:, 2], "in_range": self.in_range.astype(np.float32)},
+                  comments=["frame: part (nominal), after alignment", "deviation: mm, + outside"])
+
     def face_names_of_points(self) -> np.ndarray:
         return self.nominal.face_of_triangle[self.closest.triangle]
 

@@ -117,9 +117,8 @@ def load_measured(source: str):
 
 
 def main(args: argparse.Namespace) -> int:
-    import numpy as np
     from scancell.analysis.alignment import AlignmentError, RpsPoint
-    from scancell.analysis.cloud_io import CloudFileError, write_ply
+    from scancell.analysis.cloud_io import CloudFileError
     from scancell.analysis.fusion import FusionError
     from scancell.analysis.inspection import InspectionError, InspectionSettings, inspect_cloud
     from scancell.analysis.nominal import NominalError, load_nominal
@@ -150,11 +149,7 @@ def main(args: argparse.Namespace) -> int:
                                progress=lambda m: print(f"  {m}", file=sys.stderr))
         files = {}
         if args.out_ply:
-            write_ply(args.out_ply, result.points, {
-                "deviation": result.deviation, "nx": result.closest.normals[:, 0],
-                "ny": result.closest.normals[:, 1], "nz": result.closest.normals[:, 2],
-                "in_range": result.in_range.astype(np.float32)},
-                comments=["frame: part (nominal), after alignment", "deviation: mm, + outside"])
+            result.write_ply(args.out_ply)
             files["ply"] = args.out_ply
         body = {"measured": source, **result.to_json()}
         if args.report:

@@ -125,17 +125,13 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         return body
 
     def _write(self, result: Any, job_id: str) -> dict[str, str]:
-        from scancell.analysis.cloud_io import write_ply
         from scancell.analysis.inspection_report import write_report
 
         folder = self.settings.out_dir / job_id / "inspection"
         files = write_report(result, folder, f"Inspection of job {job_id}",
                              f"fusion/cloud of job {job_id}")
         files["ply"] = str(folder / "inspected.ply")
-        write_ply(files["ply"], result.points, {
-            "deviation": result.deviation, "nx": result.closest.normals[:, 0],
-            "ny": result.closest.normals[:, 1], "nz": result.closest.normals[:, 2],
-            "in_range": result.in_range.astype(np.float32)})
+        result.write_ply(files["ply"])
         return files
 
     def _publish_cloud(self, result: Any, job_id: str) -> None:
