@@ -39,11 +39,19 @@ from typing import Any
 from scancell.cli._common import default_cell_config, fail
 from scancell.client import CellClient, CommandError
 
+_GIVEN: set[int] = set()
+
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free loopback port not handed out before in this process: the kernel may offer a
+    released port again, and the bus and a simulator then collide (seen: errno 98)."""
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _GIVEN:
+            _GIVEN.add(port)
+            return port
 
 
 class Stage:
