@@ -15,6 +15,7 @@ from typing import Any
 import jsonschema
 from scancell.bus import BusConfig
 from scancell.model.cell_geometry import CellGeometry, GeometryError
+from scancell.model.metrology_settings import check_table
 from scancell.protocols.keys import check_name
 
 
@@ -64,6 +65,8 @@ class CellConfig:
     inspection: dict[str, Any] = field(default_factory=dict)
     #: ``[acceptance]`` (ACCEPTANCE_KEYS); empty: the cell states no acceptance test
     acceptance: dict[str, Any] = field(default_factory=dict)
+    #: ``[metrology]``: weather, settle detection, reference nests (daemon/jobs/metrology.py)
+    metrology: dict[str, Any] = field(default_factory=dict)
 
     @cached_property
     def geometry(self) -> CellGeometry | None:
@@ -88,7 +91,7 @@ class CellConfig:
 
 
 _TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
-             "inspection", "acceptance"}
+             "inspection", "acceptance", "metrology"}
 #: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
 #: sizes (their certificates) and the MPEs, all mm
 ACCEPTANCE_NUMBERS = {"sphere_diameter_mm", "ballbar_length_mm", "ballbar_sphere_diameter_mm"}
@@ -250,7 +253,16 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
     return CellConfig(path, name, str(cell_t.get("description", "")), bus, daemon, devices, raw,
                       simulator, recorder, planner, dict(scanner),
                       _inspection(_table(raw, "inspection", err), path, err),
-                      _acceptance(_table(raw, "acceptance", err), err))
+                      _acceptance(_table(raw, "acceptance", err), err),
+                      _metrology(_table(raw, "metrology", err), err))
+
+
+def _metrology(t: dict[str, Any], err) -> dict[str, Any]:
+    problem = check_table(t)
+    if problem:
+        key, _, why = problem.partition(": ")
+        raise err(f"[metrology] {key}", why)
+    return dict(t)
 
 
 def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from scancell.daemon.jobs.acceptance import acceptance
 from scancell.daemon.jobs.devices import stop_motion
 from scancell.daemon.jobs.hand_eye import calibrate_hand_eye
 from scancell.daemon.jobs.home import home
+from scancell.daemon.jobs.metrology import MetrologySettings
 from scancell.daemon.jobs.projector_response import ResponseState, calibrate_projector
 from scancell.daemon.jobs.runner import JobRunner
 from scancell.daemon.jobs.scan import ScannerSetup, scan
@@ -131,13 +132,17 @@ class Daemon:
         response = ResponseState(self.bus)
         response.start()
         setup = ScannerSetup(response, dict(self.cfg.scanner))
+        metrology = MetrologySettings.from_table(self.cfg.metrology)
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
-                                                                 self.simulator, setup),
+                                                                 self.simulator, setup,
+                                                                 metrology),
             "calibrate_projector": lambda ctx: calibrate_projector(ctx, self.supervisors),
             "acceptance": lambda ctx: acceptance(ctx, self.supervisors, self.simulator,
-                                                 self.cfg.acceptance, setup, self.cfg.geometry),
-            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup),
+                                                 self.cfg.acceptance, setup, self.cfg.geometry,
+                                                 metrology),
+            "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup,
+                                               metrology),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
         self.router = CommandRouter(
             self.supervisors,

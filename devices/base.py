@@ -310,6 +310,16 @@ class Tracker(Device):
         """Search and lock on the reflector near ``approx_mm`` (world, mm)."""
         raise CommandError("invalid", f"{self.name}: this tracker driver cannot search a reflector")
 
+    async def set_environment(self, temperature_c: float, pressure_hpa: float,
+                              humidity_pct: float) -> None:
+        """The air (°C, hPa, % RH) the tracker's refraction correction uses from now on."""
+        raise CommandError("invalid", f"{self.name}: this tracker driver cannot be told the "
+                                      f"weather")
+
+    async def set_face(self, face: int) -> None:
+        """Measure in face 1 (front) or 2 (back) from now on."""
+        raise CommandError("invalid", f"{self.name}: this tracker driver cannot change face")
+
     async def measure_published(self, meta: dict[str, Any] | None = None) -> TrackerMeasurement:
         """:meth:`measure`, and the measurement on ``dev/<tracker>/point`` (every shot a
         command or a job takes is on the bus, hence in the recording)."""

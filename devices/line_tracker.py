@@ -187,6 +187,14 @@ class LineTracker(Tracker):
         await self._transact("FindReflector", tuple(float(v) for v in approx_mm))
         self.beam_locked = True
 
+    async def set_environment(self, temperature_c: float, pressure_hpa: float,
+                              humidity_pct: float) -> None:
+        await self._transact("SetEnvironment", (float(temperature_c), float(pressure_hpa),
+                                                float(humidity_pct)))
+
+    async def set_face(self, face: int) -> None:
+        await self._transact("Face", (int(face),))
+
     async def health(self) -> Health:
         t0 = time.monotonic()
         st = await self.status()

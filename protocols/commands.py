@@ -28,6 +28,9 @@ ERROR_CODES: dict[str, str] = {
     "busy": "another command or job holds the resource",
     "aborted": "the command was aborted (shutdown, stop or estop)",
     "calibration_failed": "a calibration's measurements gave no result (the previous one is kept)",
+    "not_settled": "the tracker's readings kept moving: the arm did not settle in time",
+    "nest_check_failed": "the reference nests could not locate the tracker (out of sight, or "
+                         "they disagree beyond the tolerance)",
     "internal": "a bug in scancell: please report it with the daemon log",
 }
 

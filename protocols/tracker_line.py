@@ -224,3 +224,19 @@ class LineSplitter:
                 out.append(raw.decode("ascii"))
             except UnicodeDecodeError:
                 out.append(LineError(f"non-ASCII bytes in line {raw[:40]!r}", readable_tag(raw)))
+
+
+#: the air a tracker's refraction correction accepts: (name, unit, low, high)
+ENVIRONMENT_RANGES = (("air temperature", "°C", -10.0, 50.0),
+                      ("air pressure", "hPa", 500.0, 1100.0),
+                      ("relative humidity", "%", 0.0, 100.0))
+
+
+def environment_problem(temperature_c: float, pressure_hpa: float, humidity_pct: float
+                        ) -> str | None:
+    """The first weather value out of its range, named with the range, or None."""
+    for (name, unit, lo, hi), v in zip(ENVIRONMENT_RANGES,
+                                       (temperature_c, pressure_hpa, humidity_pct), strict=True):
+        if not lo <= v <= hi:  # also refuses NaN
+            return f"{name} {v:g} {unit} outside [{lo:g}, {hi:g}] {unit}"
+    return None

@@ -105,15 +105,17 @@ class SimulatedDrive:
         if self._target is None:
             return
         rail = self.cell.rail_mm
-        step = self._velocity / self.counts_per_mm * dt
+        speed = self._velocity / self.counts_per_mm  # mm/s
+        step = speed * dt
         delta = self._target - rail
+        # the simulated clock advances by the distance travelled at the speed, not the ticks
         if abs(delta) <= step:
-            self.cell.move_rail(self._target)
+            self.cell.move_rail(self._target, abs(delta) / speed)
             self._target = None
             if self._homing:
                 self._finish_homing()
         else:
-            self.cell.move_rail(rail + step * (1 if delta > 0 else -1))
+            self.cell.move_rail(rail + step * (1 if delta > 0 else -1), dt, arrived=False)
 
     def _start_motion(self, target_rail_mm: float, velocity: float) -> None:
         self._target = target_rail_mm

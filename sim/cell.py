@@ -14,8 +14,9 @@ of calls give identical images and measurements.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -25,7 +26,9 @@ from scancell.model.patterns import FringeSequence
 from scancell.model.robot_model import RobotModel
 from scancell.model.transforms import apply_T, look_at_flange, make_T, rot_x, rot_y
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+from scancell.sim import mechanics as mech
 from scancell.sim import parts
+from scancell.sim.clock import SimClock
 from scancell.sim.optics import PinholeModel, StereoRig, default_rig
 from scancell.sim.optics_profile import (
     DEFAULT_PROFILE,
@@ -67,6 +70,10 @@ def _blur(dn: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return blend_levels(np.stack(blurred), pos.astype(np.float32))
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, float) / np.linalg.norm(v)
+
+
 def _rot_z(deg: float) -> np.ndarray:
     a = np.radians(deg)
     return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
@@ -94,6 +101,15 @@ def default_mount(rig: StereoRig) -> np.ndarray:
     return T_flange_from_rig @ np.linalg.inv(T_mcs_from_rig)
 
 
+#: the simulated cell's reference nests (world, mm): on the floor and on stands around the part,
+#: in the tracker's sight past the robot and the part
+DEFAULT_NESTS: dict[str, tuple[float, float, float]] = {
+    "N1": (1500.0, -2300.0, -1150.0), "N2": (1500.0, 2300.0, -1150.0),
+    "N3": (4600.0, -2400.0, -700.0), "N4": (4600.0, 2400.0, -700.0),
+    "N5": (2800.0, -2900.0, 400.0), "N6": (2800.0, 2900.0, 400.0),
+}
+
+
 @dataclass
 class SimCellConfig:
     seed: int = 0
@@ -114,6 +130,12 @@ class SimCellConfig:
     #: exposure time (s) at which ``optics.exposure`` holds (the cameras' nominal 10 ms)
     nominal_exposure_s: float = 0.01
     tracker: TrackerSpec = field(default_factory=TrackerSpec)
+    #: compliance, vibration, drift, tracker systematics, warm-up (sim/mechanics.py)
+    mechanics: mech.MechanicsProfile = field(
+        default_factory=lambda: mech.mechanics_profile(mech.DEFAULT_PROFILE))
+    #: fixed SMR nests (world, mm), their openings facing the tracker: the drift references
+    nests_world_mm: dict[str, tuple[float, float, float]] = field(
+        default_factory=lambda: dict(DEFAULT_NESTS))
     home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
 
 
@@ -136,13 +158,26 @@ class SimCell:
     def __init__(self, cfg: SimCellConfig | None = None, rig: StereoRig | None = None) -> None:
         self.cfg = cfg or SimCellConfig()
         full_rig = rig or default_rig()
-        self.rig = full_rig if self.cfg.camera_scale == 1 else full_rig.scaled(self.cfg.camera_scale)
+        #: the cold scanner's rig; ``self.rig`` is the rig at the current sim time (warm-up)
+        self.rig_cold = (full_rig if self.cfg.camera_scale == 1
+                         else full_rig.scaled(self.cfg.camera_scale))
+        self.rig = self.rig_cold
+        self._rig_scales = (1.0, 1.0)
+        self._rig_version = 0
         self.robot = RobotModel()
         self.T_flange_from_mcs = default_mount(full_rig)
         self.smr_opening_in_mcs = (-rig_bisector(full_rig) if self.cfg.smr_opening_in_mcs is None
                                    else np.asarray(self.cfg.smr_opening_in_mcs, float))
         self._rng = np.random.default_rng([self.cfg.seed, 1])
-        self.tracker = TrackerModel(self.cfg.tracker, np.random.default_rng([self.cfg.seed, 2]))
+        self.clock = SimClock()
+        self.mech = self.cfg.mechanics
+        self.tracker = TrackerModel(self.cfg.tracker, np.random.default_rng([self.cfg.seed, 2]),
+                                    mechanics=self.mech, seed=self.cfg.seed)
+        self._vib_rng = np.random.default_rng([self.cfg.seed, 6])
+        self.move_end_s = -np.inf  # no ringing before the first move
+        self._ring_dir = np.zeros(3)
+        self._hold_dir = _unit(self._vib_rng.normal(size=3))
+        self._hold_phase = float(self._vib_rng.uniform(0, 2 * np.pi))
         self._frame = 0
         self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
         self.q = self.q_commanded.copy()
@@ -157,6 +192,8 @@ class SimCell:
                                        regions=parts.paint_regions(self.cfg.part, mesh)))
         self._body = self.scene.add(SceneObject("scanner_body", parts.scanner_body(), np.eye(4),
                                                 visible_to_cameras=False))
+        for name, c in self.cfg.nests_world_mm.items():
+            self.scene.add(SceneObject(f"nest_{name}", parts.smr(), self._facing_tracker(c), 0.75))
         self._rays: dict[str, np.ndarray] = {}
         self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
@@ -174,7 +211,28 @@ class SimCell:
         return T
 
     def T_world_from_flange(self, q_rad: np.ndarray | None = None) -> np.ndarray:
-        return self.T_world_from_base @ self.robot.fk(self.q if q_rad is None else q_rad)
+        """The flange's true pose: at joints ``q_rad`` at rest (the arm bent by the payload and
+        grown by its warmth), or (``None``) now, vibrating."""
+        if q_rad is not None:
+            return self._static_flange(q_rad)
+        return self._flange_now(self.clock.now())
+
+    def _static_flange(self, q_rad: np.ndarray) -> np.ndarray:
+        q = np.asarray(q_rad, float)
+        base = self.T_world_from_base
+        dq = mech.compliance_deflection(lambda x: base @ self.robot.fk(x), q, self.mech)
+        T = self.robot.fk(q + dq)
+        T[:3, 3] *= 1.0 + mech.robot_growth(self.clock.now(), self.mech)
+        return base @ T
+
+    def _flange_now(self, t_s: float, window_s: float = 0.0) -> np.ndarray:
+        """The flange at sim time ``t_s`` with the arm's vibration (averaged over ``window_s``)."""
+        T = self._static_flange(self.q)
+        T[:3, 3] += (mech.ring_offset(t_s + window_s / 2 - self.move_end_s, self._ring_dir,
+                                      self.mech)
+                     + mech.hold_offset(t_s, self._hold_dir, self._hold_phase, self.mech,
+                                        window_s))
+        return T
 
     def T_world_from_mcs(self, q_rad: np.ndarray | None = None) -> np.ndarray:
         return self.T_world_from_flange(q_rad) @ self.T_flange_from_mcs
@@ -268,26 +326,42 @@ class SimCell:
         return self.scene.distance(points_world, [self.cfg.part])
 
     # ------------------------------------------------------------------ actuators
-    def move_joints(self, q_rad: np.ndarray) -> None:
-        """Arrive at ``q_rad`` with the configured repeatability. A joint that does not travel
-        (less than 0.01 deg, e.g. commanded to its own reported position) holds where it is
-        (``self.q``): only the joints that move land with fresh repeatability noise."""
+    def move_joints(self, q_rad: np.ndarray, duration_s: float = 0.0) -> None:
+        """Arrive at ``q_rad`` with the configured repeatability, ``duration_s`` of sim time
+        after the move started. A joint that does not travel (less than 0.01 deg, e.g.
+        commanded to its own reported position) holds where it is (``self.q``): only the joints
+        that move land with fresh repeatability noise. A move that travels leaves the arm
+        ringing."""
         q = np.asarray(q_rad, float).copy()
         if not self.robot.within_limits(q):
             raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
         noise = self._rng.normal(0, np.radians(self.cfg.joint_repeatability_deg), 6)
         noise[5] += self._rng.normal(0, np.radians(self.cfg.j6_repeatability_deg))
         moved = np.abs(q - self.q) > np.radians(0.01)
+        self.clock.advance(max(duration_s, 0.0))
         self.q_commanded = q
         self.q = np.where(moved, q + noise, self.q)
+        if moved.any():
+            self._start_ringing()
         self._update_body()
 
-    def move_rail(self, position_mm: float) -> None:
+    def move_rail(self, position_mm: float, duration_s: float = 0.0, arrived: bool = True
+                  ) -> None:
+        """Put the rail at ``position_mm`` after ``duration_s`` of sim time; a move that
+        ``arrived`` leaves the arm ringing."""
         lo, hi = self.cfg.rail_limits_mm
         if not lo <= position_mm <= hi:
             raise ValueError(f"rail position {position_mm} mm outside [{lo}, {hi}]")
+        self.clock.advance(max(duration_s, 0.0))
+        moved = abs(position_mm - self.rail_mm) > 1e-6
         self.rail_mm = float(position_mm)
+        if moved and arrived:
+            self._start_ringing()
         self._update_body()
+
+    def _start_ringing(self) -> None:
+        self.move_end_s = self.clock.now()
+        self._ring_dir = _unit(self._vib_rng.normal(size=3))
 
     def _update_body(self) -> None:
         self._body.T_world_from_object = self.T_world_from_mcs()
@@ -297,14 +371,18 @@ class SimCell:
         """Put the calibration SMR on a stand at ``center_world``, opening towards the tracker."""
         self.remove_ball()
         c = np.asarray(center_world, float)
-        z = (self.tracker.position - c) / np.linalg.norm(self.tracker.position - c)
-        x = np.cross([0.0, 0.0, 1.0], z)
-        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0, 0])
-        T_ball = make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
-        self.scene.add(SceneObject("ball", parts.smr(), T_ball, 0.75))
+        self.scene.add(SceneObject("ball", parts.smr(), self._facing_tracker(c), 0.75))
         if with_stand:
             self.scene.add(SceneObject("ball_stand", parts.ball_stand(), make_T(t=c), 0.3))
         self._scene_version += 1
+
+    def _facing_tracker(self, center_world: np.ndarray) -> np.ndarray:
+        """The frame of an SMR at ``center_world`` whose opening (z) faces the tracker."""
+        c = np.asarray(center_world, float)
+        z = (self.tracker.position - c) / np.linalg.norm(self.tracker.position - c)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0, 0])
+        return make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
 
     def remove_ball(self) -> None:
         before = len(self.scene.objects)
@@ -325,28 +403,51 @@ class SimCell:
         return self.scene.get("ball").T_world_from_object[:3, 3].copy()
 
     # ------------------------------------------------------------------ tracker
-    def _reflector(self, target: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-        """Centre, opening direction and self-occluding object names of a tracker target."""
+    def reflectors_world(self) -> dict[str, np.ndarray]:
+        """Every reflector's centre (world, mm) now: the scanner's SMR, the calibration ball if
+        placed, and the nests (``nest:<name>``)."""
+        out = {"scanner": self.smr_center_world()}
+        with contextlib.suppress(KeyError):
+            out["ball"] = self.ball_center_world()
+        for name in self.cfg.nests_world_mm:
+            out[f"nest:{name}"] = self.scene.get(f"nest_{name}").T_world_from_object[:3, 3].copy()
+        return out
+
+    def _reflector(self, target: str, t_s: float | None = None, window_s: float = 0.0
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+        """Centre, the SMR's rotation (its opening is the z column), opening direction and the
+        self-occluding object names of a tracker target, at sim time ``t_s``."""
         if target == "scanner":
-            return self.smr_center_world(), self.smr_opening_world(), ()
-        if target == "ball":
-            try:
-                T = self.scene.get("ball").T_world_from_object
-            except KeyError:
-                raise BeamBreak("no calibration ball in the cell") from None
-            return T[:3, 3], T[:3, 2], ("ball",)  # the ball does not occlude its own beam
-        raise KeyError(f"unknown tracker target {target!r}: use 'scanner' or 'ball'")
+            T = self._flange_now(self.clock.now() if t_s is None else t_s, window_s) \
+                @ self.T_flange_from_mcs
+            c = apply_T(T, self.cfg.smr_in_mcs_mm[None])[0]
+            return c, T[:3, :3], T[:3, :3] @ self.smr_opening_in_mcs, ()
+        name = "ball" if target == "ball" else f"nest_{target.removeprefix('nest:')}"
+        if target != "ball" and not (target.startswith("nest:")
+                                     and target[5:] in self.cfg.nests_world_mm):
+            raise KeyError(f"unknown tracker target {target!r}: use 'scanner', 'ball' or "
+                           f"'nest:<name>' of {sorted(self.cfg.nests_world_mm)}")
+        try:
+            T = self.scene.get(name).T_world_from_object
+        except KeyError:
+            raise BeamBreak("no calibration ball in the cell") from None
+        return T[:3, 3], T[:3, :3], T[:3, 2], (name,)  # an SMR does not occlude its own beam
 
     def beam_check(self, target: str = "scanner") -> None:
         """Raise BeamBreak unless the tracker can lock on ``target``; draws no noise."""
-        c, o, exclude = self._reflector(target)
+        c, _, o, exclude = self._reflector(target)
         self.tracker.beam_check(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
 
     def measure_smr(self, target: str = "scanner") -> TrackerReading:
-        """Tracker measurement of the scanner's SMR or of the calibration ball; BeamBreak if the
-        beam cannot reach it."""
-        c, o, exclude = self._reflector(target)
-        return self.tracker.measure(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
+        """Tracker measurement of the scanner's SMR, the calibration ball or a nest; BeamBreak
+        if the beam cannot reach it. It takes one shot's sim time, over which the tracker
+        averages the reflector's motion."""
+        shot = self.mech.tracker_shot_s
+        t0 = self.clock.now()
+        c, R, o, exclude = self._reflector(target, t0, shot)
+        self.tracker.beam_check(c, o, parts.SMR_RADIUS_MM, self.scene, exclude)
+        self.clock.advance(shot)
+        return self.tracker.measure(c, R, target, t0 + shot / 2)
 
     # ------------------------------------------------------------------ rendering
     def camera_model(self, camera: str) -> PinholeModel:
@@ -360,16 +461,47 @@ class SimCell:
     def geometry(self, camera: str) -> CameraGeometry:
         """Ray cast, projector mapping, shadowing and shading of one camera at the current pose
         (cached: the patterns of one pose reuse it)."""
+        self._warm_rig()
+        now = self.clock.now()
         T_wc = self.T_world_from_camera(camera)
         key = T_wc.round(9).tobytes()
+        rest = self.T_world_from_camera(camera, self.q).round(9).tobytes()
+        versions = (self._scene_version, self._rig_version)
         cached = self._geom_cache.get(camera)
-        if cached and cached[0] == key and cached[1] == self._scene_version:
-            return cached[2]
+        # the frames of one burst (a scan's patterns) share the pose of its first frame: the
+        # arm's vibration during one scan is not rendered (docs/simulation.md)
+        if cached and cached[1] == versions and (
+                cached[0] == key or (cached[2] == rest
+                                     and now - cached[3] <= self.mech.render_burst_s)):
+            return cached[4]
         geom = self._compute_geometry(camera, T_wc)
         self._serial += 1
         geom.serial = self._serial
-        self._geom_cache[camera] = (key, self._scene_version, geom)
+        self._geom_cache[camera] = (key, versions, rest, now, geom)
         return geom
+
+    def _warm_rig(self) -> None:
+        """Move the rig to the scanner's warm-up state at the current sim time (baseline and
+        focal lengths grow); a change under 0.5 ppm keeps the rig."""
+        scales = mech.scanner_scales(self.clock.now(), self.mech)
+        if max(abs(a - b) for a, b in zip(scales, self._rig_scales, strict=True)) < 0.5e-6:
+            return
+        base, focal = scales
+        cold = self.rig_cold
+
+        def grown(cam: PinholeModel) -> PinholeModel:
+            K = cam.K.copy()
+            K[0, 0] *= focal
+            K[1, 1] *= focal
+            return replace(cam, K=K)
+
+        T_right = cold.T_mcs_from_right.copy()
+        T_right[:3, 3] *= base
+        self.rig = replace(cold, left=grown(cold.left), right=grown(cold.right),
+                           T_mcs_from_right=T_right)
+        self._rig_scales = scales
+        self._rig_version += 1
+        self._rays.clear()
 
     def _compute_geometry(self, camera: str, T_wc: np.ndarray) -> CameraGeometry:
         cfg = self.cfg

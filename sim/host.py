@@ -27,6 +27,8 @@ from scancell.devices.dlpc350_projector import FLASH_LAYOUT_SCHEMA
 from scancell.sim.artefact_placer import SimArtefactPlacer
 from scancell.sim.ball_placer import SimBallPlacer
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.mechanics import EFFECTS as MECH_EFFECTS
+from scancell.sim.mechanics import mechanics_profile
 from scancell.sim.optics_profile import DEFAULT_PROFILE, EFFECTS, PROFILES, optics_profile
 from scancell.sim.parts import PARTS
 from scancell.sim.world import SimWorld, register, unregister
@@ -44,7 +46,8 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
         "part": {"enum": [*PARTS, ""]},
         "look_at_part": {"type": "boolean"},
         "profile": {"enum": sorted(PROFILES)},
-        "effects_off": {"type": "array", "items": {"enum": sorted(EFFECTS)}, "uniqueItems": True},
+        "effects_off": {"type": "array", "items": {"enum": sorted({*EFFECTS, *MECH_EFFECTS})},
+                        "uniqueItems": True},
         "robot": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "motion_port": _PORT, "state_port": _PORT,
             "byte_order": {"enum": ["big", "little"]},
@@ -83,11 +86,13 @@ _SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "
 def sim_cell(options: dict[str, Any]) -> SimCell:
     """The simulated cell a ``[simulator]`` table describes (its geometry is the ground truth a
     worker compares against)."""
-    return SimCell(SimCellConfig(seed=int(options.get("seed", 0)),
-                                 camera_scale=float(options.get("camera_scale", 1.0)),
-                                 part=options.get("part", "car_rear") or None,
-                                 optics=optics_profile(str(options.get("profile", DEFAULT_PROFILE)),
-                                                       list(options.get("effects_off", [])))))
+    profile = str(options.get("profile", DEFAULT_PROFILE))
+    off = list(options.get("effects_off", []))
+    return SimCell(SimCellConfig(
+        seed=int(options.get("seed", 0)), camera_scale=float(options.get("camera_scale", 1.0)),
+        part=options.get("part", "car_rear") or None,
+        optics=optics_profile(profile, [e for e in off if e in EFFECTS]),
+        mechanics=mechanics_profile(profile, [e for e in off if e in MECH_EFFECTS])))
 
 
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:

@@ -13,14 +13,19 @@ A point is given only when the beam reaches the SMR: the straight line from the 
 SMR centre must not hit any object (part, stand, scanner housing) before the ball, and the beam
 must fall inside the corner cube's acceptance cone (±30° around the opening for a 1.5" SMR);
 otherwise the measurement is a beam break, never a point.
+
+Beyond the noise, the mechanics profile (sim/mechanics.py) adds the systematic terms, the air's
+refraction, the stand's drift and the SMRs' centring errors.
 """
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
+from scancell.sim import mechanics as mech
 from scancell.sim.scene import Scene
 
 
@@ -53,12 +58,53 @@ class TrackerReading:
 
 
 class TrackerModel:
+    """The tracker at ``position_mm`` (world; its frame's axes are the world's until its stand
+    drifts). Besides noise it has the systematic errors, refraction, stand drift and SMR
+    centring of ``mechanics`` (sim/mechanics.py), measured in ``face`` 1 (front) or 2 (back),
+    with the air the tracker was told (``air_set``: °C, hPa, % RH)."""
+
     def __init__(self, spec: TrackerSpec | None = None, rng: np.random.Generator | None = None,
-                 position_mm: np.ndarray | None = None) -> None:
+                 position_mm: np.ndarray | None = None,
+                 mechanics: mech.MechanicsProfile | None = None, seed: int = 0) -> None:
         self.spec = spec or TrackerSpec()
         self.rng = rng or np.random.default_rng(0)
         self.position = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
+        self.mech = mechanics or mech.IDEAL
+        self.seed = seed
+        self.face = 1
+        self.air_set: tuple[float, float, float] = self.mech.refraction_default
+        drift = np.random.default_rng([seed, 7])
+        d = drift.normal(size=3)
+        self._drift_dir = d / np.linalg.norm(d)
+        a = drift.normal(size=2)
+        self._tilt_axis = np.array([a[0], a[1], 0.0]) / np.linalg.norm(a)
+        self._station_bias = drift.normal(size=3) * np.asarray(self.mech.weather_station_sigma)
 
+    # ------------------------------------------------------------------ environment
+    def weather_station(self, t_s: float) -> tuple[float, float, float]:
+        """What the tracker's own weather station reads at ``t_s`` (°C, hPa, % RH)."""
+        true = mech.true_air(t_s, self.mech)
+        return tuple(float(v + b) for v, b in zip(true, self._station_bias, strict=True))
+
+    def range_scale(self, t_s: float) -> float:
+        """Reported / true range from refraction: the tracker converts its optical path with
+        the index of the air it was told, the beam travels through the true air."""
+        if not self.mech.refraction:
+            return 1.0
+        return mech.air_index(*mech.true_air(t_s, self.mech)) / mech.air_index(*self.air_set)
+
+    def T_world_from_tracker(self, t_s: float) -> np.ndarray:
+        """The tracker's frame in ``world`` at sim time ``t_s`` (its stand drifts)."""
+        T = mech.stand_drift(t_s, self._drift_dir, self._tilt_axis, self.mech)
+        T[:3, 3] += self.position
+        return T
+
+    def centring_offset(self, target: str) -> np.ndarray:
+        """The optical centre of ``target``'s SMR off its ball's centre, in the SMR's frame."""
+        rng = np.random.default_rng([self.seed, 8, zlib.crc32(target.encode())])
+        return rng.normal(size=3) * self.mech.smr_centring_mm
+
+    # ------------------------------------------------------------------ measuring
     def beam_check(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
                    scene: Scene, exclude: Collection[str] = ()) -> None:
         """Raise BeamBreak if the beam cannot lock on an SMR at ``center``."""
@@ -74,12 +120,17 @@ class TrackerModel:
                           exclude=exclude)[0]:
             raise BeamBreak("beam occluded before the SMR")
 
-    def measure(self, center: np.ndarray, opening_dir: np.ndarray, radius_mm: float,
-                scene: Scene, exclude: Collection[str] = ()) -> TrackerReading:
-        self.beam_check(center, opening_dir, radius_mm, scene, exclude)
-        to_smr = center - self.position
-        dist = float(np.linalg.norm(to_smr))
-        u = to_smr / dist
+    def measure(self, center: np.ndarray, R_smr: np.ndarray, target: str, t_s: float
+                ) -> TrackerReading:
+        """The reading of an SMR whose ball is centred at ``center`` (world, mm) and turned by
+        ``R_smr``, at sim time ``t_s``: in the tracker's own (drifted) frame, with its
+        systematic errors, refraction and noise. The beam must have been checked."""
+        optical = center + R_smr @ self.centring_offset(target)
+        T_wt = self.T_world_from_tracker(t_s)
+        local = T_wt[:3, :3].T @ (optical - T_wt[:3, 3])
+        reported = mech.tracker_systematics(local, self.face, self.range_scale(t_s), self.mech)
+        dist = float(np.linalg.norm(reported))
+        u = reported / dist
         a = np.cross(u, [0.0, 0.0, 1.0])
         if np.linalg.norm(a) < 1e-6:
             a = np.cross(u, [1.0, 0.0, 0.0])
@@ -87,7 +138,7 @@ class TrackerModel:
         b = np.cross(u, a)
         s_r, s_t = self.spec.sigmas_mm(dist)
         e = self.rng.normal(size=3)
-        point = center + u * s_r * e[0] + a * s_t * e[1] + b * s_t * e[2]
+        point = self.position + reported + u * s_r * e[0] + a * s_t * e[1] + b * s_t * e[2]
         B = np.stack([u, a, b], axis=1)
         cov = B @ np.diag([s_r**2, s_t**2, s_t**2]) @ B.T
-        return TrackerReading(point, np.sqrt(np.diag(cov)), center.copy())
+        return TrackerReading(point, np.sqrt(np.diag(cov)), np.asarray(center, float).copy())

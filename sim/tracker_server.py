@@ -28,9 +28,12 @@ class TrackerProtocolHandler:
         self.serial_number = serial_number
         self.target = "scanner"
         self._locked: bool | None = None
-        self.env = (20.0, 1013.25, 45.0)
         #: An injected fault (SIM_FAULTS), or None.
         self.fault: str | None = None
+
+    def _clock_ns(self) -> int:
+        """The tracker's clock: the simulated cell's, so time stamps follow simulated time."""
+        return self.cell.clock.now_ns()
 
     def _lock_state(self) -> tuple[bool, str]:
         if self.fault in ("beam_break", "reflector_lost"):
@@ -61,7 +64,7 @@ class TrackerProtocolHandler:
         if name == "SimFault":
             return self._sim_fault(tag, args)
         n_args = {"Hello": 0, "Measure": 0, "Status": 0, "Environment": 0, "FindReflector": 3,
-                  "Abort": 0}
+                  "Abort": 0, "SetEnvironment": 3, "Face": 1}
         if name not in n_args:
             return [tl.error_response(tag, 2001, f"unknown command {name!r}")]
         if len(args) != n_args[name] or not all(isinstance(a, int | float) for a in args):
@@ -85,20 +88,33 @@ class TrackerProtocolHandler:
             x, y, z = (float(v) for v in r.point_mm)
             sx, sy, sz = (float(v) for v in r.sigma_mm)
             return [ack, tl.format_response(tag, "data", "Point",
-                                            (x, y, z, sx, sy, sz, time.time_ns())), done]
+                                            (x, y, z, sx, sy, sz, self._clock_ns())), done]
         if name == "Status":
             locked, _ = self._lock_state()
             return [ack, tl.format_response(tag, "data", "Status", (int(locked), "SMR1.5")), done]
         if name == "Environment":
-            return [ack, tl.format_response(tag, "data", "Env", self.env), done]
+            env = self.cell.tracker.weather_station(self.cell.clock.now())
+            return [ack, tl.format_response(tag, "data", "Env", tuple(round(v, 2) for v in env)),
+                    done]
+        if name == "SetEnvironment":
+            problem = tl.environment_problem(*(float(a) for a in args))
+            if problem:
+                return [tl.error_response(tag, 2002, problem)]
+            self.cell.tracker.air_set = tuple(float(a) for a in args)
+            return [ack, tl.format_response(tag, "data", "Env", tuple(float(a) for a in args)),
+                    done]
+        if name == "Face":
+            if args[0] not in (1, 2):
+                return [tl.error_response(tag, 2002, f"Face takes 1 (front) or 2 (back), "
+                                                     f"not {args[0]}")]
+            self.cell.tracker.face = int(args[0])
+            return [ack, tl.format_response(tag, "data", "Face", (int(args[0]),)), done]
         if name == "FindReflector":
             if self.fault == "reflector_lost":
                 return [tl.error_response(tag, 1002, "no reflector within 100 mm (injected)")]
             self.fault = None  # a broken beam is found again
             p = np.asarray(args, float)
-            candidates = {"scanner": self.cell.smr_center_world()}
-            with contextlib.suppress(KeyError):
-                candidates["ball"] = self.cell.ball_center_world()
+            candidates = self.cell.reflectors_world()
             best = min(candidates, key=lambda k: np.linalg.norm(candidates[k] - p))
             if np.linalg.norm(candidates[best] - p) > 100.0:
                 return [tl.error_response(tag, 1002, "no reflector within 100 mm")]

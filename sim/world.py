@@ -31,6 +31,8 @@ class TriggerLine:
         self._double: dict[str, int] = {}
         self._lock = threading.Lock()
         self.pulses = 0
+        #: called once per pulse (the simulated cell's clock advances by a pattern's period)
+        self.on_pulse: Callable[[], None] | None = None
 
     def connect(self, name: str, callback: TriggerInput) -> None:
         with self._lock:
@@ -61,6 +63,8 @@ class TriggerLine:
                     self._double[name] -= 1
                     fire.append(cb)
             count = self.pulses
+        if self.on_pulse is not None:
+            self.on_pulse()
         for cb in fire:
             cb(pattern)
         return count
@@ -72,6 +76,10 @@ class SimWorld:
     cell: SimCell
     lock: threading.RLock = field(default_factory=threading.RLock)
     trigger: TriggerLine = field(default_factory=TriggerLine)
+
+    def __post_init__(self) -> None:
+        cell = self.cell
+        self.trigger.on_pulse = lambda: cell.clock.advance(cell.mech.pattern_s)
 
 
 _WORLDS: dict[str, SimWorld] = {}

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis import vdi2634
 from scancell.daemon.jobs.devices import measuring_devices
+from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.runner import JobContext
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
@@ -68,13 +69,15 @@ def placements(table: dict[str, Any], counts: dict[str, int]) -> list[vdi2634.Pl
 async def acceptance(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                      simulator: Simulator | None, table: dict[str, Any],
                      setup: ScannerSetup | None = None,
-                     geometry: CellGeometry | None = None) -> dict[str, Any]:
+                     geometry: CellGeometry | None = None,
+                     metrology: MetrologySettings | None = None) -> dict[str, Any]:
     if not table:
         raise CommandError("invalid", "the cell config has no [acceptance] table (measuring "
                                       "volume, artefacts, MPEs): no acceptance test")
     req = ctx.request
     if int(req.get("part", 2)) == 3:
-        return await multiple_views(ctx, supervisors, simulator, table, setup, geometry)
+        return await multiple_views(ctx, supervisors, simulator, table, setup, geometry,
+                                    metrology)
     counts = {**DEFAULT_POSITIONS, **table.get("positions", {}), **req.get("positions", {})}
     todo = [p for p in placements(table, counts)
             if not req.get("artefacts") or p.kind in req["artefacts"]]
@@ -129,8 +132,8 @@ def station_looking_at(name: str, target: np.ndarray, g: CellGeometry) -> PlanSt
 
 async def multiple_views(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                          simulator: Simulator | None, table: dict[str, Any],
-                         setup: ScannerSetup | None, geometry: CellGeometry | None
-                         ) -> dict[str, Any]:
+                         setup: ScannerSetup | None, geometry: CellGeometry | None,
+                         metrology: MetrologySettings | None = None) -> dict[str, Any]:
     from scancell.daemon.jobs.devices import serving_device, stop_motion
     from scancell.daemon.jobs.scan_part import Station, check_plan, measure_station, solve_poses
     from scancell.devices.base import Axis
@@ -158,11 +161,15 @@ async def multiple_views(ctx: JobContext, supervisors: dict[str, DeviceSuperviso
                               else OperatorArtefactPlacer(ctx))
     how = Station(devs.robot.device, devs.tracker.device, axis, devs.projector.name,
                   [c.name for c in devs.cameras], float(req.get("speed", 0.2)),
-                  int(req.get("tracker_repeats", 5)), list(geometry.j6_angles_deg), setup)
+                  int(req.get("tracker_repeats", 5)), list(geometry.j6_angles_deg), setup,
+                  metrology or MetrologySettings())
     n = len(plan.stations)
     async with contextlib.AsyncExitStack() as stack:
         await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
+            weather = await apply_weather(devs.tracker.device, how.metrology)
+            if weather.get("warning"):
+                ctx.event("running", "weather", weather["warning"])
             for k, (c, d) in enumerate(ends):
                 await placer.place_world("ballbar3", c, d)
                 scans = []

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scancell.daemon.jobs.metrology import MetrologySettings, settle
 from scancell.devices.base import Robot, Tracker
 from scancell.devices.errors import BeamBroken
 
@@ -22,6 +23,7 @@ class EcsPoint:
     j6_deg: float  # relative to q0's J6
     point_mm: np.ndarray  # world (tracker) frame
     sigma_mm: np.ndarray  # 1-sigma of the mean
+    settle_s: float | None = None  # how long the arm took to settle before it (tracker clock)
 
 
 async def averaged(tracker: Tracker, repeats: int,
@@ -34,12 +36,25 @@ async def averaged(tracker: Tracker, repeats: int,
             np.mean([m.sigma_mm for m in ms], axis=0) / np.sqrt(repeats))
 
 
+async def settled_point(tracker: Tracker, repeats: int, meta: dict[str, Any],
+                        metrology: MetrologySettings | None) -> tuple[np.ndarray, np.ndarray,
+                                                                      float | None]:
+    """:func:`averaged` once the arm has settled (``metrology`` given): the mean, its 1-sigma
+    and the settle time (s)."""
+    settle_s = None
+    if metrology is not None:
+        settle_s = (await settle(tracker, metrology, meta)).settle_s
+    p, s = await averaged(tracker, repeats, meta)
+    return p, s, settle_s
+
+
 async def measure_ecs(robot: Robot, tracker: Tracker, q0: np.ndarray, turns_deg: list[float],
                       speed: float, repeats: int, meta: dict[str, Any],
                       progress: Callable[[int, float, str], None],
-                      p1: EcsPoint | None = None) -> list[EcsPoint]:
-    """P1 at ``q0`` (or ``p1`` if already measured) and one point per J6 turn;
-    ``progress(k, turn, note)`` before each."""
+                      p1: EcsPoint | None = None,
+                      metrology: MetrologySettings | None = None) -> list[EcsPoint]:
+    """P1 at ``q0`` (or ``p1`` if already measured) and one point per J6 turn, each after the
+    arm settled when ``metrology`` is given; ``progress(k, turn, note)`` before each."""
     points: list[EcsPoint] = []
     for attempt, sign in enumerate((1.0, -1.0)):
         try:
@@ -52,8 +67,10 @@ async def measure_ecs(robot: Robot, tracker: Tracker, q0: np.ndarray, turns_deg:
                     q = np.array(q0, float)
                     q[5] += np.radians(turn)
                     await robot.move_joints(q, speed)
-                p, s = await averaged(tracker, repeats, {**meta, "ecs": k, "j6_deg": turn})
-                points.append(EcsPoint(turn, p, s))
+                p, s, settle_s = await settled_point(tracker, repeats,
+                                                     {**meta, "ecs": k, "j6_deg": turn},
+                                                     metrology)
+                points.append(EcsPoint(turn, p, s, settle_s))
             break
         except BeamBroken as exc:
             await robot.move_joints(q0, speed)

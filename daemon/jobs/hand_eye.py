@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 from scancell.daemon.jobs.devices import measuring_devices
 from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
-from scancell.daemon.jobs.runner import JobContext
+from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
+from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Robot, Tracker
@@ -46,7 +47,8 @@ class OperatorPlacer:
 
 async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              simulator: Simulator | None,
-                             setup: ScannerSetup | None = None) -> dict[str, Any]:
+                             setup: ScannerSetup | None = None,
+                             metrology: MetrologySettings | None = None) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
     turns = [float(a) for a in req.get("j6_angles_deg", [*DEFAULT_J6_ANGLES_DEG, 60.0, -60.0])]
@@ -71,6 +73,12 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
         await hold_for_job(stack, ctx.job_id, devs.all)
         # Balls first, then the ECS starting from this very pose: the robot does not move
         # between the scans and P1, so its repeatability does not enter between them.
+        try:
+            weather = await apply_weather(tracker, metrology or MetrologySettings())
+        except CommandError as exc:
+            raise StepFailed("start", "weather", exc.message) from exc
+        if weather.get("warning"):
+            ctx.event("running", "weather", weather["warning"])
         q0 = await robot.joints()
         home_smr = (await tracker.measure()).point_mm
         try:
@@ -97,8 +105,9 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
         ecs = await measure_ecs(
             robot, tracker, q0, turns, speed, repeats, {"job_id": ctx.job_id},
             lambda k, turn, note: ctx.event("running", "ecs", note or f"ECS: J6 {turn:+.1f} deg",
-                                            k, len(turns) + 1))
+                                            k, len(turns) + 1), metrology=metrology)
         for k, e in enumerate(ecs):
             sample("ecs", f"P{k + 1}", e.point_mm, index=k, j6_deg=e.j6_deg, repeats=repeats,
                    sigma_mm=[float(v) for v in e.sigma_mm])
-    return {"balls": n, "ecs_points": len(ecs), "j6_angles_deg": [e.j6_deg for e in ecs[1:]]}
+    return {"balls": n, "ecs_points": len(ecs), "j6_angles_deg": [e.j6_deg for e in ecs[1:]],
+            "weather": weather, "settle_s": [e.settle_s for e in ecs]}

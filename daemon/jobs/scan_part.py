@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop_motion
-from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
+from scancell.daemon.jobs.ecs_measure import EcsPoint, measure_ecs, settled_point
+from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
+from scancell.daemon.jobs.nests import DriftControl
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
@@ -138,6 +140,10 @@ class Station:
     repeats: int
     turns: list[float]
     setup: ScannerSetup | None
+    #: settle detection before each tracker point (None: measure at once)
+    metrology: MetrologySettings | None = None
+    #: the tracker's location by the reference nests (None: the tracker's frame is ``world``)
+    drift: DriftControl | None = None
 
 
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
@@ -161,7 +167,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
         step = "p1"
         event("p1", f"station {st.name}: tracker P1")
         meta = {"job_id": ctx.job_id, "station": st.name}
-        p, s = await averaged(how.tracker, how.repeats, {**meta, "ecs": 0, "j6_deg": 0.0})
+        p, s, settle_s = await settled_point(how.tracker, how.repeats,
+                                             {**meta, "ecs": 0, "j6_deg": 0.0}, how.metrology)
         step = "scan"
         event("scan", f"station {st.name}: scanning")
         reply = await scan(supervisors, {
@@ -173,19 +180,24 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
             how.robot, how.tracker, q0, [st.j6_sign * a for a in how.turns], how.speed,
             how.repeats, meta,
             lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 {turn:+.1f} deg"),
-            p1=EcsPoint(0.0, p, s))
+            p1=EcsPoint(0.0, p, s, settle_s), metrology=how.metrology)
     except asyncio.CancelledError:
         raise
     except Exception as exc:
         why = exc.message if isinstance(exc, CommandError) else f"{exc}"
         raise StepFailed(st.name, step, why) from exc
+    to_world = how.drift.to_world if how.drift is not None else np.asarray
     record = {"job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"],
               "index": i, "total": n, "plan": plan_name,
-              "points_mm": [[float(v) for v in e.point_mm] for e in ecs],
+              "points_mm": [[float(v) for v in to_world(e.point_mm)] for e in ecs],
+              "settle_s": [e.settle_s for e in ecs],
               "sigma_mm": [[float(v) for v in e.sigma_mm] for e in ecs],
               "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": how.repeats,
               "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
               "stamp_ns": messages.now_ns()}
+    if how.drift is not None:
+        record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]
+        record["T_world_from_tracker"] = how.drift.T_world_from_tracker.tolist()
     ctx.bus.publish_json(ctx.bus.keys.station_ecs(st.name), record, "scancell.StationEcs")
     event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
     return record
@@ -193,7 +205,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
 
 async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     geometry: CellGeometry | None = None,
-                    setup: ScannerSetup | None = None) -> dict[str, Any]:
+                    setup: ScannerSetup | None = None,
+                    metrology: MetrologySettings | None = None) -> dict[str, Any]:
     req = ctx.request
     plan = plan_from_request(req, geometry)
     speed = float(req.get("speed", plan.speed))
@@ -212,19 +225,52 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n)
     t_start = time.monotonic()
 
+    metrology = metrology or MetrologySettings()
+    drift = DriftControl(tracker, metrology, {"job_id": ctx.job_id})
+    ctx.kept.update(drift_checks=drift.checks)
+    result: dict[str, Any] = {"plan": plan.name, "stations": done}
+
+    async def nest_check(label: str, scanner_at: np.ndarray) -> None:
+        ctx.event("running", "nests", f"nest check {label}: measuring "
+                                      f"{len(drift.survey)} reference nests")
+        try:
+            rec = await drift.check(label, scanner_at)
+        except CommandError as exc:
+            raise StepFailed(label, "nests", exc.message) from exc
+        ctx.event("running", "nests", f"nest check {label}: drift {rec['drift_max_mm']:.4f} mm"
+                  f"{', tracker re-located' if rec['relocated'] else ''}", drift=rec)
+
     async with contextlib.AsyncExitStack() as stack:
         await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
+            try:
+                result["weather"] = await apply_weather(tracker, metrology)
+            except CommandError as exc:
+                raise StepFailed("start", "weather", exc.message) from exc
+            if result["weather"].get("warning"):
+                ctx.event("running", "weather", result["weather"]["warning"])
+            scanner_at = (await tracker.measure()).point_mm if drift.enabled else None
+            if drift.enabled:
+                await nest_check("start", scanner_at)
+            how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
+                          repeats, turns, setup, metrology, drift if drift.enabled else None)
             for i, st in enumerate(plan.stations):
+                if drift.enabled and i and i % metrology.nest_check_every == 0:
+                    await nest_check(f"before {st.name}", scanner_at)
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
-                record = await measure_station(ctx, supervisors, st, Station(
-                    robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed, repeats,
-                    turns, setup), i, n, eta, plan.name)
-                done.append({"station": st.name, "scan_id": record["scan_id"]})
+                record = await measure_station(ctx, supervisors, st, how, i, n, eta, plan.name)
+                scanner_at = np.asarray(record["tracker_points_mm" if drift.enabled
+                                               else "points_mm"][0])
+                done.append({"station": st.name, "scan_id": record["scan_id"],
+                             "settle_s": record["settle_s"]})
+            if drift.enabled:
+                await nest_check("end", scanner_at)
         except BaseException:
             await stop_motion([robot, axis])
             raise
-    result = {"plan": plan.name, "stations": done, "seconds": round(time.monotonic() - t_start, 1)}
+    result["seconds"] = round(time.monotonic() - t_start, 1)
+    if drift.enabled:
+        result["drift_checks"] = drift.checks
     if plan.nominal:
         result["nominal"] = plan.nominal
     return result

@@ -1,0 +1,83 @@
+"""``[metrology]`` of a cell config: the weather for the tracker's refraction correction,
+settle detection before tracker points, and the reference nests of drift control
+(docs/metrology.md). Lengths mm, times s, nests in ``world``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from scancell.protocols import tracker_line
+
+
+@dataclass(frozen=True)
+class MetrologySettings:
+    """``[metrology]``, defaults filled in (lengths mm, times s)."""
+
+    #: "tracker": the tracker's own weather station; "config": the values below; None: the
+    #: cell states no weather (every job warns that the tracker corrects for its own setting)
+    weather: str | None = None
+    air_temperature_c: float | None = None
+    air_pressure_hpa: float | None = None
+    humidity_pct: float | None = None
+    #: settled when ``settle_window`` consecutive readings lie within this of their mean (on
+    #: top of twice the tracker's stated noise)
+    settle_tolerance_mm: float = 0.010
+    settle_window: int = 4
+    settle_timeout_s: float = 15.0
+    #: reference nests (world, mm) by name, surveyed when the cell was commissioned
+    nests: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    nest_check_every: int = 4
+    nest_repeats: int = 3
+    #: re-locate the tracker when a nest moved more than this since the last location
+    drift_tolerance_mm: float = 0.010
+    #: the nests disagree (one knocked, or the tracker moved more than rigidly) beyond this
+    nest_fit_tolerance_mm: float = 0.05
+    min_nests: int = 3
+
+    @classmethod
+    def from_table(cls, t: dict[str, Any]) -> MetrologySettings:
+        nests = {str(k): tuple(float(v) for v in p) for k, p in t.get("nests", {}).items()}
+        return cls(**{**{k: v for k, v in t.items() if k != "nests"}, "nests": nests})
+
+
+METROLOGY_KEYS = {f for f in MetrologySettings.__dataclass_fields__}
+
+
+def check_table(t: dict[str, Any]) -> str | None:
+    """The first problem of a ``[metrology]`` table as ``"key: problem"``, or None."""
+    unknown = set(t) - METROLOGY_KEYS
+    if unknown:
+        return f"{sorted(unknown)[0]}: unknown key (known: {', '.join(sorted(METROLOGY_KEYS))})"
+    weather = t.get("weather")
+    if weather not in (None, "tracker", "config"):
+        return f"weather: must be \"tracker\" or \"config\", got {weather!r}"
+    if weather == "config":
+        values = [t.get(k) for k in ("air_temperature_c", "air_pressure_hpa", "humidity_pct")]
+        missing = [k for k, v in zip(("air_temperature_c", "air_pressure_hpa", "humidity_pct"),
+                                     values, strict=True) if v is None]
+        if missing:
+            return f"{missing[0]}: missing (weather = \"config\" needs all three values)"
+        problem = tracker_line.environment_problem(*(float(v) for v in values))
+        if problem:
+            return f"weather: {problem}"
+    for key in ("settle_tolerance_mm", "settle_timeout_s", "drift_tolerance_mm",
+                "nest_fit_tolerance_mm"):
+        v = t.get(key, 1.0)
+        if not (isinstance(v, int | float) and not isinstance(v, bool) and v > 0):
+            return f"{key}: must be a positive number, got {v!r}"
+    for key, lo in (("settle_window", 2), ("nest_check_every", 1), ("nest_repeats", 1),
+                    ("min_nests", 3)):
+        v = t.get(key, lo)
+        if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
+            return f"{key}: must be an integer >= {lo}, got {v!r}"
+    nests = t.get("nests", {})
+    if not isinstance(nests, dict) or not all(
+            isinstance(p, list) and len(p) == 3 and all(isinstance(v, int | float) for v in p)
+            for p in nests.values()):
+        return "nests: must map each nest's name to its x, y, z (world, mm)"
+    if nests and len(nests) < max(4, int(t.get("min_nests", 3))):
+        return f"nests: drift control needs at least 4 nests, got {len(nests)}"
+    return None
+
+

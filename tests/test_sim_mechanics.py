@@ -1,0 +1,205 @@
+"""The simulated cell's mechanics and time (sim/mechanics.py) and the defences against them
+(daemon/jobs/metrology.py, daemon/jobs/nests.py), at the model level and through the tracker's
+real line protocol."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+from scancell.analysis.nest_fit import NestGeometryError, fit_nests, nest_drift
+from scancell.daemon.jobs.metrology import MetrologySettings, NotSettled, apply_weather, settle
+from scancell.daemon.jobs.nests import DriftControl, NestCheckFailed
+from scancell.devices.line_tracker import LineTracker
+from scancell.model.metrology_settings import check_table
+from scancell.protocols.commands import CommandError
+from scancell.sim import mechanics as mech
+from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.optics_profile import optics_profile
+from scancell.sim.tracker_server import TcpTrackerServer
+
+
+def cell(profile: str = "realistic", off: tuple[str, ...] = (), **kw) -> SimCell:
+    return SimCell(SimCellConfig(camera_scale=8, optics=optics_profile("ideal"),
+                                 mechanics=mech.mechanics_profile(profile, off, **kw)))
+
+
+def test_refraction_is_about_one_ppm_per_degree():
+    n20 = mech.air_index(20.0, 1013.25, 50.0)
+    assert 2.6e-4 < n20 - 1 < 2.8e-4  # the textbook value for 633 nm
+    d_t = (mech.air_index(21.0, 1013.25, 50.0) - n20) * 1e6
+    d_p = (mech.air_index(20.0, 1014.25, 50.0) - n20) * 1e6
+    assert -1.0 < d_t < -0.85 and 0.25 < d_p < 0.29
+
+
+def test_compliance_bends_the_arm_and_changes_with_j6():
+    c = cell()
+    q = c.start_joints()
+    rigid = c.T_world_from_base @ c.robot.fk(q)
+    bent = c.T_world_from_flange(q)
+    sag = bent[:3, 3] - rigid[:3, 3]
+    assert sag[2] < -0.01  # the payload pulls the flange down
+    q6 = c.j6_turned(q, 120.0)
+    sag6 = c.T_world_from_flange(q6)[:3, 3] - (c.T_world_from_base @ c.robot.fk(q6))[:3, 3]
+    assert np.linalg.norm(sag6 - sag) > 0.002  # J6 moves the centre of mass: another sag
+    off = cell(off=("compliance",))
+    assert np.allclose(off.T_world_from_flange(q), off.T_world_from_base @ off.robot.fk(q))
+
+
+def test_the_arm_rings_after_a_move_and_a_too_early_point_is_wrong():
+    c = cell(off=("tracker_systematics", "refraction", "smr_centring", "stand_drift"))
+    c.move_joints(c.start_joints(), 2.0)
+    early = c.smr_center_world() - c.smr_center_world(c.q)
+    c.clock.advance(3.0)
+    late = c.smr_center_world() - c.smr_center_world(c.q)
+    assert np.linalg.norm(early) > 0.05
+    assert np.linalg.norm(late) < 0.03  # only the hold vibration (15 µm RMS) is left
+
+
+def test_tracker_systematics_show_in_two_faces_and_refraction_in_the_range():
+    c = cell(off=("vibration", "stand_drift", "smr_centring"))
+    c.tracker.spec = type(c.tracker.spec)(adm_const_um=0, adm_per_m_um=0, angle_const_um=0,
+                                          angle_per_m_um=0)
+    c.place_ball(np.array([3000.0, 800.0, -500.0]), with_stand=False)
+    front = c.measure_smr("ball").point_mm
+    c.tracker.face = 2
+    back = c.measure_smr("ball").point_mm
+    truth = c.ball_center_world()
+    assert 0.005 < np.linalg.norm(front - back) < 0.2  # the odd terms flip with the face
+    # the tracker was never told the weather: 23.5 °C, 985 hPa against its 20 °C, 1013 hPa
+    r_true, r_front = np.linalg.norm(truth), np.linalg.norm((front + back) / 2)
+    scale = (r_front - r_true) / r_true
+    expected = mech.air_index(*mech.true_air(c.clock.now(), c.mech)) / mech.air_index(
+        20.0, 1013.25, 50.0) - 1
+    assert expected < -5e-6 and scale == pytest.approx(expected + 0.5e-6, abs=1.5e-6)
+    c.tracker.air_set = mech.true_air(c.clock.now(), c.mech)
+    told = np.linalg.norm(c.measure_smr("ball").point_mm)
+    assert abs(told - r_true) < abs(r_front - r_true) / 3
+
+
+def test_stand_drift_and_warmup_follow_the_sim_clock_and_repeat_with_the_seed():
+    a, b = cell(), cell()
+    for c in (a, b):
+        c.clock.advance(1800.0)
+    assert np.array_equal(a.measure_smr("nest:N1").point_mm, b.measure_smr("nest:N1").point_mm)
+    T = a.tracker.T_world_from_tracker(1800.0)
+    assert 0.01 < np.linalg.norm(T[:3, 3]) < 0.05
+    base, focal = mech.scanner_scales(1800.0, a.mech)
+    assert base - 1 == pytest.approx(40e-6 * (1 - np.exp(-1.5)), rel=1e-6)
+    a.geometry("left")
+    assert a.rig.left.K[0, 0] == pytest.approx(a.rig_cold.left.K[0, 0] * focal)
+
+
+def test_nest_fit_relocates_and_names_a_knocked_nest():
+    rng = np.random.default_rng(1)
+    survey = {f"N{i}": rng.uniform(-3000, 3000, 3) for i in range(5)}
+    T = np.eye(4)
+    T[:3, 3] = [0.03, -0.02, 0.05]
+    measured = {n: p - T[:3, 3] for n, p in survey.items()}
+    fit = fit_nests(survey, measured)
+    assert np.allclose(fit.T_world_from_tracker[:3, 3], T[:3, 3], atol=1e-9)
+    assert max(nest_drift(survey, measured, np.eye(4)).values()) == pytest.approx(
+        np.linalg.norm(T[:3, 3]))
+    measured["N2"] = measured["N2"] + [0.0, 0.3, 0.0]
+    assert fit_nests(survey, measured).worst[0] == "N2"
+    with pytest.raises(NestGeometryError, match="at least 3"):
+        fit_nests(survey, {"N0": measured["N0"], "N1": measured["N1"]})
+    line = {f"L{i}": np.array([1000.0 * i, 0, 0]) for i in range(4)}
+    with pytest.raises(NestGeometryError, match="on a line"):
+        fit_nests(line, line)
+
+
+def test_metrology_table_is_checked():
+    assert check_table({}) is None
+    assert "air_pressure_hpa" in check_table({"weather": "config", "air_temperature_c": 20.0})
+    assert "air temperature 80 °C outside [-10, 50] °C" in check_table(
+        {"weather": "config", "air_temperature_c": 80.0, "air_pressure_hpa": 1000.0,
+         "humidity_pct": 40.0})
+    assert "at least 4" in check_table({"nests": {"A": [0, 0, 0], "B": [1, 0, 0]}})
+    assert "weather" in check_table({"weather": "guess"})
+
+
+# ---------------------------------------------------------------- through the real protocol
+def _with_tracker(c: SimCell, body):
+    async def run():
+        server = TcpTrackerServer(c, port=0)
+        await server.start()
+        tracker = LineTracker("tracker", {"url": f"socket://127.0.0.1:{server.port}"})
+        await tracker.connect()
+        try:
+            return await body(tracker, server)
+        finally:
+            await tracker.close()
+            await server.close()
+
+    return asyncio.run(run())
+
+
+def test_weather_goes_to_the_tracker_and_bad_values_are_refused_by_name():
+    c = cell()
+
+    async def body(tracker, server):
+        applied = await apply_weather(tracker, MetrologySettings(weather="tracker"))
+        assert applied["source"] == "tracker weather station"
+        assert c.tracker.air_set[0] == pytest.approx(23.5, abs=0.6)
+        warn = await apply_weather(tracker, MetrologySettings())
+        assert "no weather" in warn["warning"]
+        with pytest.raises(CommandError, match=r"air pressure 20 hPa outside \[500, 1100\] hPa"):
+            await apply_weather(tracker, MetrologySettings(
+                weather="config", air_temperature_c=20.0, air_pressure_hpa=20.0,
+                humidity_pct=40.0))
+        before = c.tracker.air_set
+        with pytest.raises(Exception, match="relative humidity 140 %"):
+            await tracker.set_environment(20.0, 1000.0, 140.0)
+        assert c.tracker.air_set == before  # a refused value changes nothing
+
+    _with_tracker(c, body)
+
+
+def test_settle_detection_waits_for_the_ringing_and_reports_the_time():
+    c = cell(off=("tracker_systematics", "refraction", "stand_drift", "smr_centring"))
+    c.move_joints(c.start_joints(), 2.0)
+
+    async def body(tracker, server):
+        done = await settle(tracker, MetrologySettings(), {})
+        assert 0.2 < done.settle_s < 3.0 and done.samples >= 4
+        truth = c.smr_center_world(c.q)
+        assert np.linalg.norm(done.last.point_mm - truth) < 0.06
+        c.move_joints(c.j6_turned(c.q, 30.0), 0.5)
+        with pytest.raises(NotSettled, match=r"did not settle within 0\.1 s"):
+            await settle(tracker, MetrologySettings(settle_timeout_s=0.1,
+                                                    settle_tolerance_mm=1e-6), {})
+
+    _with_tracker(c, body)
+
+
+def test_nest_checks_through_the_protocol_relocate_and_stop_on_a_missing_nest():
+    c = cell(off=("vibration",))
+    c.move_joints(c.start_joints())
+    nests = {n: list(p) for n, p in c.cfg.nests_world_mm.items()}
+    settings = MetrologySettings(nests={n: tuple(p) for n, p in nests.items()})
+
+    async def body(tracker, server):
+        await apply_weather(tracker, MetrologySettings(weather="tracker"))
+        scanner = (await tracker.measure()).point_mm
+        drift = DriftControl(tracker, settings, {"job_id": "t"})
+        first = await drift.check("start", scanner)
+        assert sorted(first["nests"]) == sorted(nests) and first["fit_rms_mm"] < 0.05
+        c.clock.advance(3600.0)  # an hour: the stand settles and grows
+        later = await drift.check("later", scanner)
+        assert later["drift_max_mm"] > settings.drift_tolerance_mm and later["relocated"]
+        # re-located, the scanner's SMR is nearer its true place than the drifted reading
+        reading = (await tracker.measure()).point_mm
+        truth = c.smr_center_world()
+        assert (np.linalg.norm(drift.to_world(reading) - truth)
+                < np.linalg.norm(reading - truth) - 0.01)
+        # the tracker is back on the scanner
+        assert np.linalg.norm((await tracker.measure()).point_mm - scanner) < 1.0
+        # four nests hidden: two left, three needed
+        for n in ("N1", "N2", "N3", "N4"):
+            c.scene.get(f"nest_{n}").T_world_from_object[:3, 3] += [0.0, 0.0, 5000.0]
+        with pytest.raises(NestCheckFailed, match=r"2 of 6 nests measured, 3 needed.*N1"):
+            await drift.check("end", scanner)
+
+    _with_tracker(c, body)
