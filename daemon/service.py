@@ -29,6 +29,7 @@ from scancell.daemon.jobs.runner import JobRunner
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
 from scancell.daemon.jobs.scan_part import scan_part
+from scancell.daemon.jobs.two_face import nests_to_check, two_face
 from scancell.daemon.router import CellVerb, CommandRouter
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.base import Axis, Device, Robot
@@ -143,7 +144,8 @@ class Daemon:
                                                  metrology),
             "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup,
                                                metrology),
-            "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg)})
+            "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg),
+            "two_face": lambda ctx: two_face(ctx, self.supervisors, metrology)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
@@ -155,6 +157,7 @@ class Daemon:
                  lambda r: self.jobs.start("calibrate_projector", r)),
              "job/acceptance": CellVerb(lambda r: self.jobs.start("acceptance", r)),
              "job/scan_part": CellVerb(self._cmd_scan_part),
+             "job/two_face": CellVerb(self._cmd_two_face),
              "home": CellVerb(lambda r: self.jobs.start("home", r)),
              "estop": CellVerb(self._cmd_estop, timeout_s=5.0),
              "job/abort": CellVerb(self.jobs.abort, timeout_s=10.0),
@@ -265,6 +268,10 @@ class Daemon:
             "uptime_s": round(time.monotonic() - self._started, 3),
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
         }
+
+    async def _cmd_two_face(self, request: dict[str, Any]) -> dict[str, Any]:
+        nests_to_check(request, MetrologySettings.from_table(self.cfg.metrology))
+        return await self.jobs.start("two_face", request)
 
     async def _cmd_scan_part(self, request: dict[str, Any]) -> dict[str, Any]:
         scan_part_precheck(request, self.supervisors, self.cfg.geometry)

@@ -203,3 +203,30 @@ def test_nest_checks_through_the_protocol_relocate_and_stop_on_a_missing_nest():
             await drift.check("end", scanner)
 
     _with_tracker(c, body)
+
+
+# ---------------------------------------------------------------- through the daemon
+def test_two_face_check_is_a_command_and_reports_each_nest(make_daemon, client):
+    from .conftest import sim_cell_raw, wait_until
+
+    raw = sim_cell_raw(camera_scale=8)
+    make_daemon(raw)
+    wait_until(lambda: all(s["state"] == "connected"
+                           for s in client.status()["devices"].values()), 30, what="devices")
+    finals: list[dict] = []
+    sub = client.bus.subscribe(client.bus.keys.job_event("*"),
+                               lambda s: finals.append(s.decode()))
+    try:
+        job = client.call("job/two_face", {"nests": ["N1", "N3", "N5"], "repeats": 2})["job_id"]
+        wait_until(lambda: any(e["job_id"] == job and e["state"] != "running" for e in finals),
+                   60, what="two-face job")
+        end = [e for e in finals if e["job_id"] == job and e["state"] != "running"][-1]
+        assert end["state"] == "done", end
+        res = end["result"]
+        assert [r["nest"] for r in res["nests"]] == ["N1", "N3", "N5"]
+        # the simulated tracker's odd terms show, within its specification
+        assert all(0.003 < r["two_face_mm"] < r["tolerance_mm"] for r in res["nests"]), res
+        with pytest.raises(CommandError, match="unknown nests"):
+            client.call("job/two_face", {"nests": ["N9"]})
+    finally:
+        sub.undeclare()
