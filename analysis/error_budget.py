@@ -38,10 +38,27 @@ def ecs_noise_effect(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: list[f
 
 
 def budget(ecs_noise_mm: dict[str, float], overlap_mean_mm: float | None,
-           true_mean_mm: float | None, hand_eye_rms_mm: float | None) -> dict[str, Any]:
-    """The report's error budget: the tracker's share predicted from its stated noise, beside
-    what was measured, and which part dominates."""
+           true_mean_mm: float | None, hand_eye_rms_mm: float | None,
+           sources: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The report's error budget: each modelled source's share of the overlap and the true error
+    (``sources``, from :func:`scancell.analysis.station_uncertainty.budget_by_source`), their
+    combination beside what was measured, and which source dominates. Without ``sources`` only
+    the tracker's noise is named and the rest is what it leaves unexplained."""
     out: dict[str, Any] = {"ecs_noise_mm": {k: round(v, 5) for k, v in ecs_noise_mm.items()}}
+    if true_mean_mm is not None:
+        out["true_mean_mm"] = true_mean_mm
+    if hand_eye_rms_mm is not None:
+        out["hand_eye_rms_mm"] = hand_eye_rms_mm
+    if sources:
+        out["sources"] = sources
+        out["overlap_predicted_mm"] = float(np.sqrt(sum(v["overlap_mm"] ** 2
+                                                        for v in sources.values())))
+        out["true_predicted_mm"] = float(np.sqrt(sum(v["true_mm"] ** 2 for v in sources.values())))
+        if overlap_mean_mm is not None:
+            out["overlap_measured_mm"] = overlap_mean_mm
+        top = max(sources, key=lambda k: sources[k]["true_mm"])
+        out["dominant"] = f"{top} ({sources[top]['true_mm']:.4f} mm of the true error)"
+        return out
     if not ecs_noise_mm:
         return out
     ecs = float(np.mean(list(ecs_noise_mm.values())))
@@ -55,8 +72,4 @@ def budget(ecs_noise_mm: dict[str, float], overlap_mean_mm: float | None,
         out["dominant"] = ("the tracker's noise in each station's ECS" if predicted >= rest else
                            "the rest: the scanner, the robot between the J6 turns and the "
                            "calibrations (more than the tracker's noise in the ECS)")
-    if true_mean_mm is not None:
-        out["true_mean_mm"] = true_mean_mm
-    if hand_eye_rms_mm is not None:
-        out["hand_eye_rms_mm"] = hand_eye_rms_mm
     return out

@@ -158,7 +158,20 @@ def budget_lines(b: dict[str, Any]) -> list[str]:
              "", "| station | tracker (ECS) share, mean (mm) |", "|---|---|"]
     lines += [f"| {k} | {v:.4f} |" for k, v in b["ecs_noise_mm"].items()]
     lines.append("")
-    if "overlap_predicted_from_tracker_mm" in b:
+    if b.get("sources"):
+        lines += ["Every modelled source drawn from its stated 1-sigma (Monte Carlo per station, "
+                  "docs/metrology.md): its share of the mean error along the view. A job-wide "
+                  "source moves every station alike and cancels in the overlaps.", "",
+                  "| source | scope | true error share (mm) | overlap share (mm) |",
+                  "|---|---|---|---|"]
+        lines += [f"| {k} | {v['scope']} | {v['true_mm']:.4f} | {v['overlap_mm']:.4f} |"
+                  for k, v in b["sources"].items()]
+        lines += ["", f"- Combined: {b['true_predicted_mm']:.4f} mm predicted against the true "
+                      f"error, {b['overlap_predicted_mm']:.4f} mm against the overlaps"
+                  + (f" (measured {b['overlap_measured_mm']:.4f} mm)."
+                     if b.get("overlap_measured_mm") is not None else "."),
+                  f"- What dominates: {b['dominant']}."]
+    elif "overlap_predicted_from_tracker_mm" in b:
         lines += [f"- Overlap translation error expected from the tracker alone (two stations): "
                   f"{b['overlap_predicted_from_tracker_mm']:.4f} mm; the rest (scanner, the "
                   f"robot's J6 repeatability, calibrations, resampling): "

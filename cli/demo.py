@@ -254,6 +254,7 @@ def main(args: argparse.Namespace) -> int:
                           "fusion report")[-1]
         if report.get("error"):
             raise RuntimeError(f"fusion failed: {report['error']}")
+        summary.update(metrology_summary(final.get("result") or {}))
 
         stage("inspection: the fused model against the car rear's CAD (STEP), bestfit")
         t_inspect = time.monotonic()
@@ -400,6 +401,8 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
                               for k in ("mean", "std", "max")},
             "stations": report["stations"], "points": report["points"],
             "error_budget": report.get("error_budget"),
+            "uncertainty_coverage": (report.get("uncertainty") or {}).get("coverage"),
+            "uncertainty": (report.get("uncertainty") or {}).get("stations"),
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
@@ -451,9 +454,29 @@ def table(s: dict[str, Any]) -> str:
     lines = [f"{'':{w}}  {'scancell':>20}  {'paper':>16}"]
     lines += [f"{a:{w}}  {b:>20}  {c!s:>16}" for a, b, c in rows]
     budget = s.get("error_budget") or {}
-    if "dominant" in budget:
+    if budget.get("sources"):
+        lines += ["", "error budget: each source's share (mm) of the true error / of the overlaps"]
+        lines += [f"  {k:<20} {v['true_mm']:.4f} / {v['overlap_mm']:.4f}"
+                  for k, v in budget["sources"].items()]
+        lines += [f"  combined: {budget['true_predicted_mm']:.4f} / "
+                  f"{budget['overlap_predicted_mm']:.4f}; dominant: {budget['dominant']}"]
+        cov = s.get("uncertainty_coverage")
+        if cov is not None:
+            lines += [f"uncertainty: the true error inside the predicted 95 % interval at "
+                      f"{100 * cov:.0f} % of the stations"]
+    elif "dominant" in budget:
         lines += ["", f"error budget: the tracker's noise alone would give "
                       f"{budget['overlap_predicted_from_tracker_mm']:.4f} mm of overlap error, "
                       f"the rest {budget['overlap_rest_mm']:.4f} mm; dominant: "
                       f"{budget['dominant']}"]
     return "\n".join(lines)
+
+
+def metrology_summary(result: dict) -> dict:
+    """The scan job's defences: the weather it applied, the settle time per station (s, the
+    tracker's clock: P1 and each J6 turn), and the largest nest drift per check (mm)."""
+    return {"weather": result.get("weather"),
+            "settle_s": {s["station"]: s.get("settle_s") for s in result.get("stations", [])},
+            "drift_mm": {c["check"]: c["drift_max_mm"] for c in result.get("drift_checks", [])},
+            "relocations": [c["check"] for c in result.get("drift_checks", [])
+                            if c["relocated"]]}

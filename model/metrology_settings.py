@@ -34,11 +34,29 @@ class MetrologySettings:
     #: the nests disagree (one knocked, or the tracker moved more than rigidly) beyond this
     nest_fit_tolerance_mm: float = 0.05
     min_nests: int = 3
+    # ---- the stated 1-sigmas of the Monte Carlo uncertainty (docs/metrology.md)
+    #: the weather's uncertainty (°C, hPa, % RH): a tracker weather station's stated accuracy
+    weather_uncertainty: tuple[float, float, float] = (0.3, 1.0, 5.0)
+    #: the scanner's scale stability (ppm): its warm-up and thermal drift
+    scanner_scale_ppm: float = 20.0
+    #: the tracker's location when no nests check it (mm): its stand's stability
+    unchecked_location_mm: float = 0.03
+
+    def refraction_ppm(self, weather_applied: bool) -> float:
+        """The range scale's 1-sigma (ppm) from the weather's uncertainty (−0.93 ppm/°C,
+        +0.27 ppm/hPa, −0.0085 ppm/% RH); 10 ppm when the tracker was told no weather."""
+        if not weather_applied:
+            return 10.0
+        t, p, h = self.weather_uncertainty
+        return float((0.93 * t) ** 2 + (0.27 * p) ** 2 + (0.0085 * h) ** 2) ** 0.5
 
     @classmethod
     def from_table(cls, t: dict[str, Any]) -> MetrologySettings:
         nests = {str(k): tuple(float(v) for v in p) for k, p in t.get("nests", {}).items()}
-        return cls(**{**{k: v for k, v in t.items() if k != "nests"}, "nests": nests})
+        values = {k: v for k, v in t.items() if k != "nests"}
+        if "weather_uncertainty" in values:
+            values["weather_uncertainty"] = tuple(float(v) for v in values["weather_uncertainty"])
+        return cls(**{**values, "nests": nests})
 
 
 METROLOGY_KEYS = {f for f in MetrologySettings.__dataclass_fields__}
@@ -62,7 +80,7 @@ def check_table(t: dict[str, Any]) -> str | None:
         if problem:
             return f"weather: {problem}"
     for key in ("settle_tolerance_mm", "settle_timeout_s", "drift_tolerance_mm",
-                "nest_fit_tolerance_mm"):
+                "nest_fit_tolerance_mm", "scanner_scale_ppm", "unchecked_location_mm"):
         v = t.get(key, 1.0)
         if not (isinstance(v, int | float) and not isinstance(v, bool) and v > 0):
             return f"{key}: must be a positive number, got {v!r}"
@@ -71,6 +89,10 @@ def check_table(t: dict[str, Any]) -> str | None:
         v = t.get(key, lo)
         if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
             return f"{key}: must be an integer >= {lo}, got {v!r}"
+    wu = t.get("weather_uncertainty", [1, 1, 1])
+    if not (isinstance(wu, list | tuple) and len(wu) == 3
+            and all(isinstance(v, int | float) and v >= 0 for v in wu)):
+        return f"weather_uncertainty: must be 3 non-negative numbers (°C, hPa, %), got {wu!r}"
     nests = t.get("nests", {})
     if not isinstance(nests, dict) or not all(
             isinstance(p, list) and len(p) == 3 and all(isinstance(v, int | float) for v in p)

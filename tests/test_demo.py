@@ -28,6 +28,11 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert set(s["hand_eye"]) >= {"rms_mm", "rotation_error_arcsec", "translation_error_mm"}
     assert s["true_error_mm"]["mean"] < 0.2 and s["stations"] == 3 and s["points"] > 1000
     assert s["seconds"] > 0
+    # the metrology defences: weather from the tracker, settle times, nest drift at start and end
+    assert s["weather"]["source"] == "tracker weather station"
+    assert len(s["settle_s"]) == 3 and all(0 < t < 15 for st in s["settle_s"].values()
+                                           for t in st)
+    assert set(s["drift_mm"]) == {"start", "end"} and all(d < 0.2 for d in s["drift_mm"].values())
     assert "dominant" in s["error_budget"] and "error budget:" in out.stdout
     # the demo ends with the inspection of the fused model against the part's STEP
     ins = s["inspection"]

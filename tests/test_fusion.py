@@ -13,11 +13,13 @@ from scancell.analysis.cloud_io import read_ply, write_ply
 from scancell.analysis.fusion import FusionError, Station, check_rigid, fuse
 from scancell.analysis.metrics import compare_clouds
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.mechanics import mechanics_profile
 
 
 @pytest.fixture(scope="module")
 def stations():
-    cell = SimCell(SimCellConfig(camera_scale=8))
+    # the fusion's arithmetic: only the robot's joint noise (no compliance, vibration, drift)
+    cell = SimCell(SimCellConfig(camera_scale=8, mechanics=mechanics_profile("ideal")))
     centre = cell.cfg.T_world_from_part[:3, 3]
     out = []
     for name, dy in (("s1", -120.0), ("s2", 80.0)):

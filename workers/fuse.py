@@ -23,6 +23,7 @@ import json
 import logging
 import threading
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,13 @@ from typing import Any
 import numpy as np
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import Station, check_rigid, fuse
+from scancell.analysis.station_uncertainty import (
+    StatedSources,
+    StationUncertainty,
+    budget_by_source,
+    coverage,
+    station_uncertainty,
+)
 from scancell.bus.protocol import BusLike
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
@@ -56,6 +64,8 @@ class JobStations:
     announced: set[str] = field(default_factory=set)
     #: The plan's nominal CAD, when it names one (for the inspect worker).
     nominal: str | None = None
+    #: station -> its Monte Carlo uncertainty over every modelled source
+    station_uncertainty: dict[str, StationUncertainty] = field(default_factory=dict)
 
 
 @dataclass
@@ -164,6 +174,15 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if ecs.get("sigma_mm") is not None and len(cloud):
             noise = ecs_noise_effect(np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]),
                                      ecs["j6_deg"], frame, T_ecs_from_mcs, cloud)
+        if ecs.get("sigma_mm") is not None and len(cloud):
+            unc = job.uncertainty.get(station)
+            su = station_uncertainty(
+                np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]), ecs["j6_deg"], frame,
+                T_ecs_from_mcs, cloud, 0.0 if unc is None else unc,
+                StatedSources.from_json(ecs.get("uncertainty_sources"), he),
+                seed=zlib.crc32(station.encode()))
+            with self._lock:
+                job.station_uncertainty[station] = su
         st = Station(station, cloud, T_world_from_ecs, noise, job.uncertainty.get(station))
         thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
         with self._lock:
@@ -215,14 +234,16 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.bus.publish(self.bus.keys.fusion_cloud, fg.encode_proto(
             fg.point_cloud(fused.points, now, "world", extra)),
             Attachment(now, len(stations), None, meta))
-        body = build_report(job_id, fused, stations, he, self.settings, job.ended)
+        body = build_report(job_id, fused, stations, he, self.settings, job.ended,
+                            dict(job.station_uncertainty))
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
 
 
 def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dict[str, Any],
-                 settings: FuseSettings, state: str | None) -> dict[str, Any]:
+                 settings: FuseSettings, state: str | None,
+                 uncertainty: dict[str, StationUncertainty] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir."""
     from scancell.analysis.metrics import MetricsError, compare_clouds
@@ -248,10 +269,22 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
         truth = d
         body["true_error_mm"] = {"mean": float(d.mean()), "std": float(d.std()),
                                  "max": float(d.max()), "p95": float(np.percentile(d, 95))}
+    uncertainty = uncertainty or {}
+    if uncertainty:
+        per = {n: u.to_json() for n, u in uncertainty.items()}
+        if settings.truth is not None:
+            true = {n: float(np.abs(settings.truth(p)).mean())
+                    for n, p in fused.per_station.items() if n in per and len(p)}
+            for n, v in true.items():
+                per[n]["true_error_mm"] = round(v, 5)
+            body["uncertainty"] = {"stations": per, "coverage": coverage(
+                {n: u.interval_mm for n, u in uncertainty.items()}, true)["share"]}
+        else:
+            body["uncertainty"] = {"stations": per}
     body["error_budget"] = budget(
         {st.name: st.ecs_noise_mm for st in stations if st.ecs_noise_mm is not None},
         body.get("translation_mm", {}).get("mean"), body.get("true_error_mm", {}).get("mean"),
-        hand_eye.get("rms_mm"))
+        hand_eye.get("rms_mm"), budget_by_source(uncertainty) if uncertainty else None)
     if settings.out_dir is not None:
         body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
                                       settings.mesh)

@@ -16,6 +16,7 @@ through the tracker and the hand-eye calibration. The worker fuses them and repo
 from __future__ import annotations
 
 import contextlib
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -170,6 +171,7 @@ async def multiple_views(ctx: JobContext, supervisors: dict[str, DeviceSuperviso
             weather = await apply_weather(devs.tracker.device, how.metrology)
             if weather.get("warning"):
                 ctx.event("running", "weather", weather["warning"])
+            how = replace(how, weather_applied=bool(weather.get("source")))
             for k, (c, d) in enumerate(ends):
                 await placer.place_world("ballbar3", c, d)
                 scans = []

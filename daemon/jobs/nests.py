@@ -36,6 +36,17 @@ class DriftControl:
         self.checks: list[dict[str, Any]] = []
 
     @property
+    def location_sigma_mm(self) -> float:
+        """How well the tracker's location in force is known (mm): the last fit's RMS if that
+        check re-located it, else the drift it allowed; unchecked: the stand's stability."""
+        if not self.checks:
+            return self.settings.unchecked_location_mm
+        last = self.checks[-1]
+        if last["relocated"]:
+            return float(last["fit_rms_mm"])
+        return float(max(last["fit_rms_mm"], last["drift_max_mm"]))
+
+    @property
     def enabled(self) -> bool:
         return bool(self.survey)
 

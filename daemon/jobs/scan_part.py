@@ -144,6 +144,8 @@ class Station:
     metrology: MetrologySettings | None = None
     #: the tracker's location by the reference nests (None: the tracker's frame is ``world``)
     drift: DriftControl | None = None
+    #: whether the tracker was told the weather (the refraction's uncertainty)
+    weather_applied: bool = False
 
 
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
@@ -195,6 +197,15 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
               "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": how.repeats,
               "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
               "stamp_ns": messages.now_ns()}
+    m = how.metrology or MetrologySettings()
+    shot_sigma = float(np.mean([np.mean(e.sigma_mm) for e in ecs])) * np.sqrt(how.repeats)
+    record["uncertainty_sources"] = {
+        "refraction_ppm": m.refraction_ppm(how.weather_applied),
+        "tracker_systematic_mm": 0.5 * shot_sigma,
+        "location_mm": (how.drift.location_sigma_mm if how.drift is not None
+                        else m.unchecked_location_mm),
+        "settle_mm": m.settle_tolerance_mm if how.metrology is not None else 0.1,
+        "scanner_scale_ppm": m.scanner_scale_ppm}
     if how.drift is not None:
         record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]
         record["T_world_from_tracker"] = how.drift.T_world_from_tracker.tolist()
@@ -253,7 +264,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             if drift.enabled:
                 await nest_check("start", scanner_at)
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
-                          repeats, turns, setup, metrology, drift if drift.enabled else None)
+                          repeats, turns, setup, metrology, drift if drift.enabled else None,
+                          bool(result["weather"].get("source")))
             for i, st in enumerate(plan.stations):
                 if drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)

@@ -1,0 +1,179 @@
+"""Uncertainty of each station and each point by Monte Carlo over every modelled source, as
+SpatialAnalyzer's uncertainty field analysis does: draw each source from its stated 1-sigma,
+rebuild the station's transform ``T_world_from_mcs = ECS(P1..P3) · T_ecs_from_mcs`` and move its
+points; the spread of the points' displacement along the scanner's view is their uncertainty.
+
+Sources and where their 1-sigma comes from (docs/metrology.md, "Uncertainty"):
+
+==================  =======  ==============================================================
+source              scope    stated 1-sigma
+==================  =======  ==============================================================
+tracker_noise       station  each averaged point's own sigma (the tracker's, /√repeats)
+tracker_systematic  job      half the tracker's stated per-shot sigma, common to the points
+                             (an even split of its stated typical error into random and
+                             systematic parts: an assumption)
+refraction          job      range scale from the weather's uncertainty (or 10 ppm unknown)
+tracker_location    job      the nests' location of the tracker (fit RMS, or drift allowed)
+settling            station  the arm's residual motion between P1 and the scan
+hand_eye            job      the calibration's rotation and translation sigma
+scanner_scale       job      the scanner's scale stability (warm-up), ppm
+scanner_noise       point    each point's depth noise (the scanner's noise model)
+==================  =======  ==============================================================
+
+``job`` sources are common to the stations between two re-locations or calibrations: they move
+the whole model and cancel in overlaps. ``station`` and ``point`` sources differ per station.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scancell.model.ecs import ecs_for_frame
+
+ARCSEC = np.pi / 180 / 3600
+
+SCOPES = {"tracker_noise": "station", "tracker_systematic": "job", "refraction": "job",
+          "tracker_location": "job", "settling": "station", "hand_eye": "job",
+          "scanner_scale": "job", "scanner_noise": "point"}
+
+
+@dataclass(frozen=True)
+class StatedSources:
+    """The stated 1-sigma of the sources (mm, ppm, arcsec) a station's job knows."""
+
+    refraction_ppm: float = 10.0
+    tracker_systematic_mm: float = 0.0
+    location_mm: float = 0.0
+    settle_mm: float = 0.0
+    scanner_scale_ppm: float = 0.0
+    hand_eye_translation_mm: float = 0.0
+    hand_eye_rotation_arcsec: float = 0.0
+    #: the tracker's frame origin in world (refraction scales ranges about it)
+    tracker_origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any] | None, hand_eye: dict[str, Any]) -> StatedSources:
+        d = dict(d or {})
+        return cls(refraction_ppm=float(d.get("refraction_ppm", 10.0)),
+                   tracker_systematic_mm=float(d.get("tracker_systematic_mm", 0.0)),
+                   location_mm=float(d.get("location_mm", 0.0)),
+                   settle_mm=float(d.get("settle_mm", 0.0)),
+                   scanner_scale_ppm=float(d.get("scanner_scale_ppm", 0.0)),
+                   hand_eye_translation_mm=float(hand_eye.get("translation_sigma_mm") or 0.0),
+                   hand_eye_rotation_arcsec=float(hand_eye.get("rotation_sigma_arcsec") or 0.0),
+                   tracker_origin_mm=tuple(d.get("tracker_origin_mm", (0.0, 0.0, 0.0))))
+
+
+@dataclass
+class StationUncertainty:
+    #: per source: mean |displacement along the view| over the points (mm), its share
+    share_mm: dict[str, float]
+    #: the station's mean |error| (mm) at 2.5 % and 97.5 % of the draws: the 95 % interval
+    interval_mm: tuple[float, float]
+    #: per point: 1-sigma of the displacement along the view, all sources (mm)
+    point_sigma_mm: np.ndarray = field(repr=False)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"share_mm": {k: round(v, 5) for k, v in self.share_mm.items()},
+                "interval95_mm": [round(v, 5) for v in self.interval_mm],
+                "point_u95_mm": {"mean": round(float(1.96 * self.point_sigma_mm.mean()), 5),
+                                 "max": round(float(1.96 * self.point_sigma_mm.max()), 5)}}
+
+
+def _rot(rng: np.random.Generator, sigma_rad: float) -> np.ndarray:
+    v = rng.normal(0.0, sigma_rad, 3)
+    a = float(np.linalg.norm(v))
+    if a < 1e-15:
+        return np.eye(3)
+    k = v / a
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.ndarray,
+          j6: list[float], frame: list[float], T_em: np.ndarray, cloud: np.ndarray,
+          noise: np.ndarray, view: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
+    """One draw of the given sources: each point's displacement along the view (mm)."""
+    p = pts.copy()
+    origin = np.asarray(s.tracker_origin_mm, float)
+    if "tracker_noise" in sources:
+        p = p + rng.standard_normal(p.shape) * sig
+    if "tracker_systematic" in sources:
+        p = p + rng.normal(0.0, s.tracker_systematic_mm, 3)
+    if "refraction" in sources:
+        p = origin + (p - origin) * (1.0 + rng.normal(0.0, s.refraction_ppm * 1e-6))
+    if "tracker_location" in sources:
+        p = p + rng.normal(0.0, s.location_mm / np.sqrt(3), 3)
+    T_we = ecs_for_frame(p, j6, frame)
+    T_em2 = T_em.copy()
+    if "hand_eye" in sources:
+        T_em2[:3, :3] = _rot(rng, s.hand_eye_rotation_arcsec * ARCSEC / np.sqrt(3)) @ T_em[:3, :3]
+        T_em2[:3, 3] = T_em[:3, 3] + rng.normal(0.0, s.hand_eye_translation_mm / np.sqrt(3), 3)
+    T = T_we @ T_em2
+    c = cloud
+    if "scanner_scale" in sources:
+        c = c * (1.0 + rng.normal(0.0, s.scanner_scale_ppm * 1e-6))
+    X = c @ T[:3, :3].T + T[:3, 3]
+    if "settling" in sources:
+        X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
+    d = (X - X0) @ view
+    if "scanner_noise" in sources:
+        d = d + rng.standard_normal(len(d)) * noise
+    return d
+
+
+def station_uncertainty(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: list[float],
+                        frame_j6_deg: list[float], T_ecs_from_mcs: np.ndarray,
+                        cloud_mcs: np.ndarray, point_noise_mm: np.ndarray | float,
+                        stated: StatedSources, trials: int = 200, sample: int = 2000,
+                        seed: int = 0) -> StationUncertainty:
+    """Monte Carlo of one station: P1..P3 (world, mm) with their 1-sigma, the hand-eye, the
+    station's cloud (MCS, mm) and its per-point depth noise (mm)."""
+    pts = np.asarray(points_mm, float)
+    sig = np.broadcast_to(np.asarray(sigma_mm, float), pts.shape)
+    cloud = np.asarray(cloud_mcs, float)
+    noise = np.broadcast_to(np.asarray(point_noise_mm, float), (len(cloud),))
+    step = max(1, len(cloud) // sample)
+    c, n = cloud[::step], np.nan_to_num(noise[::step])
+    T0 = ecs_for_frame(pts, j6_deg, frame_j6_deg) @ T_ecs_from_mcs
+    X0 = c @ T0[:3, :3].T + T0[:3, 3]
+    view = T0[:3, 2]
+    args = (pts, sig, j6_deg, frame_j6_deg, T_ecs_from_mcs, c, n, view, stated, X0)
+    share = {}
+    for k, src in enumerate(SCOPES):
+        rng = np.random.default_rng([seed, k])
+        share[src] = float(np.mean([np.abs(_draw({src}, rng, *args)).mean()
+                                    for _ in range(trials)]))
+    rng = np.random.default_rng([seed, 99])
+    draws = np.array([_draw(set(SCOPES), rng, *args) for _ in range(trials)])
+    station = np.abs(draws).mean(axis=1)
+    lo, hi = np.percentile(station, [2.5, 97.5])
+    sigma_pts = draws.std(axis=0)
+    # every point of the full cloud gets the sigma of its sample neighbour
+    full = np.repeat(sigma_pts, step)[: len(cloud)]
+    if len(full) < len(cloud):
+        full = np.concatenate([full, np.full(len(cloud) - len(full), sigma_pts[-1])])
+    return StationUncertainty(share, (float(lo), float(hi)), full)
+
+
+def budget_by_source(stations: dict[str, StationUncertainty]) -> dict[str, dict[str, Any]]:
+    """Each source's share of the true error (mean over stations, mm) and of the overlap
+    error: a station or point source differs between the two stations of an overlap (√2 of its
+    share); a job source moves both alike and cancels."""
+    out: dict[str, dict[str, Any]] = {}
+    for src, scope in SCOPES.items():
+        v = float(np.mean([u.share_mm[src] for u in stations.values()])) if stations else 0.0
+        out[src] = {"scope": scope, "true_mm": round(v, 5),
+                    "overlap_mm": round(0.0 if scope == "job" else float(np.sqrt(2.0)) * v, 5)}
+    return out
+
+
+def coverage(intervals: dict[str, tuple[float, float]], true_mm: dict[str, float]
+             ) -> dict[str, Any]:
+    """The share of stations whose true error lies inside their predicted 95 % interval."""
+    names = sorted(set(intervals) & set(true_mm))
+    inside = {n: bool(intervals[n][0] <= true_mm[n] <= intervals[n][1]) for n in names}
+    return {"share": (sum(inside.values()) / len(inside)) if inside else None,
+            "stations": len(inside), "outside": sorted(n for n, ok in inside.items() if not ok)}

@@ -1,0 +1,67 @@
+"""The Monte Carlo uncertainty of a station (analysis/station_uncertainty.py): shares by
+source, per-point sigma, and a predicted 95 % interval that holds the error of independent
+draws of the same sources."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scancell.analysis.error_budget import budget
+from scancell.analysis.station_uncertainty import (
+    SCOPES,
+    StatedSources,
+    _draw,
+    budget_by_source,
+    coverage,
+    station_uncertainty,
+)
+from scancell.model.ecs import ecs_for_frame
+
+
+def station(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    centre = np.array([2900.0, 100.0, 300.0])
+    pts = centre + rng.normal(0, 200.0, (3, 3))
+    T_em = np.eye(4)
+    T_em[:3, 3] = [20.0, -30.0, -200.0]
+    xy = rng.uniform(-150, 150, (3000, 2))
+    cloud = np.column_stack([xy, 650.0 + 0.001 * xy[:, 0] ** 2 / 10])
+    return pts, np.full((3, 3), 0.006), [0.0, 120.0, -120.0], T_em, cloud
+
+
+STATED = StatedSources(refraction_ppm=0.4, tracker_systematic_mm=0.008, location_mm=0.01,
+                       settle_mm=0.01, scanner_scale_ppm=20.0, hand_eye_translation_mm=0.01,
+                       hand_eye_rotation_arcsec=2.0)
+
+
+@pytest.mark.unit
+def test_every_source_has_a_share_and_the_budget_names_them():
+    pts, sig, j6, T_em, cloud = station()
+    u = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, STATED, trials=60)
+    assert set(u.share_mm) == set(SCOPES) and all(v > 0 for v in u.share_mm.values())
+    assert u.share_mm["scanner_noise"] == pytest.approx(0.02 * np.sqrt(2 / np.pi), rel=0.1)
+    assert len(u.point_sigma_mm) == len(cloud) and 0 < u.interval_mm[0] < u.interval_mm[1]
+    none = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.0, StatedSources(
+        refraction_ppm=0.0), trials=20)
+    assert none.share_mm["settling"] == 0.0 and none.share_mm["hand_eye"] == 0.0
+    b = budget({}, 0.03, 0.04, 0.01, budget_by_source({"a": u}))
+    assert b["sources"]["refraction"]["overlap_mm"] == 0.0  # job-wide: cancels in overlaps
+    assert b["sources"]["scanner_noise"]["overlap_mm"] > b["sources"]["scanner_noise"]["true_mm"]
+    assert "dominant" in b and "overlap_rest_mm" not in b  # no unnamed rest
+
+
+@pytest.mark.unit
+def test_the_95_percent_interval_covers_independent_draws():
+    pts, sig, j6, T_em, cloud = station(3)
+    u = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, STATED, trials=200, seed=5)
+    # "truths": the same sources drawn independently of the prediction's draws
+    T0 = ecs_for_frame(pts, j6, j6) @ T_em
+    step = max(1, len(cloud) // 2000)
+    c = cloud[::step]
+    X0 = c @ T0[:3, :3].T + T0[:3, 3]
+    rng = np.random.default_rng(1234)
+    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, pts, sig, j6, j6, T_em, c,
+                                          np.full(len(c), 0.02), T0[:3, 2], STATED,
+                                          X0)).mean()) for k in range(60)}
+    cov = coverage({k: u.interval_mm for k in truths}, truths)
+    assert cov["share"] >= 0.88, cov
