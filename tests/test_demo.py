@@ -30,8 +30,9 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert s["seconds"] > 0
     # the metrology defences: weather from the tracker, settle times, nest drift at start and end
     assert s["weather"]["source"] == "tracker weather station"
-    assert len(s["settle_s"]) == 3 and all(0 < t < 15 for st in s["settle_s"].values()
-                                           for t in st)
+    # (0 s: the first window of readings already agreed; the arm's ringing shows elsewhere)
+    settle = [t for st in s["settle_s"].values() for t in st]
+    assert len(s["settle_s"]) == 3 and all(0 <= t < 15 for t in settle) and max(settle) > 0
     assert set(s["drift_mm"]) == {"start", "end"} and all(d < 0.2 for d in s["drift_mm"].values())
     assert "dominant" in s["error_budget"] and "error budget:" in out.stdout
     # the demo ends with the inspection of the fused model against the part's STEP

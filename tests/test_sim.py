@@ -15,6 +15,7 @@ from scancell.model.robot_model import IKError, RobotModel
 from scancell.model.transforms import make_T
 from scancell.sim import parts
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.mechanics import mechanics_profile
 from scancell.sim.optics import default_rig, read_opencv_yaml
 from scancell.sim.optics_profile import optics_profile
 from scancell.sim.scene import SceneObject
@@ -24,8 +25,10 @@ from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
 
 @pytest.fixture(scope="module")
 def cell() -> SimCell:
-    # the renderer's geometry: ideal optics (tests/test_sim_optics.py has the realistic ones)
-    c = SimCell(SimCellConfig(camera_scale=8, seed=3, optics=optics_profile("ideal")))
+    # the renderer's geometry: ideal optics and mechanics (tests/test_sim_optics.py and
+    # tests/test_sim_mechanics.py have the realistic ones)
+    c = SimCell(SimCellConfig(camera_scale=8, seed=3, optics=optics_profile("ideal"),
+                              mechanics=mechanics_profile("ideal")))
     c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
     return c
 
@@ -75,7 +78,8 @@ def test_tracker_noise_matches_spec():
 
     center = np.array([3000.0, 1000.0, 500.0])
     u = center / np.linalg.norm(center)
-    reads = [tm.measure(center, -u, parts.SMR_RADIUS_MM, Scene()) for _ in range(3000)]
+    tm.beam_check(center, -u, parts.SMR_RADIUS_MM, Scene())
+    reads = [tm.measure(center, np.eye(3), "scanner", 0.0) for _ in range(3000)]
     err = np.array([r.point_mm for r in reads]) - center
     radial = err @ u
     transverse = err - radial[:, None] * u
@@ -163,7 +167,8 @@ def test_render_kernels_agree_with_the_numpy_models(cell):
     expected = g.base_dn + g.fringe_dn * np.nan_to_num(light, nan=0.0)
     noiseless = SimCell(SimCellConfig(
         camera_scale=8, optics=optics_profile("ideal", read_noise_dn=0.0, psf_sigma_px=0.0),
-        joint_repeatability_deg=0.0, j6_repeatability_deg=0.0))
+        joint_repeatability_deg=0.0, j6_repeatability_deg=0.0,
+        mechanics=mechanics_profile("ideal")))
     noiseless.move_joints(cell.q)
     img = noiseless.render("left", k)
     assert np.abs(img.astype(float) - np.clip(np.rint(expected), 0, 255)).max() <= 1

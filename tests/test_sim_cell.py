@@ -18,6 +18,7 @@ from scancell.deploy import cell_config_path
 from scancell.model.transforms import make_T
 from scancell.sim import parts
 from scancell.sim.host import flatten_overrides, relocated_ports
+from scancell.sim.mechanics import EFFECTS as MECH_EFFECTS
 from scancell.sim.scene import SceneObject
 from scancell.sim.world import get_world
 
@@ -30,7 +31,10 @@ def _all_connected(client) -> bool:
 
 @pytest.mark.process
 def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
-    d = make_daemon(sim_cell_raw(camera_scale=8))
+    raw = sim_cell_raw(camera_scale=8)
+    # the device plumbing against the noise model: no tracker systematics, drift or bending
+    raw["simulator"]["effects_off"] = list(MECH_EFFECTS)
+    d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")
     cell = get_world(d.cfg.simulator["world"]).cell
     joints: list = []

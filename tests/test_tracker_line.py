@@ -14,6 +14,7 @@ from scancell.model.transforms import make_T
 from scancell.protocols import tracker_line as tl
 from scancell.sim import parts
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.mechanics import mechanics_profile
 from scancell.sim.scene import SceneObject
 from scancell.sim.tracker_server import PtyTrackerServer, TcpTrackerServer
 
@@ -87,7 +88,7 @@ def test_fuzz_splitter_raises_only_line_errors(data):
 
 
 def _cell() -> SimCell:
-    c = SimCell(SimCellConfig(camera_scale=16, seed=4))
+    c = SimCell(SimCellConfig(camera_scale=16, seed=4, mechanics=mechanics_profile("ideal")))
     c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
     return c
 
