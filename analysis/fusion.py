@@ -101,6 +101,8 @@ def weighted_voxel_mean(points: np.ndarray, sigma: np.ndarray, voxel_mm: float
     """Per occupied voxel the inverse-variance weighted mean of its points and that mean's
     1-sigma (mm). Open3D's voxel_down_sample averages with equal weights and has no weights
     argument, so the grouping is done here with numpy."""
+    if len(points) == 0:  # a station that saw nothing
+        return np.zeros((0, 3)), np.zeros(0)
     keys = np.floor(points / voxel_mm).astype(np.int64)
     keys -= keys.min(axis=0)
     dims = keys.max(axis=0) + 1

@@ -65,9 +65,11 @@ def true_error_map(path: Path, points: np.ndarray, error_mm: np.ndarray) -> Path
 def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
                  title: str = "scancell fusion report", extra: dict[str, Any] | None = None,
                  truth: np.ndarray | None = None,
-                 error_budget: dict[str, Any] | None = None) -> Path:
+                 error_budget: dict[str, Any] | None = None,
+                 scanner_checks: list[dict[str, Any]] | None = None) -> Path:
     """``truth``: per fused point, the true distance to the part (simulation): adds the
-    ground-truth error map. ``error_budget``: :func:`scancell.analysis.error_budget.budget`."""
+    ground-truth error map. ``error_budget``: :func:`scancell.analysis.error_budget.budget`.
+    ``scanner_checks``: the job's ball-bar checks (workers/fuse.py ``scanner_checks``)."""
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     pictures = histograms(metrics, str(out))
@@ -107,12 +109,33 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
                   "![true error map](true_error_map.png)"]
     if error_budget and error_budget.get("ecs_noise_mm"):
         lines += budget_lines(error_budget)
+    if scanner_checks:
+        lines += check_lines(scanner_checks)
     for key, value in (extra or {}).items():
         if value is not None:
             lines += ["", f"## {key}", "", str(value)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def check_lines(checks: list[dict[str, Any]]) -> list[str]:
+    """The report's scanner-check table: the ball bar's length error and scale, the spheres'
+    form and size, and the warnings."""
+    lines = ["", "## Scanner checks (the cell's ball bar)", "",
+             "| check | when | length error (mm) | scale (ppm) | form (mm) | size error (mm) | "
+             "settled after (s) | verdict |", "|---|---|---|---|---|---|---|---|"]
+    for c in checks:
+        settle = "-" if c.get("settle_s") is None else f"{c['settle_s']:.2f}"
+        if "error" in c:
+            lines.append(f"| {c['station']} | {c['label']} | | | | | {settle} | "
+                         f"no result: {c['error']} |")
+            continue
+        verdict = "; ".join(c["warnings"]) or "ok"
+        lines.append(f"| {c['station']} | {c['label']} | {c['length_error_mm']:+.4f} | "
+                     f"{c['scale_ppm']:+.0f} | {c['form_mm']:.4f} | {c['size_error_mm']:+.4f} | "
+                     f"{settle} | {verdict} |")
+    return lines
 
 
 def uncertainty_lines(fused: FusedCloud, translation: dict[str, Any], out: Path) -> list[str]:

@@ -403,6 +403,7 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "error_budget": report.get("error_budget"),
             "uncertainty_coverage": (report.get("uncertainty") or {}).get("coverage"),
             "uncertainty": (report.get("uncertainty") or {}).get("stations"),
+            "scanner_checks": report.get("scanner_checks", []),
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
@@ -469,6 +470,13 @@ def table(s: dict[str, Any]) -> str:
                       f"{budget['overlap_predicted_from_tracker_mm']:.4f} mm of overlap error, "
                       f"the rest {budget['overlap_rest_mm']:.4f} mm; dominant: "
                       f"{budget['dominant']}"]
+    for c in s.get("scanner_checks") or []:
+        if "error" in c:
+            lines += [f"scanner check {c['label']}: {c['error']}"]
+        else:
+            lines += [f"scanner check {c['label']}: ball bar {c['length_error_mm']:+.4f} mm "
+                      f"({c['scale_ppm']:+.0f} ppm), sphere form {c['form_mm']:.4f} mm"
+                      + "".join(f"; WARNING {w}" for w in c["warnings"])]
     return "\n".join(lines)
 
 

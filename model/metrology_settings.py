@@ -11,6 +11,64 @@ from scancell.protocols import tracker_line
 
 
 @dataclass(frozen=True)
+class ScannerCheck:
+    """``[metrology.scanner_check]``: a calibrated ball bar fixed in the cell and the taught
+    pose (joints, deg; rail, mm) from which the scanner sees it. The job scans it at its start
+    and every ``every`` stations; the fuse worker reports its length (scale) and its spheres'
+    form, and warns past ``warn_ppm`` or ``warn_form_mm``."""
+
+    joints_deg: tuple[float, ...]
+    length_mm: float
+    sphere_diameter_mm: float
+    axis_mm: float | None = None
+    every: int = 4
+    warn_ppm: float = 100.0
+    warn_form_mm: float = 0.05
+
+    def to_json(self) -> dict[str, Any]:
+        return {"length_mm": self.length_mm, "sphere_diameter_mm": self.sphere_diameter_mm,
+                "warn_ppm": self.warn_ppm, "warn_form_mm": self.warn_form_mm}
+
+    @classmethod
+    def from_table(cls, t: dict[str, Any]) -> ScannerCheck:
+        return cls(**{**t, "joints_deg": tuple(float(v) for v in t["joints_deg"])})
+
+
+SCANNER_CHECK_KEYS = set(ScannerCheck.__dataclass_fields__)
+
+
+def check_scanner_check(t: Any) -> str | None:
+    """The first problem of a ``[metrology.scanner_check]`` table, or None."""
+    where = "scanner_check"
+    if not isinstance(t, dict):
+        return f"{where}: must be a table"
+    unknown = set(t) - SCANNER_CHECK_KEYS
+    if unknown:
+        return (f"{where}.{sorted(unknown)[0]}: unknown key (known: "
+                f"{', '.join(sorted(SCANNER_CHECK_KEYS))})")
+    for key in ("joints_deg", "length_mm", "sphere_diameter_mm"):
+        if key not in t:
+            return f"{where}.{key}: missing"
+    q = t["joints_deg"]
+    if not (isinstance(q, list) and len(q) == 6 and all(_number(v) for v in q)):
+        return f"{where}.joints_deg: must be the 6 joint angles (deg) of the taught pose, got {q!r}"
+    for key in ("length_mm", "sphere_diameter_mm", "warn_ppm", "warn_form_mm"):
+        v = t.get(key, 1.0)
+        if not (_number(v) and v > 0):
+            return f"{where}.{key}: must be a positive number, got {v!r}"
+    if "axis_mm" in t and not _number(t["axis_mm"]):
+        return f"{where}.axis_mm: must be a number (rail position, mm), got {t['axis_mm']!r}"
+    every = t.get("every", 1)
+    if not (isinstance(every, int) and not isinstance(every, bool) and every >= 1):
+        return f"{where}.every: must be an integer >= 1, got {every!r}"
+    return None
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+@dataclass(frozen=True)
 class MetrologySettings:
     """``[metrology]``, defaults filled in (lengths mm, times s)."""
 
@@ -41,6 +99,8 @@ class MetrologySettings:
     scanner_scale_ppm: float = 20.0
     #: the tracker's location when no nests check it (mm): its stand's stability
     unchecked_location_mm: float = 0.03
+    #: the scanner check on a ball bar fixed in the cell (None: no check)
+    scanner_check: ScannerCheck | None = None
 
     def refraction_ppm(self, weather_applied: bool) -> float:
         """The range scale's 1-sigma (ppm) from the weather's uncertainty (−0.93 ppm/°C,
@@ -53,7 +113,9 @@ class MetrologySettings:
     @classmethod
     def from_table(cls, t: dict[str, Any]) -> MetrologySettings:
         nests = {str(k): tuple(float(v) for v in p) for k, p in t.get("nests", {}).items()}
-        values = {k: v for k, v in t.items() if k != "nests"}
+        values = {k: v for k, v in t.items() if k not in ("nests", "scanner_check")}
+        if "scanner_check" in t:
+            values["scanner_check"] = ScannerCheck.from_table(t["scanner_check"])
         if "weather_uncertainty" in values:
             values["weather_uncertainty"] = tuple(float(v) for v in values["weather_uncertainty"])
         return cls(**{**values, "nests": nests})
@@ -100,6 +162,8 @@ def check_table(t: dict[str, Any]) -> str | None:
         return "nests: must map each nest's name to its x, y, z (world, mm)"
     if nests and len(nests) < max(4, int(t.get("min_nests", 3))):
         return f"nests: drift control needs at least 4 nests, got {len(nests)}"
+    if "scanner_check" in t:
+        return check_scanner_check(t["scanner_check"])
     return None
 
 

@@ -65,6 +65,10 @@ class CellKeys:
     def station_ecs(self, station: str | int) -> str:
         return f"{self.prefix}/scan/{station}/ecs"
 
+    def scanner_check(self, station: str | int) -> str:
+        """A scanner check's scan of the cell's ball bar (``scancell.ScannerCheck``)."""
+        return f"{self.prefix}/scan/{station}/check"
+
     def scan_result(self, station: str | int) -> str:
         return f"{self.prefix}/scan/{station}/result"
 

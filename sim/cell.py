@@ -109,6 +109,10 @@ DEFAULT_NESTS: dict[str, tuple[float, float, float]] = {
     "N5": (2800.0, -2900.0, 400.0), "N6": (2800.0, 2900.0, 400.0),
 }
 
+#: the scanner-check ball bar: centre and axis (world), off the part's side
+CHECK_BAR = "check_bar"
+DEFAULT_CHECK_BAR = ((3250.0, -1250.0, -250.0), (0.0, 0.8, 0.6))
+
 
 @dataclass
 class SimCellConfig:
@@ -137,6 +141,10 @@ class SimCellConfig:
     nests_world_mm: dict[str, tuple[float, float, float]] = field(
         default_factory=lambda: dict(DEFAULT_NESTS))
     home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
+    #: the scanner-check ball bar fixed in the cell beside the part (world, mm): its centre
+    #: and its axis; None: none. Where ``[metrology.scanner_check]`` of sim.toml looks.
+    check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
+        DEFAULT_CHECK_BAR)
 
 
 @dataclass
@@ -194,6 +202,9 @@ class SimCell:
                                                 visible_to_cameras=False))
         for name, c in self.cfg.nests_world_mm.items():
             self.scene.add(SceneObject(f"nest_{name}", parts.smr(), self._facing_tracker(c), 0.75))
+        if self.cfg.check_bar_world is not None:
+            self.scene.add(SceneObject(CHECK_BAR, parts.ARTEFACTS["ballbar"](),
+                                       self.check_bar_pose(*self.cfg.check_bar_world), 0.6))
         self._rays: dict[str, np.ndarray] = {}
         self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
@@ -375,6 +386,21 @@ class SimCell:
         if with_stand:
             self.scene.add(SceneObject("ball_stand", parts.ball_stand(), make_T(t=c), 0.3))
         self._scene_version += 1
+
+    @staticmethod
+    def check_bar_pose(centre: tuple[float, ...], axis: tuple[float, ...]) -> np.ndarray:
+        """T_world_from_bar of a ball bar (its axis is the dumbbell's y) facing -x of the
+        world, where the robot looks from."""
+        y = np.asarray(axis, float) / np.linalg.norm(axis)
+        x = np.array([1.0, 0.0, 0.0]) - y[0] * y
+        x /= np.linalg.norm(x)
+        return make_T(np.stack([x, y, np.cross(x, y)], axis=1), np.asarray(centre, float))
+
+    def check_bar_ends_world(self) -> np.ndarray:
+        """The true centres (2, 3) of the check bar's spheres (world, mm)."""
+        T = self.scene.get(CHECK_BAR).T_world_from_object
+        half = parts.BALLBAR_LENGTH_MM / 2
+        return np.array([T[:3, 3] + s * half * T[:3, 1] for s in (-1.0, 1.0)])
 
     def _facing_tracker(self, center_world: np.ndarray) -> np.ndarray:
         """The frame of an SMR at ``center_world`` whose opening (z) faces the tracker."""

@@ -34,6 +34,11 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     settle = [t for st in s["settle_s"].values() for t in st]
     assert len(s["settle_s"]) == 3 and all(0 <= t < 15 for t in settle) and max(settle) > 0
     assert set(s["drift_mm"]) == {"start", "end"} and all(d < 0.2 for d in s["drift_mm"].values())
+    # the scanner check on the cell's ball bar at the start: scale and form, no warning
+    (check,) = s["scanner_checks"]
+    assert check["label"] == "start" and "error" not in check, check
+    assert abs(check["scale_ppm"]) < check.get("warn_ppm", 100) and not check["warnings"], check
+    assert "scanner check start: ball bar" in out.stdout
     assert "dominant" in s["error_budget"] and "error budget:" in out.stdout
     # the demo ends with the inspection of the fused model against the part's STEP
     ins = s["inspection"]

@@ -205,6 +205,37 @@ def test_nest_checks_through_the_protocol_relocate_and_stop_on_a_missing_nest():
     _with_tracker(c, body)
 
 
+def test_a_beam_break_during_a_nest_check_is_measured_again():
+    c = cell(off=("vibration",))
+    c.move_joints(c.start_joints())
+    settings = MetrologySettings(nests={n: tuple(p) for n, p in c.cfg.nests_world_mm.items()})
+
+    async def body(tracker, server):
+        scanner = (await tracker.measure()).point_mm
+        drift = DriftControl(tracker, settings, {"job_id": "t"})
+        find = tracker.find_reflector
+        calls = []
+
+        async def breaking_find(approx):  # someone walks through the beam at nest N2
+            out = await find(approx)
+            calls.append(approx)
+            if len(calls) == 2:
+                server.handler.fault = "beam_break"
+            return out
+
+        tracker.find_reflector = breaking_find
+        rec = await drift.check("start", scanner)
+        assert sorted(rec["nests"]) == sorted(c.cfg.nests_world_mm) and not rec["missing"], rec
+        assert len(calls) == len(c.cfg.nests_world_mm) + 2  # N2 twice, then the scanner
+        # a beam that stays broken: the nest is tried twice, then named as missing
+        tracker.find_reflector = find
+        server.handler.fault = "reflector_lost"
+        with pytest.raises(NestCheckFailed, match=r"0 of 6 nests measured.*N1 \(.*reflector"):
+            await drift.check("end", scanner)
+
+    _with_tracker(c, body)
+
+
 # ---------------------------------------------------------------- through the daemon
 def test_two_face_check_is_a_command_and_reports_each_nest(make_daemon, client):
     from .conftest import sim_cell_raw, wait_until
@@ -230,3 +261,44 @@ def test_two_face_check_is_a_command_and_reports_each_nest(make_daemon, client):
             client.call("job/two_face", {"nests": ["N9"]})
     finally:
         sub.undeclare()
+
+
+def test_a_knocked_nest_stops_the_job_keeping_its_stations_and_bad_weather_is_named(
+        make_daemon, client):
+    from scancell.sim.world import get_world
+
+    from .conftest import sim_cell_raw, wait_until
+    from .test_scan_part import Events, plan_for
+
+    raw = sim_cell_raw(camera_scale=8)
+    raw["metrology"]["nest_check_every"] = 1
+    raw["metrology"].pop("scanner_check", None)
+    d = make_daemon(raw)
+    wait_until(lambda: all(s["state"] == "connected"
+                           for s in client.status()["devices"].values()), 30, what="devices")
+    world = get_world(d.cfg.simulator["world"])
+    events = Events(client.bus)
+    ecs: list[dict] = []
+    client.bus.subscribe(client.bus.keys.station_ecs("*"), lambda s: ecs.append(s.decode()))
+    with world.lock:
+        plan = plan_for(world.cell)
+    plan["station"] = plan["station"][:2]
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    wait_until(lambda: any(e.get("step") == "station_done" for e in events.of(job)), 120,
+               what="the first station")
+    with world.lock:  # someone knocks nest N3 by 2 mm before the check that precedes s02
+        world.cell.scene.get("nest_N3").T_world_from_object[:3, 3] += [0.0, 2.0, 0.0]
+    final = wait_until(lambda: events.final(job), 120, what="the job's end")
+    assert final["state"] == "failed", final
+    assert "N3" in final["error"] and "nests" in final["error"], final["error"]
+    assert [s["station"] for s in final["result"]["stations_done"]] == ["s01"]
+    assert [e["station"] for e in ecs if e["job_id"] == job] == ["s01"]
+    # the tracker's weather station reads nonsense: the job refuses it by name and range
+    with world.lock:
+        world.cell.scene.get("nest_N3").T_world_from_object[:3, 3] -= [0.0, 2.0, 0.0]
+        world.cell.tracker._station_bias[0] = 60.0
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    final = wait_until(lambda: events.final(job), 60, what="the job's end")
+    assert final["state"] == "failed" and "weather" in final["error"]
+    assert "air temperature" in final["error"] and "[-10, 50]" in final["error"], final["error"]
+    assert final["result"]["stations_done"] == []

@@ -5,6 +5,8 @@ Inputs:
   its ECS was built at;
 - ``scan/<station>/ecs``: the station's tracker points P1, P2, P3 (``scancell.StationEcs``);
 - ``scan/<station>/cloud``: the station's cloud in ``mcs_<station>``;
+- ``scan/<check>/check``: a scanner check (``scancell.ScannerCheck``), whose cloud comes on
+  ``scan/<check>/cloud`` with meta ``job_kind`` ``scanner_check``;
 - ``job/*/event``: the end of a ``scan_part`` job.
 
 Outputs:
@@ -46,6 +48,9 @@ from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
 
+#: the meta job_kind of a scanner check's cloud (daemon/jobs/scanner_check.py)
+CHECK_KIND = "scanner_check"
+
 log = logging.getLogger(__name__)
 
 
@@ -66,6 +71,11 @@ class JobStations:
     nominal: str | None = None
     #: station -> its Monte Carlo uncertainty over every modelled source
     station_uncertainty: dict[str, StationUncertainty] = field(default_factory=dict)
+    #: scanner checks: check station -> its ScannerCheck, and its cloud (MCS points)
+    checks: dict[str, dict[str, Any]] = field(default_factory=dict)
+    check_clouds: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the checks the job's final event lists
+    announced_checks: set[str] = field(default_factory=set)
 
 
 @dataclass
@@ -101,6 +111,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
+        self.subscribe(k.scanner_check("*"), self._on_check)
         self.subscribe(k.job_event("*"), self._on_event)
 
     # ---------------------------------------------------------------- bus callbacks
@@ -114,9 +125,15 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self._job(e["job_id"]).ecs[e["station"]] = e
         self.submit(("station", f"{e['job_id']}\0{e['station']}"))
 
+    def _on_check(self, sample: Any) -> None:
+        c = sample.decode()
+        with self._lock:
+            self._job(c["job_id"]).checks[c["station"]] = c
+
     def _on_cloud(self, sample: Any) -> None:
         meta = sample.attachment.meta
-        if meta.get("job_kind") != "scan_part" or not meta.get("job_id"):
+        kind = meta.get("job_kind")
+        if kind not in ("scan_part", CHECK_KIND) or not meta.get("job_id"):
             return  # not a scan_part station (a hand-eye ball, a single scan)
         job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
@@ -125,6 +142,10 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             unc = fg.cloud_fields(msg).get("uncertainty")
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
+            return
+        if kind == CHECK_KIND:
+            with self._lock:
+                self._job(job_id).check_clouds[station] = pts
             return
         with self._lock:
             self._job(job_id).clouds[station] = pts
@@ -141,6 +162,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 job = self._job(e["job_id"])
                 job.ended = e["state"]
                 job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
+                job.announced_checks = {str(c.get("station")) for c in
+                                        result.get("scanner_checks") or [] if isinstance(c, dict)}
                 job.nominal = result.get("nominal")
             self.submit(("end", e["job_id"]))
 
@@ -210,7 +233,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             with self._lock:
                 job = self._job(job_id)
                 expected = set(job.ecs) | job.announced
-                waiting = sorted(expected - set(job.clouds)) + sorted(job.announced - set(job.ecs))
+                waiting = (sorted(expected - set(job.clouds)) + sorted(job.announced - set(job.ecs))
+                           + sorted(job.announced_checks - set(job.check_clouds)))
             if not waiting:
                 break
             time.sleep(0.2)
@@ -235,15 +259,42 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             fg.point_cloud(fused.points, now, "world", extra)),
             Attachment(now, len(stations), None, meta))
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
-                            dict(job.station_uncertainty))
+                            dict(job.station_uncertainty), scanner_checks(job))
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
 
 
+def scanner_checks(job: JobStations) -> list[dict[str, Any]]:
+    """Each scanner check of ``job`` whose scan and cloud came: its figures, or its error."""
+    from scancell.analysis.scanner_check import CheckError, evaluate_check
+
+    out = []
+    for station in sorted(job.checks):
+        c = job.checks[station]
+        rec: dict[str, Any] = {"station": station, "label": c.get("label"),
+                               "settle_s": c.get("settle_s")}
+        cloud = job.check_clouds.get(station)
+        if cloud is None:
+            rec["error"] = "its cloud never came (scan worker down?)"
+        else:
+            a = c["artefact"]
+            try:
+                rec.update(evaluate_check(cloud, a["length_mm"], a["sphere_diameter_mm"],
+                                          a.get("warn_ppm", 100.0), a.get("warn_form_mm", 0.05)))
+            except CheckError as exc:
+                rec["error"] = str(exc)
+        for w in rec.get("warnings", []) + ([rec["error"]] if "error" in rec else []):
+            log.warning("job %s: scanner check %s (%s): %s", job.job_id, station,
+                        rec["label"], w)
+        out.append(rec)
+    return out
+
+
 def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dict[str, Any],
                  settings: FuseSettings, state: str | None,
-                 uncertainty: dict[str, StationUncertainty] | None = None) -> dict[str, Any]:
+                 uncertainty: dict[str, StationUncertainty] | None = None,
+                 checks: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir."""
     from scancell.analysis.metrics import MetricsError, compare_clouds
@@ -269,6 +320,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
         truth = d
         body["true_error_mm"] = {"mean": float(d.mean()), "std": float(d.std()),
                                  "max": float(d.max()), "p95": float(np.percentile(d, 95))}
+    if checks:
+        body["scanner_checks"] = checks
     uncertainty = uncertainty or {}
     if uncertainty:
         per = {n: u.to_json() for n, u in uncertainty.items()}
@@ -315,6 +368,7 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
                                            f"scancell fusion report: {body['job_id']}",
                                            extra={"true_error_mm": body.get("true_error_mm")},
                                            error_budget=body.get("error_budget"),
-                                           truth=truth))
+                                           truth=truth,
+                                           scanner_checks=body.get("scanner_checks")))
     (folder / "summary.json").write_text(json.dumps(body, indent=2))
     return files

@@ -25,6 +25,7 @@ from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.nests import DriftControl
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
+from scancell.daemon.jobs.scanner_check import CheckDevices, due, scanner_check
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
@@ -251,6 +252,22 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         ctx.event("running", "nests", f"nest check {label}: drift {rec['drift_max_mm']:.4f} mm"
                   f"{', tracker re-located' if rec['relocated'] else ''}", drift=rec)
 
+    checks: list[dict[str, Any]] = []
+    ctx.kept.update(scanner_checks=checks)
+    check_axis = metrology.scanner_check is not None and metrology.scanner_check.axis_mm is not None
+    if check_axis and axis_s is None:
+        axis_s = serving_device(supervisors, req.get("axis"), Axis, VERB)
+        axis = axis_s.device
+    check_devs = CheckDevices(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
+                              setup)
+
+    async def check_scanner(label: str) -> None:
+        try:
+            checks.append(await scanner_check(ctx, supervisors, check_devs, metrology, label,
+                                              len(checks) + 1))
+        except CommandError as exc:
+            raise StepFailed(label, "scanner_check", exc.message) from exc
+
     async with contextlib.AsyncExitStack() as stack:
         await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
@@ -263,12 +280,16 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             scanner_at = (await tracker.measure()).point_mm if drift.enabled else None
             if drift.enabled:
                 await nest_check("start", scanner_at)
+            if due(metrology.scanner_check, 0):
+                await check_scanner("start")
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
                           repeats, turns, setup, metrology, drift if drift.enabled else None,
                           bool(result["weather"].get("source")))
             for i, st in enumerate(plan.stations):
                 if drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)
+                if i and due(metrology.scanner_check, i):
+                    await check_scanner(f"before {st.name}")
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
                 record = await measure_station(ctx, supervisors, st, how, i, n, eta, plan.name)
                 scanner_at = np.asarray(record["tracker_points_mm" if drift.enabled
@@ -283,6 +304,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     result["seconds"] = round(time.monotonic() - t_start, 1)
     if drift.enabled:
         result["drift_checks"] = drift.checks
+    if checks:
+        result["scanner_checks"] = checks
     if plan.nominal:
         result["nominal"] = plan.nominal
     return result
