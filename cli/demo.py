@@ -113,7 +113,8 @@ def wait_for(pred, timeout_s: float, what: str, period_s: float = 0.3) -> Any:
 def print_progress(e: dict[str, Any]) -> None:
     """A job's progress line (station i/N, step, time left), for the steps worth a line."""
     if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
-                                                 "ballbar", "plane"):
+                                                 "ballbar", "plane", "nests", "scanner_check",
+                                                 "weather"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
         print(f"   {where}{e['message']}{eta}", flush=True)
@@ -122,6 +123,8 @@ def print_progress(e: dict[str, Any]) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")
     p.add_argument("--quick", action="store_true", help="reduced size, for tests")
+    p.add_argument("--no-acceptance", action="store_true",
+                   help="skip the VDI/VDE 2634 acceptance stage (ablation runs)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -268,8 +271,10 @@ def main(args: argparse.Namespace) -> int:
               f"{'PASS' if inspection['tolerances']['pass'] else 'FAIL'}; "
               f"{inspection['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
 
-        stage("VDI/VDE 2634 acceptance: Part 2 (sphere, ball bar, plane), Part 3 (two stations)")
-        summary["acceptance"] = run_acceptance(client, quick)
+        if not args.no_acceptance:
+            stage("VDI/VDE 2634 acceptance: Part 2 (sphere, ball bar, plane), Part 3 (two "
+                  "stations)")
+            summary["acceptance"] = run_acceptance(client, quick)
 
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))

@@ -78,6 +78,9 @@ class MetrologySettings:
     air_temperature_c: float | None = None
     air_pressure_hpa: float | None = None
     humidity_pct: float | None = None
+    #: wait before each tracker point until the arm has settled (False: measure at once, as a
+    #: cell without the defence would; for ablation studies)
+    settle: bool = True
     #: settled when ``settle_window`` consecutive readings lie within this of their mean (on
     #: top of twice the tracker's stated noise)
     settle_tolerance_mm: float = 0.010
@@ -141,6 +144,8 @@ def check_table(t: dict[str, Any]) -> str | None:
         problem = tracker_line.environment_problem(*(float(v) for v in values))
         if problem:
             return f"weather: {problem}"
+    if not isinstance(t.get("settle", True), bool):
+        return f"settle: must be true or false, got {t['settle']!r}"
     for key in ("settle_tolerance_mm", "settle_timeout_s", "drift_tolerance_mm",
                 "nest_fit_tolerance_mm", "scanner_scale_ppm", "unchecked_location_mm"):
         v = t.get(key, 1.0)

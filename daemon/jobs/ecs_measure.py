@@ -42,7 +42,7 @@ async def settled_point(tracker: Tracker, repeats: int, meta: dict[str, Any],
     """:func:`averaged` once the arm has settled (``metrology`` given): the mean, its 1-sigma
     and the settle time (s)."""
     settle_s = None
-    if metrology is not None:
+    if metrology is not None and metrology.settle:
         settle_s = (await settle(tracker, metrology, meta)).settle_s
     p, s = await averaged(tracker, repeats, meta)
     return p, s, settle_s

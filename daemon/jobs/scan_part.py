@@ -205,7 +205,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
         "tracker_systematic_mm": 0.5 * shot_sigma,
         "location_mm": (how.drift.location_sigma_mm if how.drift is not None
                         else m.unchecked_location_mm),
-        "settle_mm": m.settle_tolerance_mm if how.metrology is not None else 0.1,
+        "settle_mm": (m.settle_tolerance_mm if how.metrology is not None and m.settle
+                      else 0.1),
         "scanner_scale_ppm": m.scanner_scale_ppm}
     if how.drift is not None:
         record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]

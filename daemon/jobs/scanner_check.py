@@ -55,11 +55,12 @@ async def scanner_check(ctx: JobContext, supervisors: dict[str, DeviceSupervisor
         await devs.axis.move_to(check.axis_mm)
     await devs.robot.move_joints(np.radians(check.joints_deg), devs.speed)
     settle_s = None
-    try:
-        settle_s = (await settle(devs.tracker, metrology, {"job_id": ctx.job_id,
-                                                           "check": station})).settle_s
-    except BeamBroken:
-        pass  # the tracker cannot see the scanner here: the record says it was not settled
+    if metrology.settle:
+        try:
+            settle_s = (await settle(devs.tracker, metrology, {"job_id": ctx.job_id,
+                                                               "check": station})).settle_s
+        except BeamBroken:
+            pass  # the tracker cannot see the scanner here: the record says it was not settled
     reply = await scan(supervisors, {"station": station, "scan_id": f"{ctx.job_id}-{station}",
                                      "projector": devs.projector, "cameras": devs.cameras},
                        hold_locks=False, job_id=ctx.job_id, job_kind=JOB_KIND, setup=devs.setup)
