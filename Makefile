@@ -30,7 +30,7 @@ lint: $(STAMP)
 
 # Every tier: unit, process and e2e (markers in pyproject.toml).
 test: lint
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 3 --dist loadfile
 
 # The unit tier alone: in-process tests, no sockets to other processes (about a minute).
 test-fast: lint

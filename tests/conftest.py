@@ -73,11 +73,14 @@ MOCK_CELL: dict[str, Any] = {
 
 
 def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None,
-                 hdr: bool = False) -> dict[str, Any]:
+                 hdr: bool = False, drift_control: bool = False) -> dict[str, Any]:
     """The packaged sim.toml with every simulator on a free port (drivers follow), small
     cameras and its own world name, ready for :class:`DaemonThread`. ``hdr=False`` drops its
     ``[scanner]`` HDR default: tests of the jobs' mechanics scan one exposure (HDR is tested
-    in test_projector_response and by the quick demo)."""
+    in test_projector_response and by the quick demo). ``drift_control=False`` drops the
+    reference nests and the scanner check of ``[metrology]`` (weather and settle detection
+    stay): they cost every scan job a minute of tracker shots and are tested in
+    test_sim_mechanics, test_scanner_check and by the quick demo."""
     import tomllib
 
     from scancell.config import merge_into
@@ -94,6 +97,9 @@ def sim_cell_raw(camera_scale: float = 8.0, world: str | None = None,
     raw["daemon"].update(status_period_s=0.3, reconnect_initial_s=0.1, reconnect_max_s=0.5)
     if not hdr:
         raw.pop("scanner", None)
+    if not drift_control:
+        raw["metrology"].pop("nests", None)
+        raw["metrology"].pop("scanner_check", None)
     return raw
 
 

@@ -62,9 +62,6 @@ class Events:
 @pytest.fixture
 def sim(make_daemon, client, tmp_path):
     raw = sim_cell_raw(camera_scale=8, hdr=True)  # the true error needs the dark paint
-    # a 30 mm sphere is ~20 px across at 1/8 size: too small for fringes through the realistic
-    # optics; the quick demo (1/4 size) and tests/test_scanner_check.py check the scanner
-    raw["metrology"].pop("scanner_check")
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
     world = get_world(d.cfg.simulator["world"])

@@ -240,7 +240,7 @@ def test_a_beam_break_during_a_nest_check_is_measured_again():
 def test_two_face_check_is_a_command_and_reports_each_nest(make_daemon, client):
     from .conftest import sim_cell_raw, wait_until
 
-    raw = sim_cell_raw(camera_scale=8)
+    raw = sim_cell_raw(camera_scale=8, drift_control=True)
     make_daemon(raw)
     wait_until(lambda: all(s["state"] == "connected"
                            for s in client.status()["devices"].values()), 30, what="devices")
@@ -270,7 +270,7 @@ def test_a_knocked_nest_stops_the_job_keeping_its_stations_and_bad_weather_is_na
     from .conftest import sim_cell_raw, wait_until
     from .test_scan_part import Events, plan_for
 
-    raw = sim_cell_raw(camera_scale=8)
+    raw = sim_cell_raw(camera_scale=8, drift_control=True)
     raw["metrology"]["nest_check_every"] = 1
     raw["metrology"].pop("scanner_check", None)
     d = make_daemon(raw)
