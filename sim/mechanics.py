@@ -12,9 +12,11 @@ Frames: ``world`` is the tracker's frame when the cell was set up (sim time 0); 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 
 import numpy as np
+from scancell.sim.profiles import ProfileError as ProfileError  # re-exported
+from scancell.sim.profiles import select_profile
 
 #: standard gravity (m/s²)
 G = 9.80665
@@ -129,26 +131,11 @@ PROFILES: dict[str, MechanicsProfile] = {"ideal": IDEAL, "realistic": REALISTIC}
 DEFAULT_PROFILE = "realistic"
 
 
-class ProfileError(ValueError):
-    pass
-
-
 def mechanics_profile(name: str = DEFAULT_PROFILE, effects_off: tuple[str, ...] | list[str] = (),
                       **overrides: object) -> MechanicsProfile:
     """The named profile with the given effects switched off (their ideal values) and single
     fields overridden; ProfileError names an unknown profile, effect or field."""
-    if name not in PROFILES:
-        raise ProfileError(f"unknown mechanics profile {name!r}: one of {sorted(PROFILES)}")
-    p = PROFILES[name]
-    for effect in effects_off:
-        if effect not in EFFECTS:
-            raise ProfileError(f"unknown mechanics effect {effect!r}: one of {sorted(EFFECTS)}")
-        p = replace(p, **{f: getattr(IDEAL, f) for f in EFFECTS[effect]})
-    known = {f.name for f in fields(MechanicsProfile)}
-    for key in overrides:
-        if key not in known or key == "name":
-            raise ProfileError(f"unknown mechanics parameter {key!r}")
-    return replace(p, **overrides) if overrides else p
+    return select_profile("mechanics", PROFILES, EFFECTS, name, effects_off, overrides)
 
 
 # ---------------------------------------------------------------------------- robot

@@ -8,10 +8,12 @@ values; each effect can be switched off on its own (:func:`optics_profile`), whi
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from scancell.sim.profiles import ProfileError as ProfileError  # re-exported
+from scancell.sim.profiles import select_profile
 
 
 @dataclass(frozen=True)
@@ -116,26 +118,11 @@ PROFILES: dict[str, OpticsProfile] = {"ideal": IDEAL, "realistic": REALISTIC}
 DEFAULT_PROFILE = "realistic"
 
 
-class ProfileError(ValueError):
-    pass
-
-
 def optics_profile(name: str = DEFAULT_PROFILE, effects_off: tuple[str, ...] | list[str] = (),
                    **overrides: object) -> OpticsProfile:
     """The named profile with the given effects switched off (their ideal values) and single
     fields overridden; ProfileError names an unknown profile, effect or field."""
-    if name not in PROFILES:
-        raise ProfileError(f"unknown optics profile {name!r}: one of {sorted(PROFILES)}")
-    p = PROFILES[name]
-    for effect in effects_off:
-        if effect not in EFFECTS:
-            raise ProfileError(f"unknown effect {effect!r}: one of {sorted(EFFECTS)}")
-        p = replace(p, **{f: getattr(IDEAL, f) for f in EFFECTS[effect]})
-    known = {f.name for f in fields(OpticsProfile)}
-    for key in overrides:
-        if key not in known or key == "name":
-            raise ProfileError(f"unknown optics parameter {key!r}")
-    return replace(p, **overrides) if overrides else p
+    return select_profile("optics", PROFILES, EFFECTS, name, effects_off, overrides)
 
 
 def blur_sigma_px(distance_mm: np.ndarray, focal_px: float, pitch_mm: float, f_number: float,

@@ -163,7 +163,7 @@ def test_error_table_of_a_known_distortion():
 def test_profiles_and_effects_are_checked():
     with pytest.raises(ProfileError, match="unknown optics profile 'shiny'"):
         optics_profile("shiny")
-    with pytest.raises(ProfileError, match="unknown effect 'glare'"):
+    with pytest.raises(ProfileError, match="unknown optics effect 'glare'"):
         optics_profile("realistic", ["glare"])
     off = optics_profile("realistic", ["projector_response", "paints"])
     assert off.projector_gamma == 1.0 and off.paints == "uniform"

@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +25,8 @@ from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.nests import DriftControl
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
-from scancell.daemon.jobs.scanner_check import CheckDevices, due, scanner_check
+from scancell.daemon.jobs.scanner_check import due, scanner_check
+from scancell.daemon.jobs.station import Station
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import CellGeometry
@@ -128,25 +129,6 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
     check_plan(plan, robot, axis)
 
 
-@dataclass(frozen=True)
-class Station:
-    """What measuring a station takes: the devices and the plan's motion and ECS settings."""
-
-    robot: Robot
-    tracker: Tracker
-    axis: Axis | None
-    projector: str
-    cameras: list[str]
-    speed: float
-    repeats: int
-    turns: list[float]
-    setup: ScannerSetup | None
-    #: settle detection before each tracker point (None: measure at once)
-    metrology: MetrologySettings | None = None
-    #: the tracker's location by the reference nests (None: the tracker's frame is ``world``)
-    drift: DriftControl | None = None
-    #: whether the tracker was told the weather (the refraction's uncertainty)
-    weather_applied: bool = False
 
 
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
@@ -259,8 +241,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     if check_axis and axis_s is None:
         axis_s = serving_device(supervisors, req.get("axis"), Axis, VERB)
         axis = axis_s.device
-    check_devs = CheckDevices(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
-                              setup)
+    check_devs = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
+                         repeats, turns, setup, metrology)
 
     async def check_scanner(label: str) -> None:
         try:

@@ -6,15 +6,14 @@ scale) and its spheres' form, and warns when the stereo calibration has drifted.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scancell.daemon.jobs.metrology import settle
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.jobs.scan import ScannerSetup, scan
+from scancell.daemon.jobs.scan import scan
+from scancell.daemon.jobs.station import Station
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
-from scancell.devices.base import Axis, Robot, Tracker
 from scancell.devices.errors import BeamBroken
 from scancell.model.metrology_settings import MetrologySettings, ScannerCheck
 from scancell.protocols import messages
@@ -23,24 +22,13 @@ from scancell.protocols import messages
 JOB_KIND = "scanner_check"
 
 
-@dataclass(frozen=True)
-class CheckDevices:
-    robot: Robot
-    tracker: Tracker
-    axis: Axis | None
-    projector: str
-    cameras: list[str]
-    speed: float
-    setup: ScannerSetup | None
-
-
 def due(check: ScannerCheck | None, station_index: int) -> bool:
     """Whether the check runs before the station at ``station_index`` (0: the job's start)."""
     return check is not None and station_index % check.every == 0
 
 
 async def scanner_check(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
-                        devs: CheckDevices, metrology: MetrologySettings, label: str,
+                        devs: Station, metrology: MetrologySettings, label: str,
                         index: int) -> dict[str, Any]:
     """Move to the check pose (the rail too, and back after), settle, scan the ball bar; publish
     ``scan/<check>/check`` and return the check's record (``station``, ``scan_id``, ``label``,
