@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+import threading
 import time
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
@@ -67,6 +68,9 @@ class CanopenAxis(Axis):
         self._net: canopen.Network | None = None
         self._node: BaseNode402 | None = None
         self._io = asyncio.Lock()
+        # A thread lock as well: a caller cancelled while its call runs in a worker thread
+        # releases the asyncio lock, and the halt that follows must not overtake it.
+        self._io_thread = threading.Lock()
         self._halt = False
 
     # ---------------------------------------------------------------- link
@@ -132,7 +136,8 @@ class CanopenAxis(Axis):
     def _call(self, fn: Callable[[], T]) -> T:
         """Run one canopen call, turning its exceptions into typed device errors."""
         try:
-            return fn()
+            with self._io_thread:
+                return fn()
         except canopen.SdoAbortedError as exc:
             raise DeviceFault(f"{self.name}: drive refused: {exc}") from None
         except canopen.SdoCommunicationError as exc:
@@ -216,6 +221,8 @@ class CanopenAxis(Axis):
         start = await self.position()
 
         def set_point() -> None:
+            if self._halt:  # stopped while this call waited for its thread: never start
+                raise DeviceFault(f"{self.name}: motion stopped before it was sent")
             node.sdo[p.PROFILE_VELOCITY].raw = velocity
             node.sdo[p.TARGET_POSITION].raw = target
             node.controlword = 0x0F | p.CW_NEW_SET_POINT | p.CW_CHANGE_IMMEDIATELY

@@ -77,6 +77,7 @@ class SimpleMessageRobot(Robot):
         self._motion_lock = asyncio.Lock()
         self._motion_decoder = sm.FrameDecoder(self.byteorder)
         self._stop_requested = False
+        self._stops = 0  # stop() calls so far: a motion point asked for before one is not sent
 
     # ------------------------------------------------------------ links
     def _open(self, url: str) -> serial.SerialBase:
@@ -150,11 +151,16 @@ class SimpleMessageRobot(Robot):
         return st
 
     # ------------------------------------------------------------ motion requests
-    def _exchange(self, packet: bytes, msg_type: int) -> sm.Header:
+    def _exchange(self, packet: bytes, msg_type: int, stops_seen: int | None = None
+                  ) -> sm.Header:
         # A thread lock, not only the asyncio one: a caller cancelled while its exchange runs
         # in a worker thread releases the asyncio lock, and the next request (a stop) must not
-        # share the socket with the one still in flight.
+        # share the socket with the one still in flight. A motion point whose thread only
+        # reaches the socket after a stop was asked for (``stops_seen`` behind) is dropped, or
+        # the robot would start moving after it was told to stop.
         with self._exchange_lock:
+            if stops_seen is not None and stops_seen != self._stops:
+                raise DeviceFault(f"{self.name}: motion stopped before it was sent")
             return self._exchange_locked(packet, msg_type)
 
     def _exchange_locked(self, packet: bytes, msg_type: int) -> sm.Header:
@@ -179,10 +185,13 @@ class SimpleMessageRobot(Robot):
         body = sm.JointTrajPt(seq, q.tolist(), velocity, 0.0)
         header = sm.Header(sm.MsgType.JOINT_TRAJ_PT, sm.CommType.SERVICE_REQUEST)
         packet = sm.encode(header, body, self.byteorder)
+        stopping = seq == sm.SpecialSeq.STOP_TRAJECTORY
+        stops_seen = None if stopping else self._stops
         async with self._motion_lock:
-            reply = await asyncio.to_thread(self._exchange, packet, sm.MsgType.JOINT_TRAJ_PT)
+            reply = await asyncio.to_thread(self._exchange, packet, sm.MsgType.JOINT_TRAJ_PT,
+                                            stops_seen)
         if reply.reply_code != sm.ReplyCode.SUCCESS:
-            what = "stop" if seq == sm.SpecialSeq.STOP_TRAJECTORY else f"point {seq}"
+            what = "stop" if stopping else f"point {seq}"
             raise DeviceFault(f"{self.name}: controller refused {what} "
                               f"(reply_code {reply.reply_code})")
 
@@ -217,6 +226,7 @@ class SimpleMessageRobot(Robot):
 
     async def stop(self) -> None:
         self._stop_requested = True
+        self._stops += 1
         await self._send_point(sm.SpecialSeq.STOP_TRAJECTORY, np.zeros(len(self.joint_names)),
                                0.0)
 

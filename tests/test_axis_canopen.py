@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 import time
 import uuid
 
@@ -130,6 +131,41 @@ def test_stop_halts_mid_move():
 
     asyncio.run(body())
 
+
+
+@pytest.mark.process
+def test_a_halt_overtaking_a_set_point_still_waiting_for_its_thread_wins():
+    """A job cancelled while its set-point waits for a worker thread; the halt that follows
+    reaches the drive first. The set-point must then never be written."""
+    async def body():
+        async with drive_and_server() as (cell, _drive, server, _):
+            axis = socketcand_axis(server, max_velocity=200.0)
+            await axis.connect()
+            real_call, waiting, go = axis._call, threading.Event(), threading.Event()
+
+            def slow_set_point(fn):
+                if fn.__name__ == "set_point":
+                    waiting.set()
+                    go.wait(5.0)
+                return real_call(fn)
+
+            axis._call = slow_set_point
+            try:
+                start = cell.rail_mm
+                move = asyncio.create_task(axis.move_to(1000.0, 0.5))
+                assert await asyncio.to_thread(waiting.wait, 5.0)
+                move.cancel()  # as a job abort does
+                await axis.stop()
+                go.set()
+                with pytest.raises(asyncio.CancelledError):
+                    await move
+                await asyncio.sleep(0.5)
+                assert cell.rail_mm == pytest.approx(start, abs=0.01)  # never moved
+            finally:
+                go.set()
+                await axis.close()
+
+    asyncio.run(body())
 
 @pytest.mark.process
 def test_server_killed_gives_connection_lost_and_nothing_listening_fails_fast():

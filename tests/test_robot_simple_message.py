@@ -89,6 +89,35 @@ def test_stop_mid_motion_halts_the_robot():
 
 
 @pytest.mark.process
+def test_a_stop_overtaking_a_move_still_waiting_for_its_thread_wins():
+    """A job cancelled while its move waits for the socket releases the asyncio lock; the stop
+    that follows may reach the socket first. The move must then never be sent."""
+    async def main():
+        cell, server, robot = await _pair()
+        try:
+            q0 = cell.q.copy()
+            robot._exchange_lock.acquire()  # the socket is busy: the move's thread waits
+            move = asyncio.create_task(robot.move_joints(HOME + np.radians([60.0, 0, 0, 0, 0, 0]),
+                                                         speed=0.5))
+            await asyncio.sleep(0.2)
+            move.cancel()  # as a job abort does
+            stop = asyncio.create_task(robot.stop())
+            await asyncio.sleep(0.1)
+            robot._exchange_lock.release()  # both threads race for the socket
+            await stop
+            with pytest.raises(asyncio.CancelledError):
+                await move
+            await asyncio.sleep(0.5)
+            np.testing.assert_allclose(cell.q, q0, atol=1e-9)  # never moved
+            assert not server._moving
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+@pytest.mark.process
 def test_limits_are_checked_before_any_byte_is_sent():
     async def main():
         _, server, robot = await _pair()
