@@ -81,10 +81,10 @@ class CellClient:
                     status = self.call("job/status")
                     if (status.get("running") or {}).get("job_id") == job_id:
                         continue
-                    last = status.get("last") or {}
-                    return last if last.get("job_id") == job_id else \
-                        {"job_id": job_id, "state": "gone", "step": "", "message": "job ended "
-                         "unseen"}
+                    final = self._final_event(events, job_id, status.get("last") or {})
+                    if on_event is not None:
+                        on_event(final)
+                    return final
                 if e.get("job_id") != job_id:
                     continue  # another job's, or an event of a job before this one
                 if on_event is not None:
@@ -94,6 +94,26 @@ class CellClient:
             raise TimeoutError(f"job {job_id} did not end within {timeout_s:.0f} s")
         finally:
             sub.undeclare()
+
+    @staticmethod
+    def _final_event(events: queue.Queue[dict[str, Any]], job_id: str,
+                     last: dict[str, Any], grace_s: float = 2.0) -> dict[str, Any]:
+        """The job has ended but its final event was not seen: it is still on its way (the
+        daemon publishes it before it answers status), or it was lost; then the status's
+        record of the job's end stands in for it."""
+        deadline = time.monotonic() + grace_s
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                e = events.get(timeout=left)
+            except queue.Empty:
+                break
+            if e.get("job_id") == job_id and e["state"] != "running":
+                return e
+        if last.get("job_id") != job_id:
+            return {"job_id": job_id, "state": "gone", "step": "", "message": "job ended unseen"}
+        return {"step": "end", "message": f"{last['state']} (from the job's status; its final "
+                                          "event was not received)",
+                "result": last.get("result", last.get("kept")), **last}
 
     def devices(self) -> list[dict[str, Any]]:
         return self.call("devices")["devices"]

@@ -83,8 +83,6 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
         started(client.call("job/scan_part", request))
         return 0
     final = client.run_job("scan_part", request, on_start=started, on_event=print_event)
-    if final.get("state") == "gone":
-        print(f"job {final['job_id']}: gone")
     return 0 if final.get("state") == "done" else 1
 
 

@@ -215,3 +215,22 @@ def test_shutdown_aborts_running_command(make_daemon, client):
     assert time.monotonic() - t0 < 5
     t.join(5)
     assert result.get("code") == "aborted"
+
+
+def test_a_job_whose_final_event_is_late_or_lost_still_ends_with_a_final_event():
+    import queue
+
+    from scancell.client import CellClient
+
+    events: queue.Queue = queue.Queue()
+    threading.Timer(0.2, events.put, [{"job_id": "j1", "state": "done", "step": "end",
+                                       "message": "scan_part done", "result": {"n": 3}}]).start()
+    events.put({"job_id": "j1", "state": "running", "step": "move", "message": "moving"})
+    last = {"job_id": "j1", "state": "done", "result": {"n": 3}}
+    late = CellClient._final_event(events, "j1", last)
+    assert late["message"] == "scan_part done"  # the real one, arrived late
+    lost = CellClient._final_event(events, "j1", {"job_id": "j1", "state": "aborted",
+                                                   "kept": {"stations_done": []}}, grace_s=0.1)
+    assert lost["state"] == "aborted" and lost["step"] == "end"
+    assert lost["result"] == {"stations_done": []} and "not received" in lost["message"]
+    assert CellClient._final_event(events, "j2", last, grace_s=0.1)["state"] == "gone"
