@@ -29,6 +29,13 @@ os.environ.setdefault("PYLON_CAMEMU", "2")
 REPO = Path(__file__).resolve().parent.parent
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with whole-job (``e2e``) tests run first: they are the longest, and started last
+    they would keep ``make test``'s xdist workers (``--dist loadfile``) waiting at the end."""
+    e2e_files = {item.path for item in items if item.get_closest_marker("e2e")}
+    items.sort(key=lambda item: item.path not in e2e_files)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
