@@ -28,9 +28,10 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
 
-# Every tier: unit, process and e2e (markers in pyproject.toml).
+# Every tier: unit, process and e2e (markers in pyproject.toml). Files run whole, in
+# collection order (tests/conftest.py puts the e2e files first: the longest start first).
 test: lint
-	$(PY) -m pytest -q -n 3 --dist loadfile
+	$(PY) -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder
 
 # The unit tier alone: in-process tests, no sockets to other processes (about a minute).
 test-fast: lint
