@@ -15,13 +15,16 @@ tracker_systematic  job      half the tracker's stated per-shot sigma, common to
 refraction          job      range scale from the weather's uncertainty (or 10 ppm unknown)
 tracker_location    job      the nests' location of the tracker (fit RMS, or drift allowed)
 settling            station  the arm's residual motion between P1 and the scan
-hand_eye            job      the calibration's rotation and translation sigma
-scanner_scale       job      the scanner's scale stability (warm-up), ppm
+hand_eye            scanner  the calibration's rotation and translation sigma
+scanner_scale       scanner  the scanner's scale stability (warm-up), ppm
 scanner_noise       point    each point's depth noise (the scanner's noise model)
 ==================  =======  ==============================================================
 
-``job`` sources are common to the stations between two re-locations or calibrations: they move
-the whole model and cancel in overlaps. ``station`` and ``point`` sources differ per station.
+``job`` sources are common to the stations between two re-locations or calibrations and fixed
+in the tracker's frame: they move the whole model alike and cancel in overlaps. ``scanner``
+sources are common too but fixed in the scanner: each station carries the same error turned
+with its own orientation, so two stations that look from different directions disagree by it
+(:func:`scanner_fixed_overlap`). ``station`` and ``point`` sources differ per station.
 """
 
 from __future__ import annotations
@@ -35,8 +38,8 @@ from scancell.model.ecs import ecs_for_frame
 ARCSEC = np.pi / 180 / 3600
 
 SCOPES = {"tracker_noise": "station", "tracker_systematic": "job", "refraction": "job",
-          "tracker_location": "job", "settling": "station", "hand_eye": "job",
-          "scanner_scale": "job", "scanner_noise": "point"}
+          "tracker_location": "job", "settling": "station", "hand_eye": "scanner",
+          "scanner_scale": "scanner", "scanner_noise": "point"}
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,8 @@ class StationUncertainty:
     interval_mm: tuple[float, float]
     #: per point: 1-sigma of the displacement along the view, all sources (mm)
     point_sigma_mm: np.ndarray = field(repr=False)
+    #: the stated sources drawn
+    stated: StatedSources = field(default_factory=StatedSources, repr=False)
 
     def to_json(self) -> dict[str, Any]:
         return {"share_mm": {k: round(v, 5) for k, v in self.share_mm.items()},
@@ -92,6 +97,19 @@ def _rot(rng: np.random.Generator, sigma_rad: float) -> np.ndarray:
     return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
 
 
+def _scanner_error(source: str, rng: np.random.Generator, T_em: np.ndarray, s: StatedSources
+                   ) -> tuple[np.ndarray, float]:
+    """One draw of a ``scanner`` source: the hand-eye it gives and the scanner's scale."""
+    T_em2 = T_em.copy()
+    scale = 1.0
+    if source == "hand_eye":
+        T_em2[:3, :3] = _rot(rng, s.hand_eye_rotation_arcsec * ARCSEC / np.sqrt(3)) @ T_em[:3, :3]
+        T_em2[:3, 3] = T_em[:3, 3] + rng.normal(0.0, s.hand_eye_translation_mm / np.sqrt(3), 3)
+    elif source == "scanner_scale":
+        scale = 1.0 + rng.normal(0.0, s.scanner_scale_ppm * 1e-6)
+    return T_em2, scale
+
+
 def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.ndarray,
           j6: list[float], frame: list[float], T_em: np.ndarray, cloud: np.ndarray,
           noise: np.ndarray, view: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
@@ -107,15 +125,11 @@ def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.
     if "tracker_location" in sources:
         p = p + rng.normal(0.0, s.location_mm / np.sqrt(3), 3)
     T_we = ecs_for_frame(p, j6, frame)
-    T_em2 = T_em.copy()
-    if "hand_eye" in sources:
-        T_em2[:3, :3] = _rot(rng, s.hand_eye_rotation_arcsec * ARCSEC / np.sqrt(3)) @ T_em[:3, :3]
-        T_em2[:3, 3] = T_em[:3, 3] + rng.normal(0.0, s.hand_eye_translation_mm / np.sqrt(3), 3)
+    T_em2 = _scanner_error("hand_eye", rng, T_em, s)[0] if "hand_eye" in sources else T_em
+    scale = _scanner_error("scanner_scale", rng, T_em, s)[1] if "scanner_scale" in sources \
+        else 1.0
     T = T_we @ T_em2
-    c = cloud
-    if "scanner_scale" in sources:
-        c = c * (1.0 + rng.normal(0.0, s.scanner_scale_ppm * 1e-6))
-    X = c @ T[:3, :3].T + T[:3, 3]
+    X = (cloud * scale) @ T[:3, :3].T + T[:3, 3]
     if "settling" in sources:
         X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
     d = (X - X0) @ view
@@ -155,18 +169,70 @@ def station_uncertainty(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: lis
     full = np.repeat(sigma_pts, step)[: len(cloud)]
     if len(full) < len(cloud):
         full = np.concatenate([full, np.full(len(cloud) - len(full), sigma_pts[-1])])
-    return StationUncertainty(share, (float(lo), float(hi)), full)
+    return StationUncertainty(share, (float(lo), float(hi)), full, stated)
 
 
-def budget_by_source(stations: dict[str, StationUncertainty]) -> dict[str, dict[str, Any]]:
+def scanner_fixed_overlap(clouds_world: dict[str, np.ndarray],
+                          T_world_from_ecs: dict[str, np.ndarray], T_ecs_from_mcs: np.ndarray,
+                          pairs: list[tuple[str, str]], stated: StatedSources,
+                          trials: int = 100, sample: int = 1000, radius_mm: float = 3.0,
+                          seed: int = 0) -> dict[str, float]:
+    """The overlap error (mm) each ``scanner`` source puts between stations: one draw of the
+    source for the whole job, each station moving its points (world, mm) with it in its own
+    orientation; at the points of A (sampled) within ``radius_mm`` of B, the mean |difference
+    of the two displacements along A's view|, averaged over the pairs and the draws. A pair
+    without overlap is left out; no pair gives 0."""
+    from scipy.spatial import cKDTree
+
+    T_em = np.asarray(T_ecs_from_mcs, float)
+    overlaps = []
+    for a, b in pairs:
+        pa, pb = np.asarray(clouds_world[a], float), np.asarray(clouds_world[b], float)
+        if not len(pa) or not len(pb):
+            continue
+        x = pa[:: max(1, len(pa) // sample)]
+        d, _ = cKDTree(pb[:: max(1, len(pb) // 20000)]).query(x, distance_upper_bound=radius_mm)
+        x = x[np.isfinite(d)]
+        if len(x):
+            view = (np.asarray(T_world_from_ecs[a], float) @ T_em)[:3, 2]
+            overlaps.append((a, b, x, view))
+    out = {}
+    for k, src in enumerate(n for n, scope in SCOPES.items() if scope == "scanner"):
+        if not overlaps:
+            out[src] = 0.0
+            continue
+        rng = np.random.default_rng([seed, k])
+        errs = []
+        for _ in range(trials):
+            T_em2, scale = _scanner_error(src, rng, T_em, stated)
+            moved = {}
+            for a, b, x, view in overlaps:
+                for n in (a, b):
+                    T_we = np.asarray(T_world_from_ecs[n], float)
+                    T = T_we @ T_em
+                    p = (x - T[:3, 3]) @ T[:3, :3]  # the overlap points in the station's MCS
+                    T2 = T_we @ T_em2
+                    moved[n] = (p * scale) @ T2[:3, :3].T + T2[:3, 3] - x
+                errs.append(float(np.abs((moved[a] - moved[b]) @ view).mean()))
+        out[src] = float(np.mean(errs))
+    return out
+
+
+def budget_by_source(stations: dict[str, StationUncertainty],
+                     scanner_overlap_mm: dict[str, float] | None = None
+                     ) -> dict[str, dict[str, Any]]:
     """Each source's share of the true error (mean over stations, mm) and of the overlap
     error: a station or point source differs between the two stations of an overlap (√2 of its
-    share); a job source moves both alike and cancels."""
+    share); a job source moves both alike and cancels; a scanner source's overlap share is
+    ``scanner_overlap_mm`` (:func:`scanner_fixed_overlap`; without it, 0: unknown)."""
     out: dict[str, dict[str, Any]] = {}
     for src, scope in SCOPES.items():
         v = float(np.mean([u.share_mm[src] for u in stations.values()])) if stations else 0.0
-        out[src] = {"scope": scope, "true_mm": round(v, 5),
-                    "overlap_mm": round(0.0 if scope == "job" else float(np.sqrt(2.0)) * v, 5)}
+        if scope == "scanner":
+            ov = (scanner_overlap_mm or {}).get(src, 0.0)
+        else:
+            ov = 0.0 if scope == "job" else float(np.sqrt(2.0)) * v
+        out[src] = {"scope": scope, "true_mm": round(v, 5), "overlap_mm": round(ov, 5)}
     return out
 
 

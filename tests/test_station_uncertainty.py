@@ -13,6 +13,7 @@ from scancell.analysis.station_uncertainty import (
     _draw,
     budget_by_source,
     coverage,
+    scanner_fixed_overlap,
     station_uncertainty,
 )
 from scancell.model.ecs import ecs_for_frame
@@ -65,3 +66,51 @@ def test_the_95_percent_interval_covers_independent_draws():
                                           X0)).mean()) for k in range(60)}
     cov = coverage({k: u.interval_mm for k in truths}, truths)
     assert cov["share"] >= 0.88, cov
+
+
+def _turned(deg: float, about: np.ndarray) -> np.ndarray:
+    k = about / np.linalg.norm(about)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = np.radians(deg)
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    return T
+
+
+@pytest.mark.unit
+def test_a_scanner_fixed_error_shows_between_stations_that_look_differently():
+    """The hand-eye and the scanner's scale are the same for every station but turn with it:
+    two stations that look at a patch from different directions disagree by them."""
+    rng = np.random.default_rng(1)
+    patch = np.column_stack([rng.uniform(-50, 50, (2000, 2)), np.zeros(2000)])  # world, z = 0
+    T_em = np.eye(4)
+    T_em[:3, 3] = [0.0, 0.0, 100.0]
+    # station A looks straight down at the patch from 600 mm; B from 45 deg about world x
+    down = np.diag([1.0, -1.0, -1.0, 1.0])
+    T_a = down.copy()
+    T_a[:3, 3] = [0.0, 0.0, 700.0]
+    T_b = _turned(45.0, np.array([1.0, 0, 0])) @ T_a
+    clouds = {"a": patch, "b": patch + 0.0}
+    he = StatedSources(hand_eye_translation_mm=0.1)  # translation only: a closed form
+    out = scanner_fixed_overlap(clouds, {"a": T_a, "b": T_b}, T_em, [("a", "b")], he,
+                                trials=400)
+    # D_k = R_k δ with δ ~ N(0, σ²/3 I): along A's view the difference is N(0, σ²/3 |w|²),
+    # w = (R_a - R_b)ᵀ v_a; the mean of its absolute value is √(2/π) σ/√3 |w|
+    w = (T_a[:3, :3] - T_b[:3, :3]).T @ T_a[:3, 2]
+    expected = np.sqrt(2 / np.pi) * 0.1 / np.sqrt(3) * np.linalg.norm(w)
+    assert out["hand_eye"] == pytest.approx(expected, rel=0.1)
+    assert out["scanner_scale"] == pytest.approx(0.0, abs=1e-9)  # none stated
+    # the same station twice: nothing to disagree about
+    same = scanner_fixed_overlap(clouds, {"a": T_a, "b": T_a}, T_em, [("a", "b")], STATED)
+    assert same == pytest.approx({"hand_eye": 0.0, "scanner_scale": 0.0}, abs=1e-9)
+    scaled = scanner_fixed_overlap(clouds, {"a": T_a, "b": T_b}, T_em, [("a", "b")], STATED)
+    assert scaled["scanner_scale"] > 0 and scaled["hand_eye"] > 0
+    # and the budget carries them into the overlap column; job-wide ones still cancel
+    pts, sig, j6, T_em1, cloud = station()
+    u = station_uncertainty(pts, sig, j6, j6, T_em1, cloud, 0.02, STATED, trials=20)
+    b = budget_by_source({"a": u}, scaled)
+    assert b["hand_eye"]["scope"] == "scanner"
+    assert b["hand_eye"]["overlap_mm"] == round(scaled["hand_eye"], 5)
+    assert b["refraction"]["overlap_mm"] == 0.0
+    assert scanner_fixed_overlap(clouds, {"a": T_a, "b": T_b}, T_em, [], STATED) == {
+        "hand_eye": 0.0, "scanner_scale": 0.0}

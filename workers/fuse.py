@@ -38,6 +38,7 @@ from scancell.analysis.station_uncertainty import (
     StationUncertainty,
     budget_by_source,
     coverage,
+    scanner_fixed_overlap,
     station_uncertainty,
 )
 from scancell.bus.protocol import BusLike
@@ -334,10 +335,17 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                 {n: u.interval_mm for n, u in uncertainty.items()}, true)["share"]}
         else:
             body["uncertainty"] = {"stations": per}
+    scanner_overlap = None
+    if uncertainty and metrics is not None and hand_eye.get("T_ecs_from_mcs") is not None:
+        scanner_overlap = scanner_fixed_overlap(
+            fused.per_station, {st.name: st.T_world_from_ecs for st in stations},
+            np.asarray(hand_eye["T_ecs_from_mcs"]), [(p.a, p.b) for p in metrics.pairs],
+            next(iter(uncertainty.values())).stated)
     body["error_budget"] = budget(
         {st.name: st.ecs_noise_mm for st in stations if st.ecs_noise_mm is not None},
         body.get("translation_mm", {}).get("mean"), body.get("true_error_mm", {}).get("mean"),
-        hand_eye.get("rms_mm"), budget_by_source(uncertainty) if uncertainty else None)
+        hand_eye.get("rms_mm"),
+        budget_by_source(uncertainty, scanner_overlap) if uncertainty else None)
     if settings.out_dir is not None:
         body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
                                       settings.mesh)
