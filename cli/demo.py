@@ -154,6 +154,7 @@ def main(args: argparse.Namespace) -> int:
     t_start = time.monotonic()
     summary: dict[str, Any] = {}
     ok = False
+    client: CellClient | None = None
     try:
         stage(f"daemon on {config} (cameras 1/{scale}), recorder -> {run_dir}/recordings")
         procs.start("daemon", ["daemon", "--config", str(config), "--listen", endpoint,
@@ -284,7 +285,14 @@ def main(args: argparse.Namespace) -> int:
         ok = True
     except (CommandError, TimeoutError, ConnectionError, RuntimeError) as exc:
         print(f"\nscancell demo: FAILED: {exc}", file=sys.stderr)
+    except Exception:  # a bug, not a cell fault: the processes still stop, the run still ends
+        import traceback
+
+        print(f"\nscancell demo: FAILED (an internal error):\n{traceback.format_exc()}",
+              file=sys.stderr)
     finally:
+        if client is not None:
+            client.close()
         codes = procs.stop()
         print(f"\nprocesses stopped: {codes}")
     if ok:
@@ -364,10 +372,9 @@ def inspection_summary(r: dict[str, Any], waited_s: float) -> dict[str, Any]:
 
 def sim_optics(simulator: dict[str, Any]):
     """The optics profile the simulated cell runs."""
-    from scancell.sim.optics_profile import DEFAULT_PROFILE, optics_profile
+    from scancell.sim.host import sim_profiles
 
-    return optics_profile(simulator.get("profile", DEFAULT_PROFILE),
-                          simulator.get("effects_off", []))
+    return sim_profiles(simulator)[0]
 
 
 def scanner_summary(results: list[dict[str, Any]]) -> dict[str, Any]:

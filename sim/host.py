@@ -28,8 +28,14 @@ from scancell.sim.artefact_placer import SimArtefactPlacer
 from scancell.sim.ball_placer import SimBallPlacer
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.mechanics import EFFECTS as MECH_EFFECTS
-from scancell.sim.mechanics import mechanics_profile
-from scancell.sim.optics_profile import DEFAULT_PROFILE, EFFECTS, PROFILES, optics_profile
+from scancell.sim.mechanics import MechanicsProfile, mechanics_profile
+from scancell.sim.optics_profile import (
+    DEFAULT_PROFILE,
+    EFFECTS,
+    PROFILES,
+    OpticsProfile,
+    optics_profile,
+)
 from scancell.sim.parts import PARTS
 from scancell.sim.world import SimWorld, register, unregister
 
@@ -83,16 +89,22 @@ _SERVER_PORTS = {"robot": ("motion_port", "state_port"), "tracker": ("port",), "
                  "projector": ("port",)}
 
 
+def sim_profiles(options: dict[str, Any]) -> tuple[OpticsProfile, MechanicsProfile]:
+    """The optics and the mechanics a ``[simulator]`` table's ``profile`` and ``effects_off``
+    select (``effects_off`` names effects of either)."""
+    profile = str(options.get("profile", DEFAULT_PROFILE))
+    off = list(options.get("effects_off", []))
+    return (optics_profile(profile, [e for e in off if e in EFFECTS or e not in MECH_EFFECTS]),
+            mechanics_profile(profile, [e for e in off if e in MECH_EFFECTS]))
+
+
 def sim_cell(options: dict[str, Any]) -> SimCell:
     """The simulated cell a ``[simulator]`` table describes (its geometry is the ground truth a
     worker compares against)."""
-    profile = str(options.get("profile", DEFAULT_PROFILE))
-    off = list(options.get("effects_off", []))
+    optics, mechanics = sim_profiles(options)
     return SimCell(SimCellConfig(
         seed=int(options.get("seed", 0)), camera_scale=float(options.get("camera_scale", 1.0)),
-        part=options.get("part", "car_rear") or None,
-        optics=optics_profile(profile, [e for e in off if e in EFFECTS]),
-        mechanics=mechanics_profile(profile, [e for e in off if e in MECH_EFFECTS])))
+        part=options.get("part", "car_rear") or None, optics=optics, mechanics=mechanics))
 
 
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:

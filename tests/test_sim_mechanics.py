@@ -302,3 +302,19 @@ def test_a_knocked_nest_stops_the_job_keeping_its_stations_and_bad_weather_is_na
     assert final["state"] == "failed" and "weather" in final["error"]
     assert "air temperature" in final["error"] and "[-10, 50]" in final["error"], final["error"]
     assert final["result"]["stations_done"] == []
+
+
+@pytest.mark.unit
+def test_effects_off_names_optics_and_mechanics_effects_alike():
+    """`[simulator] effects_off` lists effects of either model (the ablation switches the
+    mechanics off this way); each goes to its own profile, an unknown one is named."""
+    from scancell.cli.demo import sim_optics
+    from scancell.sim.host import sim_profiles
+    from scancell.sim.profiles import ProfileError
+
+    optics, mechanics = sim_profiles({"effects_off": ["compliance", "ambient"]})
+    assert mechanics == mech.mechanics_profile("realistic", ["compliance"])
+    assert optics == optics_profile("realistic", ["ambient"])
+    assert sim_optics({"effects_off": list(mech.EFFECTS)}) == optics_profile("realistic")
+    with pytest.raises(ProfileError, match="glare"):
+        sim_profiles({"effects_off": ["glare"]})
