@@ -78,9 +78,12 @@ def run_row(row: Row, folder: Path) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     config = cell_config(row, folder)
     t0 = time.monotonic()
-    out = subprocess.run([sys.executable, "-m", "scancell", "demo", "--quick", "--no-acceptance",
-                          "--config", str(config)], cwd=folder, capture_output=True, text=True,
-                         timeout=1800, env=dict(os.environ))
+    try:
+        out = subprocess.run([sys.executable, "-m", "scancell", "demo", "--quick",
+                              "--no-acceptance", "--config", str(config)], cwd=folder,
+                             capture_output=True, text=True, timeout=900, env=dict(os.environ))
+    except subprocess.TimeoutExpired as exc:
+        return {"error": f"no end after {exc.timeout:.0f} s", "seconds": exc.timeout}
     seconds = time.monotonic() - t0
     if out.returncode != 0:
         return {"error": (out.stdout + out.stderr)[-600:], "seconds": seconds}
