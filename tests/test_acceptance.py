@@ -115,7 +115,7 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
     world = sim_world(make_daemon, client, tmp_path)
     scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
     worker = AcceptanceWorker(client.bus, tmp_path / "acc")
-    rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=1.0))
+    rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=8.0))
     reports: list = []
     client.bus.subscribe(client.bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
     for w in (scan_worker, worker, rec):
@@ -129,8 +129,12 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
         # the part is back in the cell and the artefacts gone
         names = {o.name for o in world.cell.scene.objects}
         assert "car_rear" in names and not names & set(parts.ARTEFACTS)
-        wait_until(lambda: rec.session is None or rec.session.job_id != final["job_id"], 30,
-                   what="recording closed")
+        # the job's file opened and closed again (the linger covers the last clouds, which a
+        # loaded machine decodes seconds after the job's end)
+        job = final["job_id"]
+        wait_until(lambda: any(p.name.startswith(job) for p in rec.files)
+                   and all(s is None or s.job_id != job for s in (rec.session, *rec.lingering)),
+                   60, what="the job's recording closed")
     finally:
         for w in (rec, worker, scan_worker):
             w.stop()
