@@ -1,7 +1,8 @@
 """The recorder: every sample on ``scancell/<cell>/**`` into one MCAP file per session.
 
 A session is a job (``<job_id>.mcap``, from its ``running`` event until ``job_linger_s`` after
-its end, so the workers' outputs of the last station still land in it), or, between jobs, an
+its end, or after the last sample naming the job if that came later, so the workers' outputs of
+the last stations still land in it however far a loaded worker lags), or, between jobs, an
 ``idle-<time>.mcap`` file split every ``split_s`` seconds or ``split_bytes`` bytes.
 
 The linger holds across jobs: when the next job starts while the last one's file lingers, both
@@ -96,7 +97,7 @@ class _Session:
     file: SessionFile
     job_id: str | None
     opened: float
-    ended: float | None = None  # monotonic time the job ended
+    ended: float | None = None  # monotonic time the job ended, or of its last sample after that
 
 
 class Recorder:
@@ -235,6 +236,8 @@ class Recorder:
                       if s is not None and job is not None and s.job_id == job), None)
         if owner is not None:
             self._write(recv_ns, sample, owner)
+            if owner.ended is not None:  # a worker's late output: the linger starts again
+                owner.ended = time.monotonic()
         else:
             for s in (*self.lingering, self.session):
                 self._write(recv_ns, sample, s)

@@ -83,6 +83,33 @@ def test_a_jobs_linger_holds_when_the_next_job_starts(bus_pair, tmp_path):
 
 
 @pytest.mark.process
+def test_a_lagging_workers_outputs_keep_the_jobs_file_open(bus_pair, tmp_path):
+    """A loaded worker publishes a job's results one by one, each less than the linger after
+    the last, the last one long after the linger counted from the job's end: all land in the
+    job's file, none in the idle file that follows."""
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=0.8,
+                                       status_period_s=0.2))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _event(b, "job-1", "running")
+        _event(b, "job-1", "done")
+        for k in range(4):  # the last one 2 s after the end, 2.5 lingers
+            time.sleep(0.5)
+            b.publish_json(b.keys.fusion_report, {"job_id": "job-1", "stations": k},
+                           "scancell.FusionReport")
+        wait_until(lambda: all(s is None or s.job_id != "job-1"
+                               for s in (rec.session, *rec.lingering)), 10,
+                   what="the job's file closed")
+    finally:
+        rec.stop()
+    reports = [json.loads(s.payload)["stations"] for s in samples(tmp_path / "job-1.mcap")
+               if s.key.endswith("/fusion/report")]
+    assert reports == [0, 1, 2, 3]
+
+
+@pytest.mark.process
 def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     a, b = bus_pair
     stereo = b.latched(b.keys.stereo)  # a worker's calibration, published before the recorder
