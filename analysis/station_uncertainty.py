@@ -17,7 +17,8 @@ tracker_location    job      the nests' location of the tracker (fit RMS, or dri
 settling            station  the arm's residual motion between P1 and the scan
 hand_eye            scanner  the calibration's rotation and translation sigma
 scanner_scale       scanner  the scanner's scale stability (warm-up), ppm
-scanner_noise       point    each point's depth noise (the scanner's noise model)
+scanner_noise       point    each point's depth noise (the scanner's noise model), scaled in
+                             each draw by the model's own stated accuracy (a relative 1-sigma)
 ==================  =======  ==============================================================
 
 ``job`` sources are common to the stations between two re-locations or calibrations and fixed
@@ -53,6 +54,9 @@ class StatedSources:
     scanner_scale_ppm: float = 0.0
     hand_eye_translation_mm: float = 0.0
     hand_eye_rotation_arcsec: float = 0.0
+    #: relative 1-sigma of the scanner's noise model itself (0.15: it predicts 15 % too much or
+    #: too little noise), one factor per draw common to the station's points
+    scanner_noise_rel: float = 0.0
     #: the tracker's frame origin in world (refraction scales ranges about it)
     tracker_origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -66,6 +70,7 @@ class StatedSources:
                    scanner_scale_ppm=float(d.get("scanner_scale_ppm", 0.0)),
                    hand_eye_translation_mm=float(hand_eye.get("translation_sigma_mm") or 0.0),
                    hand_eye_rotation_arcsec=float(hand_eye.get("rotation_sigma_arcsec") or 0.0),
+                   scanner_noise_rel=float(d.get("scanner_noise_rel", 0.0)),
                    tracker_origin_mm=tuple(d.get("tracker_origin_mm", (0.0, 0.0, 0.0))))
 
 
@@ -134,7 +139,8 @@ def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.
         X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
     d = (X - X0) @ view
     if "scanner_noise" in sources:
-        d = d + rng.standard_normal(len(d)) * noise
+        k = max(0.0, 1.0 + rng.normal(0.0, s.scanner_noise_rel))
+        d = d + rng.standard_normal(len(d)) * noise * k
     return d
 
 

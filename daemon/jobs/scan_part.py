@@ -189,7 +189,7 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
                         else m.unchecked_location_mm),
         "settle_mm": (m.settle_tolerance_mm if how.metrology is not None and m.settle
                       else 0.1),
-        "scanner_scale_ppm": m.scanner_scale_ppm}
+        "scanner_scale_ppm": m.scanner_scale_ppm, "scanner_noise_rel": m.scanner_noise_rel}
     if how.drift is not None:
         record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]
         record["T_world_from_tracker"] = how.drift.T_world_from_tracker.tolist()
