@@ -125,7 +125,7 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
         final = client.run_job("calibrate_projector", {}, timeout_s=120)
         assert final["state"] == "done", final
         fit = final["result"]
-        assert fit["gamma"] == pytest.approx(2.2, abs=0.15)
+        assert fit["gamma"] == pytest.approx(2.2, abs=0.15) and fit["in_force"] is True
         stored = tmp_path / "projector_response.json"
         assert fit["file"] == str(stored) and stored.is_file()
         good = stored.read_text()

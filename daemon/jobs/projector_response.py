@@ -74,8 +74,11 @@ class ResponseState:
                  body.get("job_id") or "file", body.get("gamma"))
 
 
-async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupervisor]
+async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
+                              state: ResponseState | None = None, in_force_wait_s: float = 5.0
                               ) -> dict[str, Any]:
+    """Project the levels, wait for the scan worker's fit and, with ``state``, until the new
+    response is the one the next scan pre-compensates with (it comes on its own key)."""
     req = ctx.request
     verb = "calibrate_projector"
     try:  # a bad request fails before anything is projected
@@ -131,4 +134,13 @@ async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupe
     if not body.get("ok"):
         raise CommandError("calibration_failed", f"{verb}: {body.get('error')} (the previous "
                                                  f"response, if any, is kept)")
-    return {k: body.get(k) for k in ("gamma", "fit_rms", "levels", "response", "pixels", "file")}
+    out = {k: body.get(k) for k in ("gamma", "fit_rms", "levels", "response", "pixels", "file")}
+    if state is not None:
+        deadline = time.monotonic() + in_force_wait_s
+        while state.info.get("job_id") != ctx.job_id and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        out["in_force"] = state.info.get("job_id") == ctx.job_id
+        if not out["in_force"]:
+            log.warning("%s: the fitted response did not arrive on calib/projector_response "
+                        "within %g s; scans go on with the previous one", verb, in_force_wait_s)
+    return out
