@@ -45,9 +45,32 @@ class _Latched:
         pass
 
 
+class _Member:
+    def __init__(self, bus: LocalBus, key: str) -> None:
+        self.bus, self.key = bus, key
+
+    def undeclare(self) -> None:
+        self.bus._member_change(self.key, False)
+
+
+class _MemberWatch:
+    def __init__(self, bus: LocalBus, key_expr: str, on_change: Callable[[str, bool], None]
+                 ) -> None:
+        self.bus = bus
+        self.key_expr = zenoh.KeyExpr(key_expr)
+        self.on_change = on_change
+
+    def undeclare(self) -> None:
+        with self.bus._lock:
+            if self in self.bus._watches:
+                self.bus._watches.remove(self)
+
+
 class LocalBus:
     def __init__(self, cell: str) -> None:
         self.keys = CellKeys(cell)
+        self._members: set[str] = set()
+        self._watches: list[_MemberWatch] = []
         self._subs: list[_Subscription] = []
         self._lock = threading.Lock()
         self._seq: dict[str, int] = {}
@@ -91,6 +114,30 @@ class LocalBus:
         with self._lock:
             return [s for k, s in self._last.items() if ke.intersects(zenoh.KeyExpr(k))]
 
+    def declare_member(self, key: str) -> _Member:
+        self._member_change(key, True)
+        return _Member(self, key)
+
+    def watch_members(self, key_expr: str, on_change: Callable[[str, bool], None]
+                      ) -> _MemberWatch:
+        w = _MemberWatch(self, key_expr, on_change)
+        with self._lock:
+            self._watches.append(w)
+            present = [k for k in self._members if w.key_expr.intersects(zenoh.KeyExpr(k))]
+        for k in present:
+            on_change(k, True)
+        return w
+
+    def _member_change(self, key: str, present: bool) -> None:
+        with self._lock:
+            if (key in self._members) == present:
+                return
+            (self._members.add if present else self._members.discard)(key)
+            watches = [w for w in self._watches if w.key_expr.intersects(zenoh.KeyExpr(key))]
+        for w in watches:
+            w.on_change(key, present)
+
     def close(self) -> None:
         with self._lock:
             self._subs.clear()
+            self._watches.clear()

@@ -63,4 +63,14 @@ class BusLike(Protocol):
 
     def fetch_latched(self, key_expr: str, timeout_s: float = ...) -> list[BusSample]: ...
 
+    def declare_member(self, key: str) -> Subscription:
+        """A liveliness token on ``key``: present until undeclared or the process is gone."""
+        ...
+
+    def watch_members(self, key_expr: str, on_change: Callable[[str, bool], None]
+                      ) -> Subscription:
+        """``on_change(key, present)`` for every token on ``key_expr``: those present now,
+        then each one declared (True) or gone (False)."""
+        ...
+
     def close(self) -> None: ...

@@ -322,6 +322,23 @@ class Bus:
     def liveliness_token(self, key: str) -> zenoh.LivelinessToken:
         return self.session.liveliness().declare_token(key)
 
+    def declare_member(self, key: str) -> zenoh.LivelinessToken:
+        return self.session.liveliness().declare_token(key)
+
+    def watch_members(self, key_expr: str, on_change: Callable[[str, bool], None]
+                      ) -> zenoh.Subscriber:
+        def handler(s: zenoh.Sample) -> None:
+            try:
+                on_change(str(s.key_expr), s.kind == zenoh.SampleKind.PUT)
+            except Exception:  # a callback's bug must not kill zenoh's thread
+                log.exception("liveliness callback on %s", s.key_expr)
+
+        sub = self.session.liveliness().declare_subscriber(key_expr, handler)
+        for r in self.session.liveliness().get(key_expr, timeout=1.0):  # those present now
+            if r.ok is not None:
+                on_change(str(r.ok.key_expr), True)
+        return sub
+
     def alive(self, timeout_s: float = 1.0) -> list[str]:
         """Names of the devices holding a liveliness token right now."""
         prefix = self.keys.alive("")

@@ -53,6 +53,10 @@ class CellKeys:
     def alive(self, device: str) -> str:
         return f"{self.prefix}/alive/{device}"
 
+    def worker(self, kind: str, worker_id: str) -> str:
+        """A live worker's liveliness token: ``workers/<kind>/<worker_id>`` (``*``: all)."""
+        return f"{self.prefix}/workers/{kind}/{worker_id}"
+
     def cmd(self, verb: str) -> str:
         return f"{self.prefix}/cmd/{verb}"
 

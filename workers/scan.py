@@ -5,6 +5,13 @@ publishes them). Output per scan: ``scan/<station>/cloud`` (foxglove.PointCloud,
 ``mcs_<station>``: the scanner frame at that station,
 mm, fields x, y, z, quality, intensity) and ``scan/<station>/result`` (``scancell.ScanResult``).
 The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
+
+Any number of scan workers share the work (``workers/work_share.py``): every worker assembles
+every scan, the scan's owner among the live workers decodes it, the others hold it until its
+result is on the bus. When the owner is gone first, the next owner decodes it from what it
+holds (publishing the cloud only if the gone worker had not) and names the gone worker in the
+result (``taken_over_from``). Each scan is decoded once, and a taken-over scan gives the same
+cloud, byte for byte.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.workers.base import ThreadedWorker
+from scancell.workers.work_share import WorkShare
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +61,10 @@ class PendingScan:
     exposure_us: dict[int, float | None] = field(default_factory=dict)
     precompensated: bool = False
     levels: list[int] | None = None
+    #: another worker's cloud of this scan is on the bus already (its result is not)
+    cloud_seen: bool = False
+    #: the gone worker whose scan this worker took over
+    taken_over_from: str | None = None
 
     def expected(self) -> set[tuple[int, int]]:
         return {(e, k) for e in range(self.exposures) for k in range(self.patterns)}
@@ -126,9 +138,11 @@ def lit_share(pm: Any) -> float:
     return float(np.mean(pm.modulation >= LIT_MODULATION_DN))
 
 
-def result_message(scan: PendingScan, result: ScanResult | None, error: str | None) -> dict[str, Any]:
+def result_message(scan: PendingScan, result: ScanResult | None, error: str | None,
+                   worker: str | None = None) -> dict[str, Any]:
     body: dict[str, Any] = {"scan_id": scan.scan_id, "station": scan.station, "ok": error is None,
-                            "error": error}
+                            "error": error, "worker": worker,
+                            "taken_over_from": scan.taken_over_from}
     if result is not None:
         lit = {side: lit_share(pm) for side, pm in (("left", result.left), ("right", result.right))}
         body.update(points=len(result.cloud),
@@ -150,8 +164,16 @@ class ScanWorker(ThreadedWorker[PendingScan]):
     thread_name = "scan-worker"
 
     def __init__(self, bus: BusLike, calib: StereoCalibration,
-                 projector_width: int = PROJECTOR_WIDTH, response_path: Path | None = None) -> None:
+                 projector_width: int = PROJECTOR_WIDTH, response_path: Path | None = None,
+                 worker_id: str | None = None) -> None:
         super().__init__(bus)
+        self.share = WorkShare(bus, "scan", worker_id)
+        #: complete scans another live worker owns, by scan id, until their result is seen
+        self.standby: dict[str, PendingScan] = {}
+        #: scan ids whose result is on the bus (the last few thousand)
+        self._finished: dict[str, None] = {}
+        #: scan ids this worker decoded, in order
+        self.decoded: list[str] = []
         self.calib = calib
         #: where the projector response is kept: next to the stereo calibration
         self.response_path = response_path
@@ -164,6 +186,12 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self.done = 0
 
     def on_start(self) -> None:
+        self.share.on_departure = self._on_departure
+        self.share.start()
+        k = self.bus.keys
+        self.subscribe(k.scan_result("*"), self._on_result_seen)
+        self.subscribe(k.scan_cloud("*"), self._on_cloud_seen)
+        self.subscribe(k.projector_response_result, self._on_result_seen)
         self._calib_pub = self.bus.latched(self.bus.keys.stereo)
         self._calib_pub.publish(messages.encode_json(
             {**self.calib.to_json(), "projector_width": self.projector_width},
@@ -177,6 +205,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 log.error("%s; fringes will not be pre-compensated", exc)
 
     def on_stop(self) -> None:
+        self.share.stop()
         for pub in (self._calib_pub, self._response_pub):
             if pub is not None:
                 pub.close()
@@ -228,11 +257,58 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             log.warning("%s: dropped frame: %s", sample.key, exc)
             return
         for scan in expired:
-            log.error("scan %s (station %s) incomplete after %.0f s, dropped: %s", scan.scan_id,
-                      scan.station, self.assembler.max_age_s, scan.missing())
-            self._publish_result(scan, None, f"incomplete: {scan.missing()}")
+            if self.share.mine(scan.scan_id):
+                log.error("scan %s (station %s) incomplete after %.0f s, dropped: %s",
+                          scan.scan_id, scan.station, self.assembler.max_age_s, scan.missing())
+                self._publish_result(scan, None, f"incomplete: {scan.missing()}")
         if complete is not None:
-            self.submit(complete)
+            self._dispatch(complete)
+
+    # ---------------------------------------------------------------- sharing the work
+    @staticmethod
+    def _finish_key(scan: PendingScan) -> str:
+        """What the scan's result names: its scan id, or a response calibration's job."""
+        return f"job:{scan.job_id}" if scan.levels is not None else scan.scan_id
+
+    def _dispatch(self, scan: PendingScan) -> None:
+        with self._lock:
+            if self._finish_key(scan) in self._finished:
+                return  # its owner was faster than this worker's assembly
+            if not self.share.mine(scan.scan_id):
+                self.standby[scan.scan_id] = scan
+                return
+        self.submit(scan)
+
+    def _on_result_seen(self, sample: Any) -> None:
+        try:
+            body = sample.decode()
+            key = str(body["scan_id"]) if "scan_id" in body else f"job:{body['job_id']}"
+        except (EncodingError, KeyError, TypeError, ValueError):
+            return
+        with self._lock:
+            self._finished[key] = None
+            while len(self._finished) > 4096:
+                del self._finished[next(iter(self._finished))]
+            for sid in [sid for sid, sc in self.standby.items() if self._finish_key(sc) == key]:
+                del self.standby[sid]
+
+    def _on_cloud_seen(self, sample: Any) -> None:
+        sid = sample.attachment.meta.get("scan_id")
+        with self._lock:
+            if sid in self.standby:
+                self.standby[sid].cloud_seen = True
+
+    def _on_departure(self, worker: str) -> None:
+        with self._lock:
+            mine = [sid for sid in self.standby if self.share.mine(sid)]
+            taken = [self.standby.pop(sid) for sid in mine]
+        for scan in taken:
+            scan.taken_over_from = worker
+            log.warning("scan worker %s: taking over scan %s (station %s) from %s, which is gone"
+                        "%s", self.share.worker_id, scan.scan_id, scan.station, worker,
+                        " (its cloud is on the bus; publishing the result)" if scan.cloud_seen
+                        else "")
+            self.submit(scan)
 
     def decoder(self, seq: FringeSequence) -> ScanDecoder:
         if seq not in self._decoders:
@@ -263,8 +339,9 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             if pm.response and not pm.response["linear"]:
                 log.warning("scan %s station %s: %s", scan.scan_id, scan.station,
                             response_warning(side, pm.response))
-        self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
-                         Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
+        if not scan.cloud_seen:
+            self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
+                             Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
         self._publish_result(scan, result, None)
         log.info("scan %s station %s: %d points in %.2f s", scan.scan_id, scan.station, len(c),
                  result.timings["total"])
@@ -277,9 +354,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                                   "scancell.ProjectorResponseResult")
             return
         self.bus.publish_json(self.bus.keys.scan_result(scan.station),
-                              result_message(scan, result, error), "scancell.ScanResult")
+                              result_message(scan, result, error, self.share.worker_id),
+                              "scancell.ScanResult")
 
     def handle(self, scan: PendingScan) -> None:
+        self.decoded.append(scan.scan_id)
         try:
             if scan.levels is not None:
                 self.calibrate_response(scan)

@@ -1,0 +1,176 @@
+"""Scan workers share the work over zenoh liveliness (workers/work_share.py): each scan decoded
+once, a gone worker's scans taken over, the same cloud bytes whoever decodes."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.bus.local import LocalBus
+from scancell.bus.zenoh_bus import Bus, BusConfig
+from scancell.model.patterns import FringeSequence
+from scancell.protocols import foxglove_schemas as fg
+from scancell.protocols import messages
+from scancell.protocols.encoding import Attachment
+from scancell.workers.scan import ScanWorker
+from scancell.workers.work_share import WorkShare, owner_of
+
+from .conftest import wait_until
+
+
+@pytest.mark.unit
+def test_owners_spread_and_a_gone_worker_moves_only_its_own_items():
+    items = [f"job-s{k:03d}" for k in range(900)]
+    three = ["a", "b", "c"]
+    owners = {i: owner_of(i, three) for i in items}
+    shares = [sum(o == w for o in owners.values()) / len(items) for w in three]
+    assert all(0.25 < s < 0.42 for s in shares), shares
+    two = {i: owner_of(i, ["a", "c"]) for i in items}
+    assert all(two[i] == owners[i] for i in items if owners[i] != "b")
+    assert owner_of("x", []) is None
+
+
+@pytest.mark.unit
+def test_a_departure_is_told_to_the_others_on_the_local_bus():
+    bus = LocalBus("c")
+    a, b = WorkShare(bus, "scan", "wa"), WorkShare(bus, "scan", "wb")
+    gone: list[str] = []
+    b.on_departure = gone.append
+    a.start()
+    b.start()
+    assert a.members == b.members == ["wa", "wb"]
+    item = next(f"i{k}" for k in range(100) if owner_of(f"i{k}", ["wa", "wb"]) == "wa")
+    assert a.mine(item) and not b.mine(item)
+    a.stop()
+    assert gone == ["wa"] and b.mine(item) and b.members == ["wb"]
+    b.stop()
+
+
+# ---------------------------------------------------------------- two workers on zenoh
+
+@pytest.fixture(scope="module")
+def scan_frames(tmp_path_factory) -> tuple[Path, dict[str, list[np.ndarray]]]:
+    """One small scan of a plate rendered by the simulated cell, and its true calibration."""
+    from scancell.sim.cell import SimCell, SimCellConfig
+
+    cell = SimCell(SimCellConfig(camera_scale=8.0, part="flat", seed=3))
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(
+        cell.cfg.T_world_from_part[:3, 3], 600.0)))
+    cell.load_sequence(FringeSequence())
+    frames = {c: [cell.render(c, k) for k in range(len(FringeSequence()))]
+              for c in ("left", "right")}
+    path = tmp_path_factory.mktemp("calib") / "stereo.yaml"
+    cell.rig.write_opencv_yaml(path)
+    return path, frames
+
+
+def publish_scan(bus: Bus, scan_id: str, frames: dict[str, list[np.ndarray]]) -> None:
+    seq = FringeSequence()
+    for role, cam in (("left", "cam_left"), ("right", "cam_right")):
+        for k, img in enumerate(frames[role]):
+            stamp = messages.now_ns()
+            meta = {"scan_id": scan_id, "station": scan_id.rsplit("-", 1)[-1], "role": role,
+                    "job_id": "job", "job_kind": "scan_part", "pattern": k,
+                    "patterns": len(seq), "steps": seq.steps, "periods": list(seq.periods)}
+            bus.publish(bus.keys.dev(cam, "image"), fg.encode_proto(fg.raw_image(img, stamp, cam)),
+                        Attachment(stamp, k, None, meta))
+
+
+class Cluster:
+    """A listening peer (the daemon's role); the workers' ``wa``, ``wb`` and the test's
+    ``obs`` as its clients."""
+
+    def __init__(self, cell: str, endpoint: str, calib: Path) -> None:
+        self.router = Bus.open(BusConfig(listen=(endpoint,)), cell)
+        self.sessions = {n: Bus.open(BusConfig.for_client(endpoint), cell)
+                         for n in ("wa", "wb", "obs")}
+        stereo = StereoCalibration.read(calib)
+        self.workers = {n: ScanWorker(self.sessions[n], stereo, worker_id=n) for n in ("wa", "wb")}
+        obs = self.sessions["obs"]
+        self.clouds: list[tuple[str, bytes]] = []
+        self.results: list[dict] = []
+        obs.subscribe(obs.keys.scan_cloud("*"), lambda s: self.clouds.append(
+            (s.attachment.meta["scan_id"], fg.cloud_points(s.decode()).tobytes())))
+        obs.subscribe(obs.keys.scan_result("*"), lambda s: self.results.append(s.decode()))
+        for w in self.workers.values():
+            w.start()
+        wait_until(lambda: all(w.share.members == ["wa", "wb"] for w in self.workers.values()),
+                   5, what="both workers see each other")
+
+    def close(self) -> None:
+        for w in self.workers.values():
+            try:
+                w.stop()
+            except Exception:  # its session is closed already
+                pass
+        for s in (*self.sessions.values(), self.router):
+            s.close()
+
+
+@pytest.fixture
+def cluster(cell, endpoint, scan_frames):
+    c = Cluster(cell, endpoint, scan_frames[0])
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def ids_owned(n_each: int) -> list[str]:
+    """Scan ids, ``n_each`` owned by each worker."""
+    out: dict[str, list[str]] = {"wa": [], "wb": []}
+    for k in range(200):
+        sid = f"job-s{k:02d}"
+        o = owner_of(sid, ["wa", "wb"])
+        if len(out[o]) < n_each:
+            out[o].append(sid)
+    return out["wa"] + out["wb"]
+
+
+@pytest.mark.process
+def test_two_workers_decode_each_scan_once_and_alike(cluster, scan_frames):
+    ids = ids_owned(2)
+    for sid in ids:
+        publish_scan(cluster.sessions["obs"], sid, scan_frames[1])
+    wait_until(lambda: len(cluster.results) >= len(ids), 60, what="every scan's result")
+    time.sleep(0.5)
+    a, b = cluster.workers["wa"].decoded, cluster.workers["wb"].decoded
+    assert sorted(a + b) == sorted(ids) and not set(a) & set(b) and a and b
+    assert sorted(sid for sid, _ in cluster.clouds) == sorted(ids)
+    # the same frames give the same points, byte for byte, whichever worker decoded them
+    assert len({points for _, points in cluster.clouds}) == 1
+    assert {r["worker"] for r in cluster.results} == {"wa", "wb"}
+    assert not any(w.standby for w in cluster.workers.values())
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("dies", ["while decoding", "between cloud and result"])
+def test_a_gone_workers_scans_are_taken_over_once(cluster, scan_frames, dies):
+    wa = cluster.workers["wa"]
+    release = threading.Event()
+    if dies == "while decoding":
+        def process(scan):  # decoding forever: the session ends under it
+            cluster.sessions["wa"].close()
+            release.wait(30)
+        wa.process = process
+    else:
+        def publish_result(scan, result, error):  # the cloud went out, then the end
+            cluster.sessions["wa"].close()
+        wa._publish_result = publish_result
+    ids = ids_owned(1)
+    try:
+        for sid in ids:
+            publish_scan(cluster.sessions["obs"], sid, scan_frames[1])
+        wait_until(lambda: len(cluster.results) >= len(ids), 60, what="every scan's result")
+        time.sleep(0.5)
+    finally:
+        release.set()
+    assert sorted(r["scan_id"] for r in cluster.results) == sorted(ids)
+    assert sorted(sid for sid, _ in cluster.clouds) == sorted(ids)  # no scan twice
+    taken = [r for r in cluster.results if r["taken_over_from"]]
+    assert [(r["worker"], r["taken_over_from"]) for r in taken] == [("wb", "wa")]
+    assert cluster.workers["wb"].share.members == ["wb"]
