@@ -18,6 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", required=True)
     sub.add_parser("status", help="every device and its state")
     sub.add_parser("devices", help="devices, drivers and their operations")
+    sub.add_parser("workers", help="the live workers (liveliness), their load and what they hold")
     sp = sub.add_parser("scan-part", help="run a plan file as a scan_part job and follow it")
     sp.add_argument("--plan", required=True, help="plan TOML/JSON (scancell plan writes one)")
     sp.add_argument("--stations", nargs="+", help="only these stations")
@@ -86,6 +87,34 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
     return 0 if final.get("state") == "done" else 1
 
 
+def live_workers(bus: Any, timeout_s: float = 1.0) -> list[dict[str, Any]]:
+    """Every worker holding a ``workers/<kind>/<id>`` token, with its latched status if any."""
+    prefix = bus.keys.worker("", "")[:-2]
+    statuses = {}
+    for s in bus.fetch_latched(bus.keys.worker_status("*", "*"), timeout_s):
+        body = s.decode()
+        statuses[(body.get("kind"), body.get("worker"))] = body
+    out = []
+    for r in bus.session.liveliness().get(bus.keys.worker("*", "*"), timeout=timeout_s):
+        if r.ok is None:
+            continue
+        kind, worker = str(r.ok.key_expr)[len(prefix) + 1:].split("/", 1)
+        out.append({"kind": kind, "worker": worker, **statuses.get((kind, worker), {})})
+    return sorted(out, key=lambda w: (w["kind"], w["worker"]))
+
+
+def format_workers(workers: list[dict[str, Any]]) -> str:
+    if not workers:
+        return "no live workers"
+    rows = []
+    for w in workers:
+        now = w.get("decoding") or {}
+        rows.append([w["kind"], w["worker"], now.get("scan_id", "-"), str(w.get("queued", "?")),
+                     str(len(w.get("standby", []))), str(w.get("decoded", "?")),
+                     str(w.get("load_1min", "?"))])
+    return table(rows, ["kind", "worker", "decoding", "queued", "held", "decoded", "load"])
+
+
 def main(args: argparse.Namespace) -> int:
     if args.action == "call":
         try:
@@ -107,6 +136,10 @@ def main(args: argparse.Namespace) -> int:
         with CellClient(cell_name(args), bus_config=config, timeout_s=args.timeout) as client:
             if args.action == "scan-part":
                 return _scan_part(client, args)
+            if args.action == "workers":
+                workers = live_workers(client.bus)
+                print(json.dumps(workers, indent=2) if args.json_out else format_workers(workers))
+                return 0
             result = client.call(verb, request)
     except CommandError as exc:
         print(f"error {exc.code}: {exc.message}", file=sys.stderr)

@@ -145,6 +145,13 @@ def test_two_workers_decode_each_scan_once_and_alike(cluster, scan_frames):
     assert len({points for _, points in cluster.clouds}) == 1
     assert {r["worker"] for r in cluster.results} == {"wa", "wb"}
     assert not any(w.standby for w in cluster.workers.values())
+    # what `scancell ctl workers` shows
+    from scancell.cli.ctl import format_workers, live_workers
+
+    workers = live_workers(cluster.sessions["obs"])
+    assert [(w["kind"], w["worker"], w["decoded"], w["decoding"]) for w in workers] == [
+        ("scan", "wa", len(a), None), ("scan", "wb", len(b), None)]
+    assert "wa" in format_workers(workers) and "decoded" in format_workers(workers)
 
 
 @pytest.mark.process

@@ -8,8 +8,9 @@ The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
 
 Any number of scan workers share the work (``workers/work_share.py``): every worker assembles
 every scan, the scan's owner among the live workers decodes it, the others hold it until its
-result is on the bus. When the owner is gone first, the next owner decodes it from what it
-holds (publishing the cloud only if the gone worker had not) and names the gone worker in the
+result is on the bus. When the owner is gone first, the next owner waits ``takeover_grace_s``
+(1 s) for what the gone worker sent last, then decodes the scan from what it holds (publishing
+the cloud only if the gone worker had not) and names the gone worker in the
 result (``taken_over_from``). Each scan is decoded once, and a taken-over scan gives the same
 cloud, byte for byte.
 """
@@ -17,6 +18,7 @@ cloud, byte for byte.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -174,6 +176,10 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self._finished: dict[str, None] = {}
         #: scan ids this worker decoded, in order
         self.decoded: list[str] = []
+        self._decoding: PendingScan | None = None
+        #: how long a gone worker's last messages are awaited before its scans are taken over
+        self.takeover_grace_s = 1.0
+        self._status_pub: Latched | None = None
         self.calib = calib
         #: where the projector response is kept: next to the stereo calibration
         self.response_path = response_path
@@ -188,6 +194,9 @@ class ScanWorker(ThreadedWorker[PendingScan]):
     def on_start(self) -> None:
         self.share.on_departure = self._on_departure
         self.share.start()
+        self._status_pub = self.bus.latched(
+            self.bus.keys.worker_status("scan", self.share.worker_id))
+        self.publish_status()
         k = self.bus.keys
         self.subscribe(k.scan_result("*"), self._on_result_seen)
         self.subscribe(k.scan_cloud("*"), self._on_cloud_seen)
@@ -206,7 +215,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
 
     def on_stop(self) -> None:
         self.share.stop()
-        for pub in (self._calib_pub, self._response_pub):
+        for pub in (self._calib_pub, self._response_pub, self._status_pub):
             if pub is not None:
                 pub.close()
 
@@ -270,14 +279,35 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         """What the scan's result names: its scan id, or a response calibration's job."""
         return f"job:{scan.job_id}" if scan.levels is not None else scan.scan_id
 
+    def publish_status(self) -> None:
+        """``workers/scan/<id>/status`` (latched): what this worker decodes, queues and holds."""
+        if self._status_pub is None:
+            return
+        with self._lock:
+            standby = sorted(self.standby)
+        now = self._decoding
+        body = {"worker": self.share.worker_id, "kind": "scan", "pid": os.getpid(),
+                "decoding": None if now is None else {"scan_id": now.scan_id,
+                                                      "station": now.station,
+                                                      "job_id": now.job_id},
+                "queued": max(self.pending() - (now is not None), 0), "standby": standby,
+                "decoded": len(self.decoded), "members": self.share.members,
+                "load_1min": round(os.getloadavg()[0], 2), "stamp_ns": messages.now_ns()}
+        try:
+            self._status_pub.publish(messages.encode_json(body, "scancell.WorkerStatus"))
+        except Exception as exc:  # a closing session: the status is advisory
+            log.debug("worker status: %s", exc)
+
     def _dispatch(self, scan: PendingScan) -> None:
         with self._lock:
             if self._finish_key(scan) in self._finished:
                 return  # its owner was faster than this worker's assembly
-            if not self.share.mine(scan.scan_id):
+            mine = self.share.mine(scan.scan_id)
+            if not mine:
                 self.standby[scan.scan_id] = scan
-                return
-        self.submit(scan)
+        if mine:
+            self.submit(scan)
+        self.publish_status()
 
     def _on_result_seen(self, sample: Any) -> None:
         try:
@@ -289,8 +319,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             self._finished[key] = None
             while len(self._finished) > 4096:
                 del self._finished[next(iter(self._finished))]
-            for sid in [sid for sid, sc in self.standby.items() if self._finish_key(sc) == key]:
+            held = [sid for sid, sc in self.standby.items() if self._finish_key(sc) == key]
+            for sid in held:
                 del self.standby[sid]
+        if held:
+            self.publish_status()
 
     def _on_cloud_seen(self, sample: Any) -> None:
         sid = sample.attachment.meta.get("scan_id")
@@ -299,6 +332,13 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 self.standby[sid].cloud_seen = True
 
     def _on_departure(self, worker: str) -> None:
+        # zenoh sends a token's end at a higher priority than data: what the gone worker
+        # published just before (a cloud, a result) may still be on its way
+        t = threading.Timer(self.takeover_grace_s, self._take_over, [worker])
+        t.daemon = True
+        t.start()
+
+    def _take_over(self, worker: str) -> None:
         with self._lock:
             mine = [sid for sid in self.standby if self.share.mine(sid)]
             taken = [self.standby.pop(sid) for sid in mine]
@@ -359,6 +399,8 @@ class ScanWorker(ThreadedWorker[PendingScan]):
 
     def handle(self, scan: PendingScan) -> None:
         self.decoded.append(scan.scan_id)
+        self._decoding = scan
+        self.publish_status()
         try:
             if scan.levels is not None:
                 self.calibrate_response(scan)
@@ -366,3 +408,5 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 self.process(scan)
         finally:
             self.done += 1
+            self._decoding = None
+            self.publish_status()
