@@ -1,0 +1,114 @@
+"""Two scan workers and a fuse worker as processes on the simulated cell: one scan worker is
+killed with -9 while it decodes a station; every station is still decoded once, the job ends
+normally, and the fused figures equal a single worker's (the recording decoded again)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+from scancell.protocols import messages
+from scancell.recorder.recorder import Recorder, RecorderSettings
+from scancell.sim.world import get_world
+
+from .conftest import sim_cell_raw, wait_until
+from .test_scan_part import Events, _all_connected, plan_for
+
+pytestmark = pytest.mark.timeout(400)
+
+
+@pytest.mark.e2e
+def test_a_scan_worker_killed_mid_station_loses_nothing(make_daemon, client, cell, endpoint,
+                                                        tmp_path):
+    from scancell.cli.ctl import live_workers
+
+    d = make_daemon(sim_cell_raw(camera_scale=8, hdr=True))
+    wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
+    world = get_world(d.cfg.simulator["world"])
+    world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    he = client.bus.latched(client.bus.keys.hand_eye)
+    he.publish(messages.encode_json({
+        "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((120.0, -120.0)).tolist(),
+        "j6_angles_deg": [120.0, -120.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+
+    def spawn(name: str, *args: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "scancell", "worker", *args], env=env,
+                                stdout=open(logs / f"{name}.log", "w"), stderr=subprocess.STDOUT)
+
+    procs = [spawn(f"scan{k}", "scan", "--calib", str(tmp_path / "stereo.yaml"))
+             for k in range(2)]
+    procs.append(spawn("fuse", "fuse", "--out", str(tmp_path / "fused"), "--no-mesh"))
+    rec = Recorder(client.bus, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=3.0))
+    events = Events(client.bus)
+    results: list[dict] = []
+    clouds: list[str] = []
+    reports: list[dict] = []
+    killed: dict[str, object] = {}
+    lock = threading.Lock()
+    b = client.bus
+    b.subscribe(b.keys.scan_result("*"), lambda s: results.append(s.decode()))
+    b.subscribe(b.keys.scan_cloud("*"), lambda s: clouds.append(s.attachment.meta["scan_id"]))
+    b.subscribe(b.keys.fusion_report, lambda s: reports.append(s.decode()))
+
+    def on_status(s) -> None:  # the first worker seen decoding a station of the job dies
+        body = s.decode()
+        now = body.get("decoding") or {}
+        with lock:
+            if killed or not str(now.get("job_id", "")).startswith("scan_part-"):
+                return
+            os.kill(int(body["pid"]), signal.SIGKILL)
+            killed.update(worker=body["worker"], scan_id=now["scan_id"])
+
+    b.subscribe(b.keys.worker_status("scan", "*"), on_status)
+    try:
+        wait_until(lambda: len([w for w in live_workers(b) if w["kind"] == "scan"]) == 2, 60,
+                   period_s=0.5, what="two scan workers on the bus")
+        rec.start()
+        with world.lock:
+            plan = plan_for(world.cell)
+        job = client.call("job/scan_part", {"plan": plan})["job_id"]
+        wait_until(lambda: reports, 300, period_s=0.5, what="fusion report")
+        final = events.final(job)
+        assert final["state"] == "done", final
+        assert killed, "no scan worker was seen decoding"
+        station_scans = {r["scan_id"] for r in results if r["scan_id"].startswith(job)}
+        # every scan of the job (stations and the scanner check, if any) decoded once
+        assert sorted(r["scan_id"] for r in results if r["scan_id"].startswith(job)) == \
+            sorted(station_scans) and all(r["ok"] for r in results), results
+        assert sorted(clouds) == sorted(station_scans)
+        taken = [r for r in results if r["taken_over_from"]]
+        assert [(r["scan_id"], r["taken_over_from"]) for r in taken] == [
+            (killed["scan_id"], killed["worker"])]
+        assert [w["worker"] for w in live_workers(b) if w["kind"] == "scan"] == [
+            taken[0]["worker"]]
+        report = reports[0]
+        assert report["job_id"] == job and report["stations"] == 3
+        wait_until(lambda: rec.session is None or rec.session.job_id != job, 30,
+                   what="the job's recording closed")
+    finally:
+        rec.stop()
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        he.close()
+    # one worker, the same inputs: the recording decoded again gives the same fused figures
+    out = subprocess.run([sys.executable, "-m", "scancell", "reprocess",
+                          str(tmp_path / "rec" / f"{job}.mcap"), "--out", str(tmp_path / "re"),
+                          "--no-progress"], capture_output=True, text=True, timeout=240)
+    assert out.returncode == 0, out.stderr
+    again = json.loads((tmp_path / "re" / "reprocess.json").read_text())["fusion"][0]
+    assert again["stations"] == 3
+    assert again["translation_mm"] == report["translation_mm"]
+    assert again["rotation_deg"] == report["rotation_deg"]
