@@ -1,8 +1,10 @@
 """The recorder: every sample on ``scancell/<cell>/**`` into one MCAP file per session.
 
 A session is a job (``<job_id>.mcap``, from its ``running`` event until ``job_linger_s`` after
-its end, or after the last sample naming the job if that came later, so the workers' outputs of
-the last stations still land in it however far a loaded worker lags), or, between jobs, an
+its end, or after the last sample naming the job if that came later, and not before every scan
+whose frames it holds has its ``scan/<station>/result`` (at most ``job_max_linger_s``), so the
+workers' outputs of the last stations land in it however far a loaded worker lags), or, between
+jobs, an
 ``idle-<time>.mcap`` file split every ``split_s`` seconds or ``split_bytes`` bytes.
 
 The linger holds across jobs: when the next job starts while the last one's file lingers, both
@@ -61,6 +63,8 @@ class RecorderSettings:
     split_s: float = 600.0
     split_bytes: int = 4 << 30
     job_linger_s: float = 10.0
+    #: the longest a job's file waits for the results of its scans after the job's end
+    job_max_linger_s: float = 180.0
     status_period_s: float = 1.0
     retry_s: float = 5.0
     file: FileSettings = field(default_factory=FileSettings)
@@ -85,7 +89,7 @@ class RecorderSettings:
         for key in ("queue_bytes", "split_bytes"):
             if key in kw and (not isinstance(kw[key], int) or kw[key] <= 0):
                 raise ValueError(f"{key} must be a positive integer, got {kw[key]!r}")
-        for key in ("split_s", "job_linger_s", "status_period_s", "retry_s"):
+        for key in ("split_s", "job_linger_s", "job_max_linger_s", "status_period_s", "retry_s"):
             if key in kw and (not isinstance(kw[key], int | float) or kw[key] <= 0):
                 raise ValueError(f"{key} must be a positive number of seconds, got {kw[key]!r}")
         return cls(**kw, file=FileSettings(**fkw))
@@ -98,6 +102,14 @@ class _Session:
     job_id: str | None
     opened: float
     ended: float | None = None  # monotonic time the job ended, or of its last sample after that
+    first_ended: float | None = None
+    #: scans whose frames are in the file and whose result is not (yet)
+    open_scans: set[str] = field(default_factory=set)
+
+    def may_close(self, now: float, linger_s: float, max_linger_s: float) -> bool:
+        if self.ended is None or now - self.ended < linger_s:
+            return False
+        return not self.open_scans or now - (self.first_ended or self.ended) >= max_linger_s
 
 
 class Recorder:
@@ -238,11 +250,25 @@ class Recorder:
             self._write(recv_ns, sample, owner)
             if owner.ended is not None:  # a worker's late output: the linger starts again
                 owner.ended = time.monotonic()
+            meta = sample.attachment.meta
+            if "scan_id" in meta and "periods" in meta:  # a fringe scan's frame: a cloud to come
+                owner.open_scans.add(str(meta["scan_id"]))
         else:
             for s in (*self.lingering, self.session):
                 self._write(recv_ns, sample, s)
+        if rel.startswith("scan/") and rel.endswith("/result"):
+            self._scan_result(sample)
         if event is not None and event.get("state") in TERMINAL_STATES and owner is not None:
-            owner.ended = time.monotonic()
+            owner.ended = owner.first_ended = time.monotonic()
+
+    def _scan_result(self, sample: BusSample) -> None:
+        try:
+            scan_id = str(json.loads(sample.payload)["scan_id"])
+        except (ValueError, KeyError, TypeError):
+            return
+        for s in (self.session, *self.lingering):
+            if s is not None:
+                s.open_scans.discard(scan_id)
 
     @staticmethod
     def _job_event(rel: str, sample: BusSample) -> dict[str, Any] | None:
@@ -297,14 +323,15 @@ class Recorder:
             except OSError as exc:
                 self._fail(exc)
             s = self.session
+        st = self.settings
         for ls in list(self.lingering):
-            if now - (ls.ended or now) >= self.settings.job_linger_s:
+            if ls.may_close(now, st.job_linger_s, st.job_max_linger_s):
                 self._close_lingering(ls, f"job {ls.job_id} ended")
             else:
                 with contextlib.suppress(OSError):
                     ls.file.maybe_flush(now)
         if s is not None:
-            if s.ended is not None and now - s.ended >= self.settings.job_linger_s:
+            if s.may_close(now, st.job_linger_s, st.job_max_linger_s):
                 self._close_session(f"job {s.job_id} ended")
             elif s.job_id is None and (now - s.opened >= self.settings.split_s
                                        or s.file.bytes >= self.settings.split_bytes):

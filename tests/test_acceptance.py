@@ -153,7 +153,12 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
                          timeout=120)
     assert out.returncode in (0, 1), out.stderr
     offline = json.loads((tmp_path / "offline.json").read_text())
-    assert not offline["errors"], offline["errors"]
+    if offline["errors"]:
+        from scancell.recorder.reading import info
+
+        topics = {k.split("/", 2)[-1]: n for k, n in info(mcap).topics.items()
+                  if "/image" not in k}
+        pytest.fail(f"{offline['errors']}; files {rec.files}; recorded {topics}")
     for k in ("PF", "PS", "SD", "F"):
         assert offline["parameters"][k]["figure_mm"] == pytest.approx(p[k]["figure_mm"],
                                                                       abs=1e-9), k

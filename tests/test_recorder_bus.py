@@ -110,6 +110,41 @@ def test_a_lagging_workers_outputs_keep_the_jobs_file_open(bus_pair, tmp_path):
 
 
 @pytest.mark.process
+def test_a_jobs_file_waits_for_the_results_of_its_scans(bus_pair, tmp_path):
+    """A scan worker busy for longer than the linger (a first decode compiling its kernels on a
+    loaded machine): the job's file stays open until the scan's cloud and result are in."""
+    from scancell.protocols.encoding import Attachment
+
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=0.5,
+                                       status_period_s=0.2))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _event(b, "job-1", "running")
+        meta = {"scan_id": "job-1-s01", "station": "s01", "role": "left", "pattern": 0,
+                "patterns": 9, "periods": [70, 64, 59], "steps": 3, "job_id": "job-1"}
+        b.publish(b.keys.dev("cam_left", "image"), fg.encode_proto(fg.raw_image(
+            np.zeros((4, 4), np.uint8), messages.now_ns(), "cam_left")),
+            Attachment(messages.now_ns(), 0, None, meta))
+        _event(b, "job-1", "done")
+        time.sleep(2.0)  # four lingers
+        assert any(s is not None and s.job_id == "job-1" for s in (rec.session, *rec.lingering))
+        b.publish(b.keys.scan_cloud("s01"), fg.encode_proto(fg.point_cloud(
+            np.zeros((3, 3)), messages.now_ns(), "mcs_s01")),
+            Attachment(messages.now_ns(), 0, None, {"scan_id": "job-1-s01", "job_id": "job-1"}))
+        b.publish_json(b.keys.scan_result("s01"), {"scan_id": "job-1-s01", "ok": True},
+                       "scancell.ScanResult")
+        wait_until(lambda: all(s is None or s.job_id != "job-1"
+                               for s in (rec.session, *rec.lingering)), 10,
+                   what="the job's file closed")
+    finally:
+        rec.stop()
+    keys = [a.keys.relative(s.key) for s in samples(tmp_path / "job-1.mcap")]
+    assert "scan/s01/cloud" in keys and "scan/s01/result" in keys
+
+
+@pytest.mark.process
 def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     a, b = bus_pair
     stereo = b.latched(b.keys.stereo)  # a worker's calibration, published before the recorder
