@@ -3,6 +3,7 @@ once, a gone worker's scans taken over, the same cloud bytes whoever decodes."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -181,3 +182,99 @@ def test_a_gone_workers_scans_are_taken_over_once(cluster, scan_frames, dies):
     taken = [r for r in cluster.results if r["taken_over_from"]]
     assert [(r["worker"], r["taken_over_from"]) for r in taken] == [("wb", "wa")]
     assert cluster.workers["wb"].share.members == ["wb"]
+
+
+# ---------------------------------------------------------------- fuse workers: one per job
+
+def publish_job(bus: Bus, job_id: str, n: int = 3) -> None:
+    """A synthetic scan_part job: ``n`` stations at one pose, each sampling the same gentle bowl
+    afresh, their ECS and clouds, then its end."""
+    pts = np.array([[2900.0, 100.0, 300.0], [2950.0, 180.0, 330.0], [2860.0, 160.0, 260.0]])
+    for i in range(n):
+        station = f"s{i + 1:02d}"
+        xy = np.random.default_rng(i).uniform(-150, 150, (4000, 2))
+        cloud = np.column_stack([xy, 650.0 + (xy ** 2).sum(axis=1) / 4000.0])
+        shift = np.zeros(3)
+        bus.publish_json(bus.keys.station_ecs(station), {
+            "job_id": job_id, "station": station, "scan_id": f"{job_id}-{station}",
+            "points_mm": (pts + shift).tolist(), "j6_deg": [0.0, 120.0, -120.0],
+            "stamp_ns": messages.now_ns()}, "scancell.StationEcs")
+        stamp = messages.now_ns()
+        bus.publish(bus.keys.scan_cloud(station), fg.encode_proto(fg.point_cloud(
+            cloud, stamp, f"mcs_{station}")), Attachment(stamp, i, None, {
+                "job_id": job_id, "job_kind": "scan_part", "station": station,
+                "scan_id": f"{job_id}-{station}"}))
+    bus.publish_json(bus.keys.job_event(job_id), {
+        "job_id": job_id, "kind": "scan_part", "state": "done", "step": "done", "message": "",
+        "index": None, "total": None, "stamp_ns": messages.now_ns(),
+        "result": {"stations": [{"station": f"s{i + 1:02d}"} for i in range(n)]}},
+        "scancell.JobEvent")
+
+
+class FuseCluster(Cluster):
+    def __init__(self, cell: str, endpoint: str, tmp: Path) -> None:
+        from scancell.workers.fuse import FuseSettings, FuseWorker
+
+        self.router = Bus.open(BusConfig(listen=(endpoint,)), cell)
+        self.sessions = {n: Bus.open(BusConfig.for_client(endpoint), cell)
+                         for n in ("wa", "wb", "obs")}
+        obs = self.sessions["obs"]
+        self.he = obs.latched(obs.keys.hand_eye)
+        self.he.publish(messages.encode_json({
+            "T_ecs_from_mcs": np.eye(4).tolist(), "j6_angles_deg": [120.0, -120.0],
+            "rms_mm": 0.0, "job_id": "he"}, "scancell.HandEye"))
+        self.workers = {n: FuseWorker(self.sessions[n], FuseSettings(
+            tmp / n, voxel_mm=2.0, mesh=False, cloud_wait_s=10.0), worker_id=n)
+            for n in ("wa", "wb")}
+        self.reports: list[dict] = []
+        obs.subscribe(obs.keys.fusion_report, lambda s: self.reports.append(s.decode()))
+        for w in self.workers.values():
+            w.start()
+        wait_until(lambda: all(w.share.members == ["wa", "wb"] for w in self.workers.values()),
+                   5, what="both fuse workers see each other")
+
+    def close(self) -> None:
+        self.he.close()
+        super().close()
+
+
+def jobs_owned() -> dict[str, str]:
+    out: dict[str, str] = {}
+    for k in range(100):
+        job = f"scan_part-{k:03d}"
+        out.setdefault(owner_of(job, ["wa", "wb"]), job)
+    return out
+
+
+@pytest.mark.process
+def test_one_fuse_worker_per_job_and_a_gone_ones_job_taken_over(cell, endpoint, tmp_path):
+    c = FuseCluster(cell, endpoint, tmp_path)
+    try:
+        owned = jobs_owned()
+        publish_job(c.sessions["obs"], owned["wa"])
+        wait_until(lambda: c.reports, 60, period_s=0.2, what="the first job's report")
+        time.sleep(1.0)
+        assert [(r["job_id"], r["worker"]) for r in c.reports] == [(owned["wa"], "wa")]
+        assert (tmp_path / "wa" / owned["wa"]).is_dir()
+        assert not (tmp_path / "wb").exists()  # the other worker wrote nothing
+        first = c.reports[0]
+        assert first["stations"] == 3 and "translation_mm" in first, json.dumps(first)[:1500]
+        assert c.workers["wb"].held == set()  # it saw wa's report
+
+        # wa's next job: wa is gone as it starts to fuse; wb, which kept the data, reports it
+        def gone(job_id: str) -> None:
+            c.sessions["wa"].close()
+
+        c.workers["wa"].finish = gone
+        job = next(j for j in (f"scan_part-x{k}" for k in range(100))
+                   if owner_of(j, ["wa", "wb"]) == "wa")
+        publish_job(c.sessions["obs"], job)
+        wait_until(lambda: any(r["job_id"] == job for r in c.reports), 60, period_s=0.2,
+                   what="the taken-over job's report")
+        time.sleep(1.0)
+        mine = [r for r in c.reports if r["job_id"] == job]
+        assert len(mine) == 1 and mine[0]["worker"] == "wb" and mine[0]["stations"] == 3
+        assert mine[0]["translation_mm"]["mean"] == pytest.approx(
+            first["translation_mm"]["mean"], rel=0.01)  # the same data, fused by wb
+    finally:
+        c.close()

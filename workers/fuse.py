@@ -17,6 +17,11 @@ Outputs:
 - at the end of a job, ``fusion/report`` (``scancell.FusionReport``) and, with ``--out DIR``,
   ``DIR/<job>/``: ``fused.ply``, ``fused.e57``, ``mesh.ply`` and ``report/report.md`` with
   pictures.
+
+Any number of fuse workers may run: each keeps every job's data, and the job's owner among the
+live fuse workers (``workers/fuse/<id>`` liveliness, ``workers/work_share.py``) fuses and writes
+it; two fuse workers never write the same job. When the owner is gone before the job's report,
+the next owner fuses the job from what it kept and reports it (``worker`` in the report).
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
+from scancell.workers.work_share import WorkShare
 
 #: the meta job_kind of a scanner check's cloud (daemon/jobs/scanner_check.py)
 CHECK_KIND = "scanner_check"
@@ -97,7 +103,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     thread_name = "fuse-worker"
     join_timeout_s = 120.0
 
-    def __init__(self, bus: BusLike, settings: FuseSettings | None = None) -> None:
+    def __init__(self, bus: BusLike, settings: FuseSettings | None = None,
+                 worker_id: str | None = None) -> None:
         super().__init__(bus)
         self.settings = settings or FuseSettings()
         self.hand_eye = HandEyeInForce(lambda body: check_rigid(
@@ -105,10 +112,20 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.jobs: dict[str, JobStations] = {}
         self.reports: list[dict[str, Any]] = []
         self._lock = threading.Lock()
+        #: one fuse worker per job: the job's owner among the live fuse workers fuses and
+        #: writes it; the others keep its data and take it over if the owner is gone
+        self.share = WorkShare(bus, "fuse", worker_id)
+        #: ended jobs another worker owns, until their final report is seen
+        self.held: set[str] = set()
+        self._reported: set[str] = set()
+        self.takeover_grace_s = 1.0
 
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
         k = self.bus.keys
+        self.share.on_departure = self._on_departure
+        self.share.start()
+        self.subscribe(k.fusion_report, self._on_report)
         self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
@@ -168,9 +185,39 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 job.nominal = result.get("nominal")
             self.submit(("end", e["job_id"]))
 
+    def on_stop(self) -> None:
+        self.share.stop()
+
+    def _on_report(self, sample: Any) -> None:
+        body = sample.decode()
+        with self._lock:
+            self._reported.add(str(body.get("job_id")))
+            self.held.discard(str(body.get("job_id")))
+
+    def _on_departure(self, worker: str) -> None:
+        t = threading.Timer(self.takeover_grace_s, self._take_over, [worker])
+        t.daemon = True
+        t.start()
+
+    def _take_over(self, worker: str) -> None:
+        with self._lock:
+            mine = sorted(j for j in self.held if self.share.mine(j))
+            self.held.difference_update(mine)
+        for job_id in mine:
+            log.warning("fuse worker %s: taking over job %s from %s, which is gone",
+                        self.share.worker_id, job_id, worker)
+            self.submit(("end", job_id))
+
     # ---------------------------------------------------------------- worker thread
     def handle(self, item: tuple[str, str]) -> None:
         kind, arg = item
+        job_id = arg.split("\0")[0]
+        if not self.share.mine(job_id):  # another fuse worker's job: keep its data only
+            if kind == "end":
+                with self._lock:
+                    if job_id not in self._reported:
+                        self.held.add(job_id)
+            return
         if kind == "station":
             self.add_station(*arg.split("\0"))
         else:
@@ -261,6 +308,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             Attachment(now, len(stations), None, meta))
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job))
+        body["worker"] = self.share.worker_id
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
