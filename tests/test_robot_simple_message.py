@@ -77,6 +77,7 @@ def test_stop_mid_motion_halts_the_robot():
             await robot.stop()
             with pytest.raises(DeviceFault, match="stopped"):
                 await move
+            await asyncio.sleep(0.2)  # joints() is the state link's last message: a fresh one
             q1 = (await robot.joints())[0]
             await asyncio.sleep(0.3)
             q2 = (await robot.joints())[0]
