@@ -162,11 +162,16 @@ def test_a_gone_workers_scans_are_taken_over_once(cluster, scan_frames, dies):
     release = threading.Event()
     if dies == "while decoding":
         def process(scan):  # decoding forever: the session ends under it
+            # once wb holds the scan too (else wb, assembling late, would just own it)
+            wait_until(lambda: scan.scan_id in cluster.workers["wb"].standby, 30,
+                       what="wb holding the scan")
             cluster.sessions["wa"].close()
             release.wait(30)
         wa.process = process
     else:
         def publish_result(scan, result, error):  # the cloud went out, then the end
+            wait_until(lambda: scan.scan_id in cluster.workers["wb"].standby, 30,
+                       what="wb holding the scan")
             cluster.sessions["wa"].close()
         wa._publish_result = publish_result
     ids = ids_owned(1)

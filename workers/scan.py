@@ -172,8 +172,9 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self.share = WorkShare(bus, "scan", worker_id)
         #: complete scans another live worker owns, by scan id, until their result is seen
         self.standby: dict[str, PendingScan] = {}
-        #: scan ids whose result is on the bus (the last few thousand)
+        #: scan ids whose result is on the bus, and whose cloud is (the last few thousand)
         self._finished: dict[str, None] = {}
+        self._clouds_seen: dict[str, None] = {}
         #: scan ids this worker decoded, in order
         self.decoded: list[str] = []
         self._decoding: PendingScan | None = None
@@ -303,6 +304,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             if self._finish_key(scan) in self._finished:
                 return  # its owner was faster than this worker's assembly
             mine = self.share.mine(scan.scan_id)
+            scan.cloud_seen = scan.scan_id in self._clouds_seen
             if not mine:
                 self.standby[scan.scan_id] = scan
         if mine:
@@ -328,6 +330,9 @@ class ScanWorker(ThreadedWorker[PendingScan]):
     def _on_cloud_seen(self, sample: Any) -> None:
         sid = sample.attachment.meta.get("scan_id")
         with self._lock:
+            self._clouds_seen[str(sid)] = None  # its assembly here may complete later
+            while len(self._clouds_seen) > 4096:
+                del self._clouds_seen[next(iter(self._clouds_seen))]
             if sid in self.standby:
                 self.standby[sid].cloud_seen = True
 
