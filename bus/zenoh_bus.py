@@ -323,7 +323,7 @@ class Bus:
         return self.session.liveliness().declare_token(key)
 
     def declare_member(self, key: str) -> zenoh.LivelinessToken:
-        return self.session.liveliness().declare_token(key)
+        return self.liveliness_token(key)
 
     def watch_members(self, key_expr: str, on_change: Callable[[str, bool], None]
                       ) -> zenoh.Subscriber:
@@ -334,19 +334,20 @@ class Bus:
                 log.exception("liveliness callback on %s", s.key_expr)
 
         sub = self.session.liveliness().declare_subscriber(key_expr, handler)
-        for r in self.session.liveliness().get(key_expr, timeout=1.0):  # those present now
-            if r.ok is not None:
-                on_change(str(r.ok.key_expr), True)
+        for key in self.members(key_expr):  # those present now
+            on_change(key, True)
         return sub
+
+    def members(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
+        """The keys of the liveliness tokens on ``key_expr`` right now."""
+        return sorted(str(r.ok.key_expr) for r in
+                      self.session.liveliness().get(key_expr, timeout=timeout_s)
+                      if r.ok is not None)
 
     def alive(self, timeout_s: float = 1.0) -> list[str]:
         """Names of the devices holding a liveliness token right now."""
         prefix = self.keys.alive("")
-        out = []
-        for r in self.session.liveliness().get(self.keys.alive("*"), timeout=timeout_s):
-            if r.ok is not None:
-                out.append(str(r.ok.key_expr)[len(prefix) :])
-        return sorted(out)
+        return [k[len(prefix):] for k in self.members(self.keys.alive("*"), timeout_s)]
 
     def close(self) -> None:
         if not self._closed:

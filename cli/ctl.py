@@ -95,10 +95,8 @@ def live_workers(bus: Any, timeout_s: float = 1.0) -> list[dict[str, Any]]:
         body = s.decode()
         statuses[(body.get("kind"), body.get("worker"))] = body
     out = []
-    for r in bus.session.liveliness().get(bus.keys.worker("*", "*"), timeout=timeout_s):
-        if r.ok is None:
-            continue
-        kind, worker = str(r.ok.key_expr)[len(prefix) + 1:].split("/", 1)
+    for key in bus.members(bus.keys.worker("*", "*"), timeout_s):
+        kind, worker = key[len(prefix) + 1:].split("/", 1)
         out.append({"kind": kind, "worker": worker, **statuses.get((kind, worker), {})})
     return sorted(out, key=lambda w: (w["kind"], w["worker"]))
 

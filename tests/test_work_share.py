@@ -38,7 +38,7 @@ def test_owners_spread_and_a_gone_worker_moves_only_its_own_items():
 @pytest.mark.unit
 def test_a_departure_is_told_to_the_others_on_the_local_bus():
     bus = LocalBus("c")
-    a, b = WorkShare(bus, "scan", "wa"), WorkShare(bus, "scan", "wb")
+    a, b = WorkShare(bus, "scan", "wa"), WorkShare(bus, "scan", "wb", grace_s=0.0)
     gone: list[str] = []
     b.on_departure = gone.append
     a.start()

@@ -53,7 +53,7 @@ from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
-from scancell.workers.work_share import WorkShare
+from scancell.workers.work_share import RecentIds, WorkShare
 
 #: the meta job_kind of a scanner check's cloud (daemon/jobs/scanner_check.py)
 CHECK_KIND = "scanner_check"
@@ -117,13 +117,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.share = WorkShare(bus, "fuse", worker_id)
         #: ended jobs another worker owns, until their final report is seen
         self.held: set[str] = set()
-        self._reported: set[str] = set()
-        self.takeover_grace_s = 1.0
+        self._reported = RecentIds()
 
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
         k = self.bus.keys
-        self.share.on_departure = self._on_departure
+        self.share.on_departure = self._take_over
         self.share.start()
         self.subscribe(k.fusion_report, self._on_report)
         self.hand_eye.follow(self)
@@ -193,11 +192,6 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         with self._lock:
             self._reported.add(str(body.get("job_id")))
             self.held.discard(str(body.get("job_id")))
-
-    def _on_departure(self, worker: str) -> None:
-        t = threading.Timer(self.takeover_grace_s, self._take_over, [worker])
-        t.daemon = True
-        t.start()
 
     def _take_over(self, worker: str) -> None:
         with self._lock:

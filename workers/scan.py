@@ -8,8 +8,8 @@ The decoding is the same :class:`ScanDecoder` as ``scancell decode``.
 
 Any number of scan workers share the work (``workers/work_share.py``): every worker assembles
 every scan, the scan's owner among the live workers decodes it, the others hold it until its
-result is on the bus. When the owner is gone first, the next owner waits ``takeover_grace_s``
-(1 s) for what the gone worker sent last, then decodes the scan from what it holds (publishing
+result is on the bus. When the owner is gone first, the next owner waits a second for what the
+gone worker sent last (``WorkShare.grace_s``), then decodes the scan from what it holds (publishing
 the cloud only if the gone worker had not) and names the gone worker in the
 result (``taken_over_from``). Each scan is decoded once, and a taken-over scan gives the same
 cloud, byte for byte.
@@ -37,7 +37,7 @@ from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.workers.base import ThreadedWorker
-from scancell.workers.work_share import WorkShare
+from scancell.workers.work_share import RecentIds, WorkShare
 
 log = logging.getLogger(__name__)
 
@@ -173,13 +173,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         #: complete scans another live worker owns, by scan id, until their result is seen
         self.standby: dict[str, PendingScan] = {}
         #: scan ids whose result is on the bus, and whose cloud is (the last few thousand)
-        self._finished: dict[str, None] = {}
-        self._clouds_seen: dict[str, None] = {}
+        self._finished = RecentIds()
+        self._clouds_seen = RecentIds()
         #: scan ids this worker decoded, in order
         self.decoded: list[str] = []
         self._decoding: PendingScan | None = None
-        #: how long a gone worker's last messages are awaited before its scans are taken over
-        self.takeover_grace_s = 1.0
         self._status_pub: Latched | None = None
         self.calib = calib
         #: where the projector response is kept: next to the stereo calibration
@@ -193,7 +191,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self.done = 0
 
     def on_start(self) -> None:
-        self.share.on_departure = self._on_departure
+        self.share.on_departure = self._take_over
         self.share.start()
         self._status_pub = self.bus.latched(
             self.bus.keys.worker_status("scan", self.share.worker_id))
@@ -318,9 +316,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         except (EncodingError, KeyError, TypeError, ValueError):
             return
         with self._lock:
-            self._finished[key] = None
-            while len(self._finished) > 4096:
-                del self._finished[next(iter(self._finished))]
+            self._finished.add(key)
             held = [sid for sid, sc in self.standby.items() if self._finish_key(sc) == key]
             for sid in held:
                 del self.standby[sid]
@@ -330,18 +326,9 @@ class ScanWorker(ThreadedWorker[PendingScan]):
     def _on_cloud_seen(self, sample: Any) -> None:
         sid = sample.attachment.meta.get("scan_id")
         with self._lock:
-            self._clouds_seen[str(sid)] = None  # its assembly here may complete later
-            while len(self._clouds_seen) > 4096:
-                del self._clouds_seen[next(iter(self._clouds_seen))]
+            self._clouds_seen.add(str(sid))  # its assembly here may complete later
             if sid in self.standby:
                 self.standby[sid].cloud_seen = True
-
-    def _on_departure(self, worker: str) -> None:
-        # zenoh sends a token's end at a higher priority than data: what the gone worker
-        # published just before (a cloud, a result) may still be on its way
-        t = threading.Timer(self.takeover_grace_s, self._take_over, [worker])
-        t.daemon = True
-        t.start()
 
     def _take_over(self, worker: str) -> None:
         with self._lock:

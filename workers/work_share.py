@@ -6,7 +6,9 @@ watches the others'. An item (a scan id) belongs to the live worker with the hig
 owner from the same membership, with no broker and no messages between the workers. When a
 worker is gone (its process ended, killed with -9, or its session cut off: zenoh drops its token
 at once on a closed link, at the end of the session lease otherwise), its items belong to the
-next-highest weight, which :attr:`WorkShare.on_departure` lets the worker take over.
+next-highest weight, which :attr:`WorkShare.on_departure` lets the worker take over. zenoh sends
+a token's end at a higher priority than data, so what the gone worker published just before (a
+cloud, a result) may still be on its way: ``on_departure`` is called ``grace_s`` (1 s) later.
 
 Two workers that do not (yet) see each other both own an item; the window is the time a token
 takes to reach the other workers (milliseconds on one host); :meth:`WorkShare.start` returns
@@ -28,6 +30,22 @@ from scancell.bus.protocol import BusLike, Subscription
 log = logging.getLogger(__name__)
 
 
+class RecentIds:
+    """The last ``limit`` ids seen (e.g. the jobs or scans whose result is on the bus)."""
+
+    def __init__(self, limit: int = 4096) -> None:
+        self.limit = limit
+        self._ids: dict[str, None] = {}
+
+    def add(self, item: str) -> None:
+        self._ids[item] = None
+        while len(self._ids) > self.limit:
+            del self._ids[next(iter(self._ids))]
+
+    def __contains__(self, item: object) -> bool:
+        return item in self._ids
+
+
 def new_worker_id() -> str:
     """``<host>-<pid>-<random>``: unique, and says where the worker runs."""
     host = socket.gethostname().split(".")[0].replace("/", "_").replace("*", "_") or "host"
@@ -46,11 +64,13 @@ def owner_of(item: str, workers: set[str] | list[str]) -> str | None:
 class WorkShare:
     """One worker's membership among the live workers of ``kind`` on ``bus``."""
 
-    def __init__(self, bus: BusLike, kind: str, worker_id: str | None = None) -> None:
+    def __init__(self, bus: BusLike, kind: str, worker_id: str | None = None,
+                 grace_s: float = 1.0) -> None:
         self.bus = bus
         self.kind = kind
         self.worker_id = worker_id or new_worker_id()
-        #: called (on a zenoh thread) with a departed worker's id, after the membership changed
+        self.grace_s = grace_s
+        #: called (on a timer thread) with a departed worker's id, ``grace_s`` after it left
         self.on_departure: Callable[[str], None] | None = None
         self._members: set[str] = set()
         self._lock = threading.Lock()
@@ -96,5 +116,9 @@ class WorkShare:
             log.info("%s worker %s: worker %s joined", self.kind, self.worker_id, worker)
         if not present and known and worker != self.worker_id:
             log.warning("%s worker %s: worker %s is gone", self.kind, self.worker_id, worker)
-            if self.on_departure is not None:
+            if self.on_departure is not None and self.grace_s <= 0:
                 self.on_departure(worker)
+            elif self.on_departure is not None:
+                t = threading.Timer(self.grace_s, self.on_departure, [worker])
+                t.daemon = True
+                t.start()
