@@ -115,6 +115,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         #: one fuse worker per job: the job's owner among the live fuse workers fuses and
         #: writes it; the others keep its data and take it over if the owner is gone
         self.share = WorkShare(bus, "fuse", worker_id)
+        self.share.on_departure = self._take_over
         #: ended jobs another worker owns, until their final report is seen
         self.held: set[str] = set()
         self._reported = RecentIds()
@@ -122,14 +123,15 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
         k = self.bus.keys
-        self.share.on_departure = self._take_over
-        self.share.start()
+        self.share.watch()
         self.subscribe(k.fusion_report, self._on_report)
         self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.scanner_check("*"), self._on_check)
         self.subscribe(k.job_event("*"), self._on_event)
+        # the token last (WorkShare.join)
+        self.share.join()
 
     # ---------------------------------------------------------------- bus callbacks
 

@@ -170,6 +170,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                  worker_id: str | None = None) -> None:
         super().__init__(bus)
         self.share = WorkShare(bus, "scan", worker_id)
+        self.share.on_departure = self._take_over
         #: complete scans another live worker owns, by scan id, until their result is seen
         self.standby: dict[str, PendingScan] = {}
         #: scan ids whose result is on the bus, and whose cloud is (the last few thousand)
@@ -191,12 +192,8 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self.done = 0
 
     def on_start(self) -> None:
-        self.share.on_departure = self._take_over
-        self.share.start()
-        self._status_pub = self.bus.latched(
-            self.bus.keys.worker_status("scan", self.share.worker_id))
-        self.publish_status()
         k = self.bus.keys
+        self.share.watch()
         self.subscribe(k.scan_result("*"), self._on_result_seen)
         self.subscribe(k.scan_cloud("*"), self._on_cloud_seen)
         self.subscribe(k.projector_response_result, self._on_result_seen)
@@ -211,6 +208,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 self._publish_response(ProjectorResponse.read(self.response_path))
             except ResponseCalibrationError as exc:
                 log.error("%s; fringes will not be pre-compensated", exc)
+        # the token last (WorkShare.join)
+        self.share.join()
+        self._status_pub = self.bus.latched(
+            self.bus.keys.worker_status("scan", self.share.worker_id))
+        self.publish_status()
 
     def on_stop(self) -> None:
         self.share.stop()

@@ -11,8 +11,10 @@ a token's end at a higher priority than data, so what the gone worker published 
 cloud, a result) may still be on its way: ``on_departure`` is called ``grace_s`` (1 s) later.
 
 Two workers that do not (yet) see each other both own an item; the window is the time a token
-takes to reach the other workers (milliseconds on one host); :meth:`WorkShare.start` returns
-once it knows the tokens present (the bus's ``watch_members`` asks for them).
+takes to reach the other workers (milliseconds on one host). A worker watches the others
+(:meth:`WorkShare.watch`, which returns once it knows the tokens present), subscribes its inputs,
+then declares its own token (:meth:`WorkShare.join`): never given an item whose input it would
+not receive.
 """
 
 from __future__ import annotations
@@ -77,11 +79,20 @@ class WorkShare:
         self._token: Subscription | None = None
         self._watch: Subscription | None = None
 
-    def start(self) -> None:
+    def watch(self) -> None:
+        """Learn the workers present and follow them (before the worker subscribes its inputs)."""
         self._watch = self.bus.watch_members(self.bus.keys.worker(self.kind, "*"), self._on_change)
+
+    def join(self) -> None:
+        """Declare this worker's token (after it subscribed its inputs: a worker the others
+        count as present receives everything it may be given)."""
         self._token = self.bus.declare_member(self.bus.keys.worker(self.kind, self.worker_id))
         with self._lock:
             self._members.add(self.worker_id)
+
+    def start(self) -> None:
+        self.watch()
+        self.join()
 
     def stop(self) -> None:
         for h in (self._token, self._watch):
