@@ -9,6 +9,7 @@ command being run is imported, so ``scancell --help`` and ``scancell ctl …`` s
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
 import sys
@@ -77,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    faulthandler.enable()  # a crash in native code (zenoh, numba, Open3D) names where it was
     try:
         return int(command_module(args.command).main(args) or 0)
     except KeyboardInterrupt:
