@@ -78,7 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    faulthandler.enable()  # a crash in native code (zenoh, numba, Open3D) names where it was
+    try:  # a crash in native code (zenoh, numba, Open3D) names where it was
+        faulthandler.enable()
+    except (AttributeError, ValueError, OSError):  # stderr is not a file (called in-process)
+        pass
     try:
         return int(command_module(args.command).main(args) or 0)
     except KeyboardInterrupt:
