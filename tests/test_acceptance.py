@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -105,6 +106,48 @@ def test_evaluate_names_what_it_could_not_evaluate():
     assert out["parameters"]["PF"]["pass"] is True and out["parameters"]["PS"]["positions"] == 1
     assert out["errors"] == ["sphere position 2 (scan j-sphere01): no cloud"]
     assert out["pass"] is False  # a position not evaluated fails the test
+
+
+@pytest.mark.unit
+def test_worker_waits_for_a_sample_later_than_the_job_end_and_reports_once():
+    """The job's end event says how many samples it sent; one that lags behind it is still
+    evaluated, and the end event seen twice gives one report (CI: Part 3 reported "no acceptance
+    samples" although its job had published one)."""
+    from scancell.bus.local import LocalBus
+    from scancell.protocols import foxglove_schemas as fg
+    from scancell.protocols import messages
+    from scancell.protocols.encoding import Attachment
+
+    bus = LocalBus("acc")
+    worker = AcceptanceWorker(bus, cloud_wait_s=10.0)
+    reports: list = []
+    bus.subscribe(bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
+    worker.start()
+    try:
+        c = np.array([0.0, 0.0, 620.0])
+        job = "acceptance-1"
+        done = {"job_id": job, "kind": "acceptance", "state": "done", "step": "end",
+                "result": {"scans": 1, "positions": {"sphere": 1}}}
+        bus.publish_json(bus.keys.job_event(job), done, "scancell.JobEvent")
+        time.sleep(0.5)
+        assert reports == []  # still waiting for the sample the result announced
+        bus.publish_json(bus.keys.acceptance_sample, {
+            "job_id": job, "scan_id": f"{job}-sphere00", "artefact": {"diameter_mm": 50.0},
+            "placement": {"kind": "sphere", "index": 0, "centre_mcs": c.tolist(),
+                          "direction_mcs": [0, 0, -1]}, "mpe_mm": {"PF": 0.2, "PS": 0.05},
+            "total": 1}, "scancell.AcceptanceSample")
+        stamp = messages.now_ns()
+        bus.publish(bus.keys.scan_cloud("sphere00"),
+                    fg.encode_proto(fg.point_cloud(sphere_cloud(c, 25.0), stamp, "mcs")),
+                    Attachment(stamp, 0, None, {"job_id": job, "job_kind": "acceptance",
+                                                "scan_id": f"{job}-sphere00"}))
+        wait_until(lambda: reports, 10, what="the acceptance report")
+        bus.publish_json(bus.keys.job_event(job), done, "scancell.JobEvent")  # seen again
+        time.sleep(0.5)
+        assert len(reports) == 1 and "error" not in reports[0], reports
+        assert reports[0]["parameters"]["PS"]["positions"] == 1 and reports[0]["pass"] is True
+    finally:
+        worker.stop()
 
 
 @pytest.mark.e2e

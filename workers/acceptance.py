@@ -24,6 +24,7 @@ from scancell.bus.protocol import BusLike
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import EncodingError
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
+from scancell.workers.work_share import RecentIds
 
 log = logging.getLogger(__name__)
 JOB_KIND = "acceptance"
@@ -53,6 +54,7 @@ class AcceptanceWorker(ThreadedWorker[str]):
         self.jobs: dict[str, AcceptanceJob] = {}
         self.reports: list[dict[str, Any]] = []
         self.hand_eye = HandEyeInForce()
+        self.reported = RecentIds()
         self._lock = threading.Lock()
 
     def on_start(self) -> None:
@@ -72,6 +74,10 @@ class AcceptanceWorker(ThreadedWorker[str]):
     def _on_sample(self, sample: Any) -> None:
         s = sample.decode()
         with self._lock:
+            if s["job_id"] in self.reported:
+                log.warning("acceptance job %s: sample %s arrived after the job's report; not "
+                            "evaluated", s["job_id"], s.get("scan_id"))
+                return
             job = self.jobs.setdefault(s["job_id"], AcceptanceJob())
             job.samples[s["scan_id"]] = s
             job.expected = max(job.expected, int(s.get("total", 0)))
@@ -94,9 +100,16 @@ class AcceptanceWorker(ThreadedWorker[str]):
         if e.get("kind") == JOB_KIND and e.get("state") in ("done", "failed", "aborted"):
             if e["state"] != "done":
                 log.warning("acceptance job %s %s: %s", e["job_id"], e["state"], e.get("error"))
+            with self._lock:
+                job = self.jobs.setdefault(e["job_id"], AcceptanceJob())
+                if e["state"] == "done":
+                    job.expected = max(job.expected, samples_sent(e))
             self.submit(e["job_id"])
 
     def handle(self, job_id: str) -> None:
+        if job_id in self.reported:  # the end event seen twice: its report is out already
+            log.info("acceptance job %s: already reported", job_id)
+            return
         deadline = time.monotonic() + self.cloud_wait_s
         while time.monotonic() < deadline:  # the last clouds may still be decoding
             with self._lock:
@@ -110,11 +123,17 @@ class AcceptanceWorker(ThreadedWorker[str]):
     def process(self, job_id: str) -> dict[str, Any]:
         with self._lock:
             job = self.jobs.pop(job_id, AcceptanceJob())
+        self.reported.add(job_id)
         if not job.samples:
             body: dict[str, Any] = {"job_id": job_id, "error": "no acceptance samples"}
         else:
             body = {"job_id": job_id, **evaluate(list(job.samples.values()), job.clouds,
                                                  self.world_clouds(job))}
+            if len(job.samples) < job.expected:
+                body["errors"] = [*body.get("errors", []),
+                                  f"{job.expected - len(job.samples)} of the job's "
+                                  f"{job.expected} positions not evaluated: their acceptance "
+                                  f"samples did not arrive within {self.cloud_wait_s:g} s"]
             if self.out_dir is not None:
                 body["files"] = write_acceptance(self.out_dir / job_id, body)
         self.bus.publish_json(self.bus.keys.acceptance_report, body, "scancell.AcceptanceReport")
@@ -125,6 +144,14 @@ class AcceptanceWorker(ThreadedWorker[str]):
 
     def world_clouds(self, job: AcceptanceJob) -> dict[str, np.ndarray]:
         return world_clouds(job.ecs, job.clouds, self.hand_eye.body)
+
+
+def samples_sent(event: dict[str, Any]) -> int:
+    """How many ``acceptance/sample`` the job published, from its end event's result (Part 2:
+    one per scan; Part 3: one per ball-bar position); 0 if it does not say."""
+    result = event.get("result") or {}
+    n = result.get("positions") if result.get("part") == 3 else result.get("scans")
+    return int(n) if isinstance(n, int | float) else 0
 
 
 def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],
