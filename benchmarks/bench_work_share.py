@@ -27,10 +27,8 @@ import numpy as np
 from scancell.bus.zenoh_bus import Bus, BusConfig
 from scancell.cli.ctl import live_workers
 from scancell.model.patterns import FringeSequence
-from scancell.protocols import foxglove_schemas as fg
-from scancell.protocols import messages
-from scancell.protocols.encoding import Attachment
 from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.scan_recording import scan_frames
 from scancell.workers.work_share import owner_of
 
 SCANS = 8
@@ -45,15 +43,9 @@ def render() -> tuple[dict[str, list[np.ndarray]], SimCell]:
 
 
 def publish_scan(bus: Bus, scan_id: str, frames: dict[str, list[np.ndarray]]) -> None:
-    seq = FringeSequence()
-    for role, cam in (("left", "cam_left"), ("right", "cam_right")):
-        for k, img in enumerate(frames[role]):
-            stamp = messages.now_ns()
-            meta = {"scan_id": scan_id, "station": scan_id.rsplit("-", 1)[-1], "role": role,
-                    "job_id": "bench", "job_kind": "bench", "pattern": k,
-                    "patterns": len(seq), "steps": seq.steps, "periods": list(seq.periods)}
-            bus.publish(bus.keys.dev(cam, "image"), fg.encode_proto(fg.raw_image(img, stamp, cam)),
-                        Attachment(stamp, k, None, meta))
+    for cam, encoded, att in scan_frames(scan_id, scan_id.rsplit("-", 1)[-1], frames, "bench",
+                                         "bench"):
+        bus.publish(bus.keys.dev(cam, "image"), encoded, att)
 
 
 def run(n_workers: int, frames: dict[str, list[np.ndarray]], calib: Path) -> float:

@@ -319,6 +319,36 @@ class Bus:
     def _endpoints(self) -> list[str]:
         return list(self.config.connect) if self.config else []
 
+    def answer(self, key: str, handler: Callable[[dict[str, Any]], dict[str, Any]],
+               schema: str) -> zenoh.Queryable:
+        """Answer queries on ``key``: ``handler(request)`` (the query's JSON payload, ``{}`` if
+        none) gives the reply, sent as JSON of ``schema``. A request that is not a JSON object,
+        or a handler that raises ValueError, gets an error reply naming why."""
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                raw = query.payload.to_bytes() if query.payload is not None else b""
+                try:
+                    request = json.loads(raw) if raw else {}
+                except ValueError:
+                    request = None
+                if not isinstance(request, dict):
+                    query.reply_err(f"{key}: the request is not a JSON object".encode())
+                    return
+                try:
+                    reply = handler(request)
+                except ValueError as exc:
+                    query.reply_err(f"{key}: {exc}".encode())
+                    return
+                encoded = messages.encode_json(reply, schema)
+                query.reply(key, encoded.payload, encoding=zenoh.Encoding(encoded.encoding))
+            except Exception:  # a handler's bug must not kill zenoh's thread
+                log.exception("answering %s", key)
+            finally:
+                query.drop()
+
+        return self.session.declare_queryable(key, on_query)
+
     def liveliness_token(self, key: str) -> zenoh.LivelinessToken:
         return self.session.liveliness().declare_token(key)
 

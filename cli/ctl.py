@@ -107,10 +107,11 @@ def format_workers(workers: list[dict[str, Any]]) -> str:
     rows = []
     for w in workers:
         now = w.get("decoding") or {}
-        rows.append([w["kind"], w["worker"], now.get("scan_id", "-"), str(w.get("queued", "?")),
-                     str(len(w.get("standby", []))), str(w.get("decoded", "?")),
-                     str(w.get("load_1min", "?"))])
-    return table(rows, ["kind", "worker", "decoding", "queued", "held", "decoded", "load"])
+        task = w.get("working_on") or {}
+        rows.append([w["kind"], w["worker"], now.get("scan_id") or task.get("recording") or "-",
+                     str(w.get("queued", "?")), str(len(w.get("standby", []))),
+                     str(w.get("decoded", w.get("done", "?"))), str(w.get("load_1min", "?"))])
+    return table(rows, ["kind", "worker", "working on", "queued", "held", "done", "load"])
 
 
 def main(args: argparse.Namespace) -> int:

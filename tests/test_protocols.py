@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -145,6 +146,23 @@ def test_every_json_schema_is_valid_and_commands_have_one():
             messages.json_schema(request_schema_name(spec.schema))  # raises if missing
     for verb in ("status", "devices"):
         messages.json_schema(request_schema_name(verb))
+
+
+@pytest.mark.unit
+def test_every_schema_the_code_names_exists():
+    """A JSON message whose schema is missing cannot be recorded (the recorder writes each
+    channel's JSON Schema into the MCAP file): the worker status once was."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    names = set()
+    for part in ("analysis", "bus", "cli", "daemon", "devices", "model", "protocols", "recorder",
+                 "sim", "workers"):
+        for f in (root / part).rglob("*.py"):
+            names |= set(re.findall(r'"(scancell\.[A-Z][A-Za-z]+)"', f.read_text()))
+    assert len(names) > 20
+    for name in sorted(names):
+        messages.json_schema(name)  # raises naming the missing schema
 
 
 @pytest.mark.unit

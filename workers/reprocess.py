@@ -22,6 +22,7 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 OUTPUTS = ["scan/*/cloud", "scan/*/result", "calib/hand_eye", "calib/stereo", "fusion/**",
            "tf/**", "recorder/**"]
 MAX_QUEUED_SCANS = 2
+PROGRESS_EVERY = 200
 
 
 @dataclass
@@ -121,9 +123,28 @@ def recorded_simulator(path: str | Path) -> dict[str, Any] | None:
     return simulator if isinstance(simulator, dict) and simulator.get("part", "car_rear") else None
 
 
+def recording_truth(path: str | Path, truth_cell: str | Path | None = None
+                    ) -> tuple[Any, str | None]:
+    """The true part a reprocess of ``path`` reports true errors against, and where it came
+    from: the simulated cell config ``truth_cell``, else the simulated cell recorded in the file,
+    else (None, None): a real cell. Raises ValueError for a bad ``truth_cell``."""
+    from scancell.workers.truth import truth_from_config, truth_from_options
+
+    if truth_cell:
+        return truth_from_config(truth_cell), f"the simulated cell {truth_cell}"
+    simulator = recorded_simulator(path)
+    if simulator is None:
+        return None, None
+    return truth_from_options(simulator), (
+        f"the simulated cell recorded in {path} (part {simulator.get('part', 'car_rear')!r}, "
+        f"seed {simulator.get('seed', 0)})")
+
+
 def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | None = None,
-              progress: bool = True, truth: Any = None) -> ReprocessResult:
-    """``truth``: points (world, mm) -> true distances to the part, simulation only."""
+              progress: bool = True, truth: Any = None,
+              on_progress: Callable[[int, int], None] | None = None) -> ReprocessResult:
+    """``truth``: points (world, mm) -> true distances to the part, simulation only.
+    ``on_progress(messages read, messages in the file)``: every 200 messages and at the end."""
     from scancell.analysis.stereo_calibration import StereoCalibration
     from scancell.workers.calibrate import CalibrateWorker
     from scancell.workers.fuse import FuseSettings, FuseWorker
@@ -153,8 +174,10 @@ def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | No
                disable=not progress, file=sys.stderr)
     try:
         jobs_seen = False
-        for s in samples(path):
+        for n, s in enumerate(samples(path), 1):
             bar.update(1)
+            if on_progress is not None and n % PROGRESS_EVERY == 0:
+                on_progress(n, rec.messages)
             rel = bus.keys.relative(s.key)
             jobs_seen = jobs_seen or rel.startswith("job/")
             in_force = rel == "calib/hand_eye" and not jobs_seen
@@ -167,6 +190,8 @@ def reprocess(path: str | Path, out_dir: str | Path, calib_file: str | Path | No
         bar.set_description(f"reprocess {Path(path).name}: decoding the last scans")
         while any(w.pending() for w in workers):
             time.sleep(0.02)
+        if on_progress is not None:
+            on_progress(rec.messages, rec.messages)
     finally:
         bar.close()
         for w in workers:
