@@ -6,7 +6,9 @@ subscriber that only counts the samples. Each run has two publisher processes (z
 ``scancell.bus.Bus.publish``, blocking congestion control) and one subscriber process (a listening
 peer, as the daemon is). Figures: sustained MB/s, messages lost (sequence gaps at the subscriber)
 and dropped (recorder queue), the subscriber's CPU, the recorder's lag behind the publishers, and
-the ratio recorder / raw. A second pair of runs publishes as fast as it can (capacity).
+the ratio recorder / raw. A second pair of runs publishes as fast as it can (capacity), and a
+third pair does the same with zenoh's shared-memory transport off in every process (issue 22):
+the gain from shared memory on one host, in MB/s and in CPU seconds per GB on each side.
 
 Run: .venv/bin/python benchmarks/bench_recorder_throughput.py [--seconds 20] (or `make bench`)
 """
@@ -29,6 +31,7 @@ from pathlib import Path
 
 W, H = 2448, 2048
 CELL = "bench"
+DEFAULT_SHM_MB = 64  # scancell.bus.zenoh_bus.DEFAULT_SHM_MB, without importing zenoh here
 
 
 def _free_port() -> int:
@@ -40,12 +43,13 @@ def _free_port() -> int:
 # ---------------------------------------------------------------- roles (subprocesses)
 
 
-def role_pub(ep: str, camera: str, fps: float, seconds: float) -> None:
+def role_pub(ep: str, camera: str, fps: float, seconds: float, shm_mb: int) -> None:
     import numpy as np
     from scancell.bus import Bus, BusConfig
     from scancell.protocols import foxglove_schemas as fg
 
-    bus = Bus.open(BusConfig(mode="client", connect=(ep,)), CELL, wait_s=20)
+    bus = Bus.open(BusConfig(mode="client", connect=(ep,), shared_memory_mb=shm_mb), CELL,
+                   wait_s=20)
     rng = np.random.default_rng(hash(camera) % 1000)
     img = rng.integers(0, 255, (H, W), dtype=np.uint8)  # incompressible, like sensor noise
     enc = fg.encode_proto(fg.raw_image(img, 0, camera))
@@ -60,14 +64,16 @@ def role_pub(ep: str, camera: str, fps: float, seconds: float) -> None:
             delay = t0 + n / fps - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-    print(json.dumps({"sent": n, "seconds": time.monotonic() - t0}), flush=True)
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    print(json.dumps({"sent": n, "seconds": time.monotonic() - t0,
+                      "cpu_s": ru.ru_utime + ru.ru_stime}), flush=True)
     bus.close()
 
 
-def role_sub(ep: str, mode: str, out_dir: str) -> None:
+def role_sub(ep: str, mode: str, out_dir: str, shm_mb: int) -> None:
     from scancell.bus import Bus, BusConfig
 
-    bus = Bus.open(BusConfig(listen=(ep,)), CELL)
+    bus = Bus.open(BusConfig(listen=(ep,), shared_memory_mb=shm_mb), CELL)
     stats = {"n": 0, "bytes": 0, "first": None, "last": None, "gaps": 0}
     last_seq: dict[str, int] = {}
     lock = threading.Lock()
@@ -130,13 +136,15 @@ def _spawn(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True)
 
 
-def run(mode: str, fps: float, seconds: float, out_dir: str) -> dict:
+def run(mode: str, fps: float, seconds: float, out_dir: str, shm_mb: int) -> dict:
     ep = f"tcp/127.0.0.1:{_free_port()}"
-    sub = _spawn("--role", "sub", "--ep", ep, "--mode", mode, "--out", out_dir)
+    sub = _spawn("--role", "sub", "--ep", ep, "--mode", mode, "--out", out_dir,
+                 "--shm", str(shm_mb))
     assert sub.stdout.readline().strip() == "ready"
     t0 = time.monotonic()
     pubs = [_spawn("--role", "pub", "--ep", ep, "--camera", cam, "--fps", str(fps),
-                   "--seconds", str(seconds)) for cam in ("cam_left", "cam_right")]
+                   "--seconds", str(seconds), "--shm", str(shm_mb))
+            for cam in ("cam_left", "cam_right")]
     sent = [json.loads(p.stdout.readline()) for p in pubs]
     for p in pubs:
         p.wait(60)
@@ -146,6 +154,7 @@ def run(mode: str, fps: float, seconds: float, out_dir: str) -> dict:
     r = json.loads(sub.stdout.readline())
     sub.wait(120)
     r["sent"] = sum(s["sent"] for s in sent)
+    r["pub_cpu_s"] = sum(s["cpu_s"] for s in sent)
     r["pub_seconds"] = max(s["seconds"] for s in sent)
     r["wall_s"] = t_pub_end - t0
     span = (r["last"] - r["first"]) if r["n"] > 1 else float("nan")
@@ -191,13 +200,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     out: dict[str, float] = {}
     try:
         rows = {}
-        for label, mode, fps, secs in (("raw zenoh, 2 x 30 fps", "raw", 30.0, args.seconds),
-                                       ("recorder, 2 x 30 fps", "recorder", 30.0, args.seconds),
-                                       ("raw zenoh, flat out", "raw", 0.0, args.capacity_seconds),
-                                       ("recorder, flat out", "recorder", 0.0,
-                                        args.capacity_seconds)):
+        for label, mode, fps, secs, shm in (
+                ("raw zenoh, 2 x 30 fps", "raw", 30.0, args.seconds, DEFAULT_SHM_MB),
+                ("recorder, 2 x 30 fps", "recorder", 30.0, args.seconds, DEFAULT_SHM_MB),
+                ("raw zenoh, flat out", "raw", 0.0, args.capacity_seconds, DEFAULT_SHM_MB),
+                ("recorder, flat out", "recorder", 0.0, args.capacity_seconds, DEFAULT_SHM_MB),
+                ("raw zenoh, flat out, no SHM", "raw", 0.0, args.capacity_seconds, 0),
+                ("recorder, flat out, no SHM", "recorder", 0.0, args.capacity_seconds, 0)):
             d = Path(tmp) / label.replace(" ", "_").replace(",", "")
-            rows[label] = run(mode, fps, secs, str(d))
+            rows[label] = run(mode, fps, secs, str(d), shm)
             print(_line(label, rows[label]), flush=True)
             shutil.rmtree(d, ignore_errors=True)
         plain = plain_write_mb_s(tmp)
@@ -210,6 +221,14 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                "recorder_lost": rec["gaps"] + rec["sent"] - rec["n"],
                "capacity_raw_mb_s": rawc["mb_s"], "capacity_recorder_mb_s": recc["write_mb_s"],
                "capacity_ratio": recc["write_mb_s"] / rawc["mb_s"], "plain_write_mb_s": plain}
+        for what in ("raw zenoh", "recorder"):
+            on, off = rows[f"{what}, flat out"], rows[f"{what}, flat out, no SHM"]
+            gb_on, gb_off = on["bytes"] / 1e9, off["bytes"] / 1e9
+            print(f"shared memory, {what} flat out: {on['mb_s']:.0f} vs {off['mb_s']:.0f} MB/s "
+                  f"without (x{on['mb_s'] / off['mb_s']:.2f}); CPU per GB: subscriber "
+                  f"{on['cpu_s'] / gb_on:.2f} vs {off['cpu_s'] / gb_off:.2f} s, publishers "
+                  f"{on['pub_cpu_s'] / gb_on:.2f} vs {off['pub_cpu_s'] / gb_off:.2f} s", flush=True)
+            out[f"shm_{what.split()[0]}_ratio"] = on["mb_s"] / off["mb_s"]
         print(f"target 300 MB/s paced: recorder {rec['mb_s']:.0f} MB/s = {out['paced_ratio']:.2f} "
               f"of raw ({raw['mb_s']:.0f} MB/s), dropped {rec['dropped']}, lost "
               f"{out['recorder_lost']}; capacity {recc['write_mb_s']:.0f} vs raw {rawc['mb_s']:.0f} MB/s "
@@ -229,11 +248,12 @@ if __name__ == "__main__":
         p.add_argument("--seconds", type=float)
         p.add_argument("--mode")
         p.add_argument("--out")
+        p.add_argument("--shm", type=int, default=0)
         a = p.parse_args()
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         if a.role == "pub":
-            role_pub(a.ep, a.camera, a.fps, a.seconds)
+            role_pub(a.ep, a.camera, a.fps, a.seconds, a.shm)
         else:
-            role_sub(a.ep, a.mode, a.out)
+            role_sub(a.ep, a.mode, a.out, a.shm)
     else:
         main()

@@ -97,7 +97,9 @@ def run(n_workers: int, files: list[Path], warm: list[Path], out: Path) -> float
 
 
 def clouds(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*.ply"))}
+    """The timed recordings' clouds (the warm-up's left out: one per worker)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*.ply"))
+            if "warm" not in p.relative_to(folder).parts}
 
 
 def main() -> dict[str, float]:

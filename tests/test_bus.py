@@ -97,7 +97,7 @@ def test_a_clients_bus_settings_from_flags_environment_and_file(monkeypatch, tmp
     """Flags over environment over the [bus] file over the loopback default; a secured cell's
     user, password file and CA; clear errors naming the file or variable."""
     for var in ("SCANCELL_CONNECT", "SCANCELL_USER", "SCANCELL_PASSWORD", "SCANCELL_PASSWORD_FILE",
-                "SCANCELL_CA", "SCANCELL_BUS_CONFIG"):
+                "SCANCELL_CA", "SCANCELL_BUS_CONFIG", "SCANCELL_SHM_MB"):
         monkeypatch.delenv(var, raising=False)
     assert BusConfig.for_client() == BusConfig(mode="client", connect=("tcp/127.0.0.1:7447",))
     ca = tmp_path / "ca.pem"
@@ -128,3 +128,45 @@ def test_a_clients_bus_settings_from_flags_environment_and_file(monkeypatch, tmp
     monkeypatch.delenv("SCANCELL_PASSWORD_FILE")
     with pytest.raises(ValueError, match="a user needs a password"):
         BusConfig.for_client()
+
+
+@pytest.mark.process
+def test_large_samples_travel_through_shared_memory_on_one_host(endpoint, cell, monkeypatch):
+    """Two sessions on this host: frame-sized payloads arrive in a zenoh shared-memory buffer
+    (from the second on), byte for byte; with the pool at 0 (``shared_memory_mb``, ``$SCANCELL_SHM_MB``) through the
+    socket. Bad sizes are refused by name."""
+    import os
+
+    payload = np.random.default_rng(0).integers(0, 255, 1 << 20, dtype=np.uint8).tobytes()
+    st = os.statvfs("/dev/shm")
+    # a container's /dev/shm may be too small for the pool: zenoh then keeps to the socket
+    room = st.f_bavail * st.f_frsize > 2 * (BusConfig().shared_memory_mb << 20)
+    for mb, shm in ((BusConfig().shared_memory_mb, room), (0, False)):
+        hub = Bus.open(BusConfig(listen=(endpoint,), shared_memory_mb=mb), cell)
+        monkeypatch.setenv("SCANCELL_SHM_MB", str(mb))
+        client = Bus.open(BusConfig.for_client(endpoint), cell)
+        assert client.config.shared_memory_mb == mb
+        got: list[tuple[bool, bytes]] = []
+        sub = hub.session.declare_subscriber(
+            hub.keys.dev("cam", "image"),
+            lambda s: got.append((s.payload.as_shm() is not None, s.payload.to_bytes())))
+        try:
+            time.sleep(0.5)
+            for _ in range(3):  # the pool is made on first use ("lazy"): the first by socket
+                client.session.put(client.keys.dev("cam", "image"), payload)
+                time.sleep(0.2)
+            deadline = time.monotonic() + 5
+            while len(got) < 3 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert [p == payload for _, p in got] == [True] * 3
+            assert [s for s, _ in got[1:]] == [shm, shm]
+        finally:
+            sub.undeclare()
+            client.close()
+            hub.close()
+    for bad in (-1, "lots", 1.5, True):
+        with pytest.raises(ValueError, match="shared_memory_mb must be a whole number of MiB"):
+            BusConfig.from_mapping({"shared_memory_mb": bad})
+    monkeypatch.setenv("SCANCELL_SHM_MB", "x")
+    with pytest.raises(ValueError, match=r"\$SCANCELL_SHM_MB must be"):
+        BusConfig.for_client(endpoint)
