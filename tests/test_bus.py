@@ -133,8 +133,8 @@ def test_a_clients_bus_settings_from_flags_environment_and_file(monkeypatch, tmp
 @pytest.mark.process
 def test_large_samples_travel_through_shared_memory_on_one_host(endpoint, cell, monkeypatch):
     """Two sessions on this host: frame-sized payloads arrive in a zenoh shared-memory buffer
-    (from the second on), byte for byte; with the pool at 0 (``shared_memory_mb``, ``$SCANCELL_SHM_MB``) through the
-    socket. Bad sizes are refused by name."""
+    (from the second on), byte for byte; with the pool at 0 (``shared_memory_mb``,
+    ``$SCANCELL_SHM_MB``) through the socket. Bad sizes are refused by name."""
     import os
 
     payload = np.random.default_rng(0).integers(0, 255, 1 << 20, dtype=np.uint8).tobytes()
@@ -149,7 +149,8 @@ def test_large_samples_travel_through_shared_memory_on_one_host(endpoint, cell, 
         got: list[tuple[bool, bytes]] = []
         sub = hub.session.declare_subscriber(
             hub.keys.dev("cam", "image"),
-            lambda s: got.append((s.payload.as_shm() is not None, s.payload.to_bytes())))
+            lambda s, got=got: got.append((s.payload.as_shm() is not None,
+                                           s.payload.to_bytes())))
         try:
             time.sleep(0.5)
             for _ in range(3):  # the pool is made on first use ("lazy"): the first by socket
