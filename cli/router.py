@@ -20,10 +20,12 @@ def router_config_path() -> Path:
     return deploy_file("zenoh", "router.json5")
 
 
-def load_router_config(path: str | Path, overrides: dict[str, object] | None = None) -> Any:
+def load_router_config(path: str | Path, overrides: dict[str, object] | None = None,
+                       cells: list[str] | None = None) -> Any:
     """The router config at ``path`` as a ``zenoh.Config``, with ``overrides``
-    (``"transport/link/tls/listen_certificate": "/x/router.pem"``, values as JSON) applied;
-    raises ValueError naming the file or key."""
+    (``"transport/link/tls/listen_certificate": "/x/router.pem"``, values as JSON) applied and,
+    with ``cells``, its ACL made per cell (bus/router_acl.py); raises ValueError naming the file
+    or key."""
     import zenoh
 
     p = Path(path)
@@ -38,6 +40,14 @@ def load_router_config(path: str | Path, overrides: dict[str, object] | None = N
             cfg.insert_json5(key, json.dumps(value))
         except zenoh.ZError as exc:
             raise ValueError(f"{p}: cannot set {key} = {value!r}: {exc}") from None
+    if cells:
+        from scancell.bus.router_acl import acl_for_cells
+
+        try:
+            acl = acl_for_cells(json.loads(cfg.get_json("access_control")), cells)
+        except ValueError as exc:
+            raise ValueError(f"{p}: --cells: {exc}") from None
+        cfg.insert_json5("access_control", json.dumps(acl))
     return cfg
 
 
@@ -57,6 +67,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="router JSON5 (default: the packaged deploy/zenoh/router.json5)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                    help='override a key, e.g. --set listen/endpoints=["tls/0.0.0.0:7447"]')
+    p.add_argument("--cells", default=None, metavar="A,B,...",
+                   help="several cells on this router: the ACL per cell, users <role>@<cell> "
+                        "(monitor stays plant-wide)")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the resulting config as JSON (for zenohd -c) and exit")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -70,14 +85,20 @@ def main(args: argparse.Namespace) -> int:
         if not sep:
             return fail("router", f"--set {item!r}: expected KEY=VALUE")
     path = args.config or router_config_path()
+    cells = [c.strip() for c in args.cells.split(",")] if args.cells else None
     try:
-        session = open_router(load_router_config(path, overrides))
+        cfg = load_router_config(path, overrides, cells)
+        if args.print_config:
+            print(cfg)
+            return 0
+        session = open_router(cfg)
     except (ValueError, ConnectionError) as exc:
         return fail("router", str(exc))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"zenoh router {session.zid()} running ({path})", flush=True)
+    print(f"zenoh router {session.zid()} running ({path}"
+          + (f", cells {', '.join(cells)}" if cells else "") + ")", flush=True)
     stop.wait()
     session.close()
     return 0

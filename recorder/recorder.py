@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from scancell.bus import Bus, BusSample
+from scancell.bus.recent_ids import RecentIds
 from scancell.protocols import messages
 from scancell.protocols.encoding import EncodingError
 from scancell.recorder.reading import topic_matches
@@ -134,6 +135,9 @@ class Recorder:
         self.dropped: dict[str, int] = {}
         self._drop_events: dict[str, int] = {}  # key -> drops not yet announced
         self.unrecordable: dict[str, str] = {}
+        #: scan answers recorded (key and scan id), and second answers refused, per key
+        self._answers = RecentIds(65536)
+        self.duplicates: dict[str, int] = {}
         self.files: list[Path] = []
         self.total_messages = 0
         self.total_bytes = 0
@@ -228,6 +232,8 @@ class Recorder:
 
     def _handle(self, recv_ns: int, sample: BusSample) -> None:
         rel = self.bus.keys.relative(sample.key)
+        if self._second_answer(rel, sample):
+            return
         if rel in LATCHED:
             self.latched[rel] = sample
         event = self._job_event(rel, sample)
@@ -261,10 +267,39 @@ class Recorder:
         if event is not None and event.get("state") in TERMINAL_STATES and owner is not None:
             owner.ended = owner.first_ended = time.monotonic()
 
-    def _scan_result(self, sample: BusSample) -> None:
+    def _second_answer(self, rel: str, sample: BusSample) -> bool:
+        """A scan's cloud or result seen before (the same scan id on the same key): a worker
+        that answered late or twice. It is counted, logged and announced, never written."""
+        if not (rel.startswith("scan/") and rel.endswith(("/cloud", "/result"))):
+            return False
+        scan_id = sample.attachment.meta.get("scan_id")
+        if scan_id is None and rel.endswith("/result"):
+            scan_id = self._scan_id_of(sample)
+        if scan_id is None:
+            return False
+        answer = f"{rel}\0{scan_id}"
+        if answer not in self._answers:
+            self._answers.add(answer)
+            return False
+        worker = sample.attachment.meta.get("worker", "?")
+        self.duplicates[sample.key] = self.duplicates.get(sample.key, 0) + 1
+        log.warning("recorder %r: a second %s for scan %s (worker %s): not recorded",
+                    self.settings.name, rel, scan_id, worker)
+        self._event("duplicate", key=sample.key, scan_id=str(scan_id), worker=str(worker),
+                    message=f"a second {rel} for scan {scan_id} from worker {worker}: not "
+                            f"recorded")
+        return True
+
+    @staticmethod
+    def _scan_id_of(sample: BusSample) -> str | None:
         try:
-            scan_id = str(json.loads(sample.payload)["scan_id"])
+            return str(json.loads(sample.payload)["scan_id"])
         except (ValueError, KeyError, TypeError):
+            return None
+
+    def _scan_result(self, sample: BusSample) -> None:
+        scan_id = self._scan_id_of(sample)
+        if scan_id is None:
             return
         for s in (self.session, *self.lingering):
             if s is not None:
@@ -413,7 +448,7 @@ class Recorder:
             s.file.metadata("scancell.recorder", {
                 "closed": why, "messages": str(s.file.messages), "bytes": str(s.file.bytes),
                 "dropped_total": str(sum(dropped.values())), "dropped": dropped,
-                "unrecordable": self.unrecordable})
+                "duplicates": dict(self.duplicates), "unrecordable": self.unrecordable})
             s.file.close()
         except OSError as exc:
             s.file.abandon()
@@ -462,7 +497,7 @@ class Recorder:
                 "total_messages": self.total_messages, "total_bytes": self.total_bytes,
                 "queue_bytes": queued, "queue_limit_bytes": self.settings.queue_bytes,
                 "dropped": dropped, "dropped_total": sum(dropped.values()),
-                "lost_after_error": self.lost, "error": self.error,
+                "duplicates": dict(self.duplicates), "lost_after_error": self.lost, "error": self.error,
                 "stamp_ns": messages.now_ns()}
 
     def _publish_status(self, now: float) -> None:

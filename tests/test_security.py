@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+import json
 import threading
 import time
 
@@ -248,3 +249,105 @@ def test_ctl_and_a_scan_part_job_as_the_controller_a_service_cannot_move(secured
     finally:
         impostor.undeclare()
     assert not np.isclose(controller.call("device/robot/joints")["joints_deg"][0], 40.0)
+
+
+@pytest.mark.process
+def test_two_cells_on_one_router_each_sees_and_commands_only_its_own(tmp_path):
+    """``scancell router --cells ca,cb``: cell ca's daemon cannot read cell cb's frames or
+    command cb's robot; each controller moves its own robot only; the plant-wide monitor sees
+    both cells. A reprocess worker of a cell (service) claims a batch its engineer runs."""
+    import subprocess
+    import sys
+
+    from scancell.bus.router_acl import cell_user
+
+    files = _certs(tmp_path)
+    users = {cell_user(r, c): f"{r}-{c}-pw" for c in ("ca", "cb")
+             for r in ("daemon", "controller", "service", "engineer")} | {"monitor": "mon-pw"}
+    creds = tmp_path / "credentials.txt"
+    creds.write_text("".join(f"{u}:{p}\n" for u, p in users.items()))
+    port = free_port()
+    endpoint = f"tls/localhost:{port}"
+    tls = {"root_ca_certificate": str(files["ca"])}
+    router = open_router(load_router_config(router_config_path(), {
+        "listen/endpoints": [f"tls/127.0.0.1:{port}"],
+        "transport/link/tls/root_ca_certificate": str(files["ca"]),
+        "transport/link/tls/listen_certificate": str(files["cert"]),
+        "transport/link/tls/listen_private_key": str(files["key"]),
+        "transport/auth/usrpwd/dictionary_file": str(creds)}, cells=["ca", "cb"]))
+    daemons = [DaemonThread(SECURED_CELL, c, endpoint, bus={
+        "mode": "client", "connect": [endpoint], "tls": tls, "user": cell_user("daemon", c),
+        "password": users[cell_user("daemon", c)]}) for c in ("ca", "cb")]
+    opened: list[Bus] = []
+
+    def connect(user: str, cell: str) -> Bus:
+        b = Bus.open(BusConfig(mode="client", connect=(endpoint,), tls=tls, user=user,
+                               password=users[user]), cell, wait_s=5.0)
+        opened.append(b)
+        return b
+
+    try:
+        ctl = {c: connect(cell_user("controller", c), c) for c in ("ca", "cb")}
+        for c in ("ca", "cb"):
+            wait_until(lambda c=c: ctl[c].call("status", timeout_s=5.0)["devices"]["robot"][
+                "state"] == "connected", 20, what=f"cell {c}'s daemon behind the router")
+        _move(ctl["ca"], 11.0)
+        _move(ctl["cb"], 22.0)
+        # cell ca's controller reaching for cell cb: nobody answers
+        reach = connect(cell_user("controller", "ca"), "cb")
+        with pytest.raises(NoDaemon):
+            _move(reach, 40.0)
+        # cell ca's daemon credentials on cell cb's keys: no frames, no command
+        spy = connect(cell_user("daemon", "ca"), "cb")
+        seen = {"spy": threading.Event(), "own": threading.Event(), "plant": threading.Event()}
+        spy.subscribe(spy.keys.dev("robot", "joints"), lambda s: seen["spy"].set())
+        own = ctl["cb"]
+        own.subscribe(own.keys.dev("robot", "joints"), lambda s: seen["own"].set())
+        plant = connect("monitor", "ca")
+        plant.subscribe("scancell/cb/dev/robot/joints", lambda s: seen["plant"].set())
+        assert seen["own"].wait(10) and seen["plant"].wait(10)
+        assert not seen["spy"].wait(3.0), "cell ca's daemon read cell cb's robot"
+        with pytest.raises(NoDaemon):
+            _move(spy, 40.0)
+        with pytest.raises(NoDaemon):
+            plant.call("device/robot/move_joints", {"joints_deg": [5, 0, 0, 0, 0, 0]},
+                       timeout_s=5.0, connect_wait_s=1.0)
+        assert np.isclose(ctl["ca"].call("device/robot/joints")["joints_deg"][0], 11.0,
+                          atol=0.01)
+        assert np.isclose(ctl["cb"].call("device/robot/joints")["joints_deg"][0], 22.0,
+                          atol=0.01)
+        # a reprocess worker of cell ca (service) claims a batch an engineer of ca runs, and
+        # shows in `ctl workers` (its latched status through the router)
+        from scancell.cli.ctl import live_workers
+        from scancell.workers.reprocess_batch import ReprocessBatch
+        from scancell.workers.reprocess_worker import ReprocessWorker
+
+        from .test_recorder_cli import _small_recording
+
+        worker = ReprocessWorker(connect(cell_user("service", "ca"), "ca"), "w1")
+        worker.start()
+        try:
+            eng = connect(cell_user("engineer", "ca"), "ca")
+            wait_until(lambda: [(w["kind"], w.get("done")) for w in live_workers(eng)]
+                       == [("reprocess", 0)], 10, what="the worker's status via the router")
+            _small_recording(tmp_path / "a.mcap", "ca")
+            task = ReprocessBatch(eng, [(tmp_path / "a.mcap", tmp_path / "a-out")],
+                                  on_event=lambda line: None).run(wait_workers_s=10)[0]
+            assert task.worker == "w1" and task.state == "failed"
+            assert "no calib/stereo" in task.result["error"]  # its answer came back
+        finally:
+            worker.stop()
+        # the printed config is the same ACL, for zenohd
+        out = subprocess.run([sys.executable, "-m", "scancell", "router", "--cells", "ca,cb",
+                              "--print-config"], capture_output=True, text=True, timeout=60)
+        subjects = [s["id"] for s in json.loads(out.stdout)["access_control"]["subjects"]]
+        assert "daemon@ca" in subjects and "daemon@cb" in subjects and "daemon" not in subjects
+        bad = subprocess.run([sys.executable, "-m", "scancell", "router", "--cells", "ca,c/b",
+                              "--print-config"], capture_output=True, text=True, timeout=60)
+        assert bad.returncode == 2 and "invalid cell name 'c/b'" in bad.stderr
+    finally:
+        for b in opened:
+            b.close()
+        for d in daemons:
+            d.stop()
+        router.close()

@@ -187,9 +187,11 @@ def test_a_gone_workers_scans_are_taken_over_once(cluster, scan_frames, dies):
 
 # ---------------------------------------------------------------- fuse workers: one per job
 
-def publish_job(bus: Bus, job_id: str, n: int = 3) -> None:
+def publish_job(bus: Bus, job_id: str, n: int = 3, answers: bool = False) -> None:
     """A synthetic scan_part job: ``n`` stations at one pose, each sampling the same gentle bowl
-    afresh, their ECS and clouds, then its end."""
+    afresh, their ECS and clouds, then its end. ``answers``: also each scan's result, as scan
+    worker ``wx`` gives it (station s02 taken over from ``dead``), and then each cloud and result
+    again from worker ``late``."""
     pts = np.array([[2900.0, 100.0, 300.0], [2950.0, 180.0, 330.0], [2860.0, 160.0, 260.0]])
     for i in range(n):
         station = f"s{i + 1:02d}"
@@ -200,11 +202,18 @@ def publish_job(bus: Bus, job_id: str, n: int = 3) -> None:
             "job_id": job_id, "station": station, "scan_id": f"{job_id}-{station}",
             "points_mm": (pts + shift).tolist(), "j6_deg": [0.0, 120.0, -120.0],
             "stamp_ns": messages.now_ns()}, "scancell.StationEcs")
-        stamp = messages.now_ns()
-        bus.publish(bus.keys.scan_cloud(station), fg.encode_proto(fg.point_cloud(
-            cloud, stamp, f"mcs_{station}")), Attachment(stamp, i, None, {
-                "job_id": job_id, "job_kind": "scan_part", "station": station,
-                "scan_id": f"{job_id}-{station}"}))
+        for worker in ("wx", "late") if answers else ("wx",):
+            stamp = messages.now_ns()
+            meta = {"job_id": job_id, "station": station, "scan_id": f"{job_id}-{station}",
+                    "worker": worker}
+            bus.publish(bus.keys.scan_cloud(station), fg.encode_proto(fg.point_cloud(
+                cloud, stamp, f"mcs_{station}")), Attachment(stamp, i, None, {
+                    **meta, "job_kind": "scan_part"}))
+            if answers:
+                bus.publish(bus.keys.scan_result(station), messages.encode_json({
+                    "scan_id": meta["scan_id"], "station": station, "ok": True, "error": None,
+                    "worker": worker, "taken_over_from": "dead" if i == 1 else None},
+                    "scancell.ScanResult"), Attachment(stamp, i, None, meta))
     bus.publish_json(bus.keys.job_event(job_id), {
         "job_id": job_id, "kind": "scan_part", "state": "done", "step": "done", "message": "",
         "index": None, "total": None, "stamp_ns": messages.now_ns(),
@@ -280,3 +289,48 @@ def test_one_fuse_worker_per_job_and_a_gone_ones_job_taken_over(cell, endpoint, 
         assert mine[0]["translation_mm"]["mean"] < 0.01, mine[0]["translation_mm"]
     finally:
         c.close()
+
+
+@pytest.mark.process
+def test_a_late_or_second_answer_is_ignored_and_the_report_names_the_failed_worker(
+        cell, endpoint, tmp_path):
+    """Each station's cloud and result come twice (the second from a worker that answered
+    late): the fuse worker fuses the first and lists the second, the report names the worker
+    that failed mid-station, and the recording holds one cloud and one result per scan."""
+    from scancell.recorder.reading import samples
+    from scancell.recorder.recorder import Recorder, RecorderSettings
+
+    c = FuseCluster(cell, endpoint, tmp_path)
+    obs = c.sessions["obs"]
+    events: list[dict] = []
+    obs.subscribe(obs.keys.recorder_event("*"), lambda s: events.append(s.decode()))
+    rec = Recorder(obs, RecorderSettings(directory=str(tmp_path / "rec"), job_linger_s=1.0))
+    rec.start()
+    try:
+        job = jobs_owned()["wa"]
+        obs.publish_json(obs.keys.job_event(job), {
+            "job_id": job, "kind": "scan_part", "state": "running", "step": "start",
+            "message": "", "stamp_ns": messages.now_ns()}, "scancell.JobEvent")
+        publish_job(obs, job, answers=True)
+        wait_until(lambda: c.reports, 60, period_s=0.2, what="the job's report")
+        sw = c.reports[0]["scan_workers"]
+        assert [(d["station"], d["worker"]) for d in sw["duplicates"]] == [
+            ("s01", "late"), ("s02", "late"), ("s03", "late")]
+        assert sw["failed"] == [{"station": "s02", "scan_id": f"{job}-s02", "worker": "dead",
+                                 "taken_over_by": "wx"}]
+        assert {d["worker"] for d in sw["stations"].values()} == {"wx"}
+        assert c.reports[0]["stations"] == 3
+        wait_until(lambda: rec.session is None or rec.session.job_id != job, 30,
+                   what="the job's recording closed")
+    finally:
+        rec.stop()
+        c.close()
+    recorded = [(s.key.rsplit("/", 1)[-1], s.attachment.meta.get("scan_id"),
+                 s.attachment.meta.get("worker"))
+                for s in samples(tmp_path / "rec" / f"{job}.mcap",
+                                 ["scan/*/cloud", "scan/*/result"])]
+    assert sorted(recorded) == sorted((kind, f"{job}-s0{i}", "wx") for i in (1, 2, 3)
+                                      for kind in ("cloud", "result"))
+    assert sum(rec.duplicates.values()) == 6
+    dup = [e for e in events if e["event"] == "duplicate"]
+    assert len(dup) == 6 and {e["worker"] for e in dup} == {"late"}

@@ -91,6 +91,14 @@ def test_a_scan_worker_killed_mid_station_loses_nothing(make_daemon, client, cel
             taken[0]["worker"]]
         report = reports[0]
         assert report["job_id"] == job and report["stations"] == 3
+        # the job's report says which worker failed, and who took its station over
+        sw = report["scan_workers"]
+        failed = [(f["scan_id"], f["worker"], f["taken_over_by"]) for f in sw["failed"]]
+        if killed["scan_id"] in {d["scan_id"] for d in sw["stations"].values()}:
+            assert failed == [(killed["scan_id"], killed["worker"], taken[0]["worker"])], sw
+        else:  # the killed worker held the scanner check's scan
+            assert failed == [], sw
+        assert sw["duplicates"] == []
         wait_until(lambda: rec.session is None or rec.session.job_id != job, 30,
                    what="the job's recording closed")
     finally:
@@ -103,6 +111,14 @@ def test_a_scan_worker_killed_mid_station_loses_nothing(make_daemon, client, cel
             except subprocess.TimeoutExpired:
                 p.kill()
         he.close()
+    # the recording holds one cloud and one result per scan
+    from scancell.recorder.reading import samples
+
+    recorded = [(s.key.rsplit("/", 1)[-1], s.attachment.meta.get("scan_id"))
+                for s in samples(tmp_path / "rec" / f"{job}.mcap", ["scan/*/cloud",
+                                                                    "scan/*/result"])]
+    assert sorted(recorded) == sorted({*recorded}), recorded
+    assert sorted(sid for kind, sid in recorded if kind == "cloud") == sorted(station_scans)
     # one worker, the same inputs: the recording decoded again gives the same fused figures
     out = subprocess.run([sys.executable, "-m", "scancell", "reprocess",
                           str(tmp_path / "rec" / f"{job}.mcap"), "--out", str(tmp_path / "re"),

@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 from scancell.analysis.vdi2634 import evaluate
 from scancell.bus.protocol import BusLike
+from scancell.bus.recent_ids import RecentIds
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import EncodingError
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
-from scancell.workers.work_share import RecentIds
 
 log = logging.getLogger(__name__)
 JOB_KIND = "acceptance"

@@ -47,13 +47,14 @@ from scancell.analysis.station_uncertainty import (
     station_uncertainty,
 )
 from scancell.bus.protocol import BusLike
+from scancell.bus.recent_ids import RecentIds
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
-from scancell.workers.work_share import RecentIds, WorkShare
+from scancell.workers.work_share import WorkShare
 
 #: the meta job_kind of a scanner check's cloud (daemon/jobs/scanner_check.py)
 CHECK_KIND = "scanner_check"
@@ -83,6 +84,10 @@ class JobStations:
     check_clouds: dict[str, np.ndarray] = field(default_factory=dict)
     #: the checks the job's final event lists
     announced_checks: set[str] = field(default_factory=set)
+    #: station -> the scan id of the cloud fused for it
+    scan_ids: dict[str, str] = field(default_factory=dict)
+    #: second clouds of a scan already held (a worker that answered late or twice): ignored
+    duplicates: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass
@@ -111,6 +116,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             np.asarray(body["T_ecs_from_mcs"]), "calib/hand_eye T_ecs_from_mcs"))
         self.jobs: dict[str, JobStations] = {}
         self.reports: list[dict[str, Any]] = []
+        #: scan id -> the scan worker that answered it, and the one it took the scan over from
+        self.decoded_by: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
         #: one fuse worker per job: the job's owner among the live fuse workers fuses and
         #: writes it; the others keep its data and take it over if the owner is gone
@@ -128,6 +135,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.hand_eye.follow(self)
         self.subscribe(k.station_ecs("*"), self._on_ecs)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
+        self.subscribe(k.scan_result("*"), self._on_scan_result)
         self.subscribe(k.scanner_check("*"), self._on_check)
         self.subscribe(k.job_event("*"), self._on_event)
         # the token last (WorkShare.join)
@@ -166,11 +174,33 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             with self._lock:
                 self._job(job_id).check_clouds[station] = pts
             return
+        scan_id = str(meta.get("scan_id", ""))
         with self._lock:
+            job = self._job(job_id)
+            if scan_id and job.scan_ids.get(station) == scan_id:
+                job.duplicates.append({"station": station, "scan_id": scan_id,
+                                       "worker": meta.get("worker")})
+                log.warning("job %s station %s: a second cloud of scan %s (worker %s) ignored",
+                            job_id, station, scan_id, meta.get("worker"))
+                return
+            job.scan_ids[station] = scan_id
             self._job(job_id).clouds[station] = pts
             if unc is not None:
                 self._job(job_id).uncertainty[station] = unc.astype(float)
         self.submit(("station", f"{job_id}\0{station}"))
+
+    def _on_scan_result(self, sample: Any) -> None:
+        try:
+            r = sample.decode()
+            scan_id = str(r["scan_id"])
+        except (EncodingError, KeyError, TypeError, ValueError):
+            return
+        with self._lock:
+            if scan_id not in self.decoded_by:  # the first answer; a second changes nothing
+                self.decoded_by[scan_id] = {"worker": r.get("worker"), "ok": r.get("ok"),
+                                            "taken_over_from": r.get("taken_over_from")}
+                while len(self.decoded_by) > 4096:
+                    del self.decoded_by[next(iter(self.decoded_by))]
 
     def _on_event(self, sample: Any) -> None:
         e = sample.decode()
@@ -303,11 +333,28 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             fg.point_cloud(fused.points, now, "world", extra)),
             Attachment(now, len(stations), None, meta))
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
-                            dict(job.station_uncertainty), scanner_checks(job))
+                            dict(job.station_uncertainty), scanner_checks(job),
+                            self.scan_workers(job))
         body["worker"] = self.share.worker_id
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         return body
+
+
+    def scan_workers(self, job: JobStations) -> dict[str, Any]:
+        """Which scan worker decoded each station, the workers that failed mid-station (their
+        scans taken over), and second answers ignored."""
+        with self._lock:
+            stations = {st: {"scan_id": sid, **self.decoded_by.get(sid, {})}
+                        for st, sid in sorted(job.scan_ids.items())}
+            duplicates = list(job.duplicates)
+        failed = [{"station": st, "scan_id": d["scan_id"], "worker": d["taken_over_from"],
+                   "taken_over_by": d.get("worker")}
+                  for st, d in stations.items() if d.get("taken_over_from")]
+        for f in failed:
+            log.warning("job %s station %s: scan worker %s failed mid-station; %s took it over",
+                        job.job_id, f["station"], f["worker"], f["taken_over_by"])
+        return {"stations": stations, "failed": failed, "duplicates": duplicates}
 
 
 def scanner_checks(job: JobStations) -> list[dict[str, Any]]:
@@ -339,9 +386,10 @@ def scanner_checks(job: JobStations) -> list[dict[str, Any]]:
 def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dict[str, Any],
                  settings: FuseSettings, state: str | None,
                  uncertainty: dict[str, StationUncertainty] | None = None,
-                 checks: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+                 checks: list[dict[str, Any]] | None = None,
+                 scan_workers: dict[str, Any] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
-    out_dir."""
+    out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers)."""
     from scancell.analysis.metrics import MetricsError, compare_clouds
 
     t0 = time.perf_counter()
@@ -349,6 +397,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                             "points_merged": fused.merged_count, "points": len(fused.points),
                             "hand_eye_job": hand_eye.get("job_id"),
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
+    if scan_workers is not None:
+        body["scan_workers"] = scan_workers
     metrics = None
     try:
         metrics = (compare_clouds(fused.per_station, uncertainty=fused.per_station_uncertainty)
@@ -397,6 +447,16 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     return body
 
 
+def failed_workers_text(body: dict[str, Any]) -> str | None:
+    """The report's lines on scan workers that failed mid-station, or None if none did."""
+    sw = body.get("scan_workers") or {}
+    lines = [f"- station {f['station']} (scan {f['scan_id']}): worker {f['worker']} failed; "
+             f"{f['taken_over_by']} took the scan over" for f in sw.get("failed", [])]
+    lines += [f"- station {d['station']}: a second cloud of scan {d['scan_id']} from worker "
+              f"{d['worker']}, ignored" for d in sw.get("duplicates", [])]
+    return "\n".join(lines) or None
+
+
 def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | None,
                   body: dict[str, Any], mesh: bool) -> dict[str, str]:
     from scancell.analysis.cloud_io import write_ply
@@ -418,7 +478,9 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
     if metrics is not None:
         files["report"] = str(write_report(folder / "report", fused, metrics,
                                            f"scancell fusion report: {body['job_id']}",
-                                           extra={"true_error_mm": body.get("true_error_mm")},
+                                           extra={"true_error_mm": body.get("true_error_mm"),
+                                                  "scan workers that failed":
+                                                      failed_workers_text(body)},
                                            error_budget=body.get("error_budget"),
                                            truth=truth,
                                            scanner_checks=body.get("scanner_checks")))

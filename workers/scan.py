@@ -32,12 +32,13 @@ from scancell.analysis.projector_response import ProjectorResponse, ResponseCali
 from scancell.analysis.scanner import ScanDecoder, ScanResult
 from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
 from scancell.bus.protocol import BusLike, Latched
+from scancell.bus.recent_ids import RecentIds
 from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.workers.base import ThreadedWorker
-from scancell.workers.work_share import RecentIds, WorkShare
+from scancell.workers.work_share import WorkShare
 
 log = logging.getLogger(__name__)
 
@@ -365,7 +366,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         msg = fg.point_cloud(c.points, scan.stamp_ns or messages.now_ns(), f"mcs_{scan.station}",
                              fields)
         meta = {"scan_id": scan.scan_id, "station": scan.station, "points": len(c),
-                "job_id": scan.job_id, "job_kind": scan.job_kind,
+                "job_id": scan.job_id, "job_kind": scan.job_kind, "worker": self.share.worker_id,
                 "exposures_us": [scan.exposure_us.get(e) for e in range(scan.exposures)],
                 "precompensated": scan.precompensated,
                 "response": {"left": result.left.response, "right": result.right.response}}
@@ -373,7 +374,14 @@ class ScanWorker(ThreadedWorker[PendingScan]):
             if pm.response and not pm.response["linear"]:
                 log.warning("scan %s station %s: %s", scan.scan_id, scan.station,
                             response_warning(side, pm.response))
-        if not scan.cloud_seen:
+        with self._lock:  # another worker may have answered while this one decoded
+            answered = self._finish_key(scan) in self._finished
+            cloud_seen = scan.cloud_seen or scan.scan_id in self._clouds_seen
+        if answered:
+            log.warning("scan %s (station %s): another worker answered while this one decoded; "
+                        "nothing published", scan.scan_id, scan.station)
+            return result
+        if not cloud_seen:
             self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
                              Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
         self._publish_result(scan, result, None)
@@ -387,9 +395,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                                   {"job_id": scan.job_id, "ok": False, "error": error},
                                   "scancell.ProjectorResponseResult")
             return
-        self.bus.publish_json(self.bus.keys.scan_result(scan.station),
-                              result_message(scan, result, error, self.share.worker_id),
-                              "scancell.ScanResult")
+        self.bus.publish(self.bus.keys.scan_result(scan.station), messages.encode_json(
+            result_message(scan, result, error, self.share.worker_id), "scancell.ScanResult"),
+            Attachment(messages.now_ns(), self.done, None,
+                       {"scan_id": scan.scan_id, "station": scan.station,
+                        "job_id": scan.job_id, "worker": self.share.worker_id}))
 
     def handle(self, scan: PendingScan) -> None:
         self.decoded.append(scan.scan_id)

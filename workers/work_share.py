@@ -32,22 +32,6 @@ from scancell.bus.protocol import BusLike, Subscription
 log = logging.getLogger(__name__)
 
 
-class RecentIds:
-    """The last ``limit`` ids seen (e.g. the jobs or scans whose result is on the bus)."""
-
-    def __init__(self, limit: int = 4096) -> None:
-        self.limit = limit
-        self._ids: dict[str, None] = {}
-
-    def add(self, item: str) -> None:
-        self._ids[item] = None
-        while len(self._ids) > self.limit:
-            del self._ids[next(iter(self._ids))]
-
-    def __contains__(self, item: object) -> bool:
-        return item in self._ids
-
-
 def new_worker_id() -> str:
     """``<host>-<pid>-<random>``: unique, and says where the worker runs."""
     host = socket.gethostname().split(".")[0].replace("/", "_").replace("*", "_") or "host"
