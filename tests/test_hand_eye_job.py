@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -34,9 +35,11 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
     scan_worker = ScanWorker(client.bus, StereoCalibration.read(tmp_path / "stereo.yaml"))
     scan_worker.start()
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
-    worker = subprocess.Popen([sys.executable, "-m", "scancell", "worker", "calibrate", "--store",
-                               str(tmp_path / "calib")], env=env, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # two calibrate workers: one solves the job, the other keeps its store in step
+    workers = [subprocess.Popen([sys.executable, "-m", "scancell", "worker", "calibrate",
+                                 "--store", str(tmp_path / name)], env=env, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+               for name in ("calib", "calib2")]
     events: list[dict] = []
     results: list[dict] = []
     lock = threading.Lock()
@@ -45,7 +48,8 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
             client.bus.subscribe(client.bus.keys.hand_eye,
                                  lambda s: results.append(s.decode()))]
     try:
-        assert "waiting for hand-eye jobs" in worker.stdout.readline()
+        for worker in workers:
+            assert "waiting for hand-eye jobs" in worker.stdout.readline()
         started = client.call("job/calibrate_hand_eye", {"balls": 5})
         with pytest.raises(Exception, match="busy"):
             client.call("job/calibrate_hand_eye", {"balls": 5})
@@ -61,10 +65,16 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
         # 1/4 resolution and 5 balls: the accuracy figures are in benchmarks/RESULTS.md
         assert rotation_angle_arcsec(T[:3, :3] @ truth[:3, :3].T) < 600
         assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 1.0
-        store = tmp_path / "calib" / "hand_eye"
-        active = json.loads((store / "active.json").read_text())
-        assert active["job_id"] == started["job_id"]
-        assert (store / f"{started['job_id']}.json").exists()
+        time.sleep(1.0)
+        assert len([r for r in results if r["job_id"] == started["job_id"]]) == 1  # once
+        stores = [tmp_path / name / "hand_eye" for name in ("calib", "calib2")]
+        for folder in stores:  # the solver's and the follower's store both hold it as active
+            active = json.loads((folder / "active.json").read_text())
+            assert active["job_id"] == started["job_id"]
+            assert active["T_ecs_from_mcs"] == res["T_ecs_from_mcs"]
+        solver = [f for f in stores if (f / f"{started['job_id']}.pairs.csv").exists()]
+        assert len(solver) == 1, "the pairs are with the worker that solved the job"
+        store = solver[0]
         # the stored pairs reproduce the result through `scancell calibrate hand-eye`
         out = subprocess.run([sys.executable, "-m", "scancell", "calibrate", "hand-eye", "--pairs",
                               str(store / f"{started['job_id']}.pairs.csv"), "--json",
@@ -80,8 +90,10 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
         for s in subs:
             s.undeclare()
         scan_worker.stop()
-        worker.send_signal(signal.SIGTERM)
-        assert worker.wait(20) == 0, worker.stderr.read()
+        for worker in workers:
+            worker.send_signal(signal.SIGTERM)
+        for worker in workers:
+            assert worker.wait(20) == 0, worker.stderr.read()
 
 
 @pytest.mark.e2e

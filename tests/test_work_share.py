@@ -334,3 +334,43 @@ def test_a_late_or_second_answer_is_ignored_and_the_report_names_the_failed_work
     assert sum(rec.duplicates.values()) == 6
     dup = [e for e in events if e["event"] == "duplicate"]
     assert len(dup) == 6 and {e["worker"] for e in dup} == {"late"}
+
+
+@pytest.mark.unit
+def test_one_calibrate_worker_per_job_and_a_gone_ones_job_solved_by_the_other():
+    """Two calibrate workers: the job's owner answers it, once; when the owner is gone before
+    it answers, the other answers it after the grace."""
+    from scancell.workers.calibrate import CalibrateWorker
+
+    bus = LocalBus("cal")
+    workers = {n: CalibrateWorker(bus, None, cloud_wait_s=0.5, worker_id=n) for n in ("wa", "wb")}
+    for w in workers.values():
+        w.share.grace_s = 0.2
+        w.start()
+    answers: list[dict] = []
+    bus.subscribe(bus.keys.hand_eye, lambda s: answers.append(s.decode()))
+
+    def end(job_id: str) -> None:  # a hand-eye job with no usable ball: answered as a failure
+        bus.publish_json(bus.keys.job_event(job_id), {
+            "job_id": job_id, "kind": "calibrate_hand_eye", "state": "done", "step": "end",
+            "message": "", "result": {"balls": 0, "ecs_points": 0}}, "scancell.JobEvent")
+
+    try:
+        first = jobs_owned()["wa"]
+        end(first)
+        wait_until(lambda: answers, 10, what="the first job's answer")
+        time.sleep(0.5)
+        assert [(a["job_id"], a["worker"]) for a in answers] == [(first, "wa")]
+        assert workers["wb"].held == set()
+        # wa goes as its next job ends; wb, which kept the job, answers it
+        workers["wa"]._process_when_complete = lambda job_id: workers["wa"].share.stop()
+        second = next(j for j in (f"calibrate-x{k}" for k in range(100))
+                      if owner_of(j, ["wa", "wb"]) == "wa")
+        end(second)
+        wait_until(lambda: len(answers) == 2, 10, what="the taken-over job's answer")
+        time.sleep(0.5)
+        assert [(a["job_id"], a["worker"]) for a in answers[1:]] == [(second, "wb")]
+        assert answers[1]["T_ecs_from_mcs"] is None and answers[1]["error"]
+    finally:
+        for w in workers.values():
+            w.stop()

@@ -25,11 +25,13 @@ from scancell.analysis.fit import FitError, detect_sphere
 from scancell.analysis.handeye import HandEyeError, Pair, solve_hand_eye
 from scancell.analysis.pair_table import write_pairs
 from scancell.bus.protocol import BusLike, Latched
+from scancell.bus.recent_ids import RecentIds
 from scancell.model.ecs import SMR_RADIUS_MM, DegenerateGeometry, ecs_from_circle, ecs_from_points
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import EncodingError
 from scancell.workers.base import ThreadedWorker
+from scancell.workers.work_share import WorkShare
 
 log = logging.getLogger(__name__)
 
@@ -75,12 +77,15 @@ def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
     return body, pairs
 
 
-def store(root: Path, body: dict[str, Any], pairs: list[Pair]) -> Path:
+def store(root: Path, body: dict[str, Any], pairs: list[Pair] | None) -> Path:
+    """``<job>.json``, its pairs (CSV; None: solved elsewhere, not written) and ``active.json``
+    in ``root/hand_eye``."""
     d = root / "hand_eye"
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"{body['job_id']}.json"
     path.write_text(json.dumps(body, indent=2))
-    write_pairs(d / f"{body['job_id']}.pairs.csv", pairs)
+    if pairs is not None:
+        write_pairs(d / f"{body['job_id']}.pairs.csv", pairs)
     tmp = d / ".active.json.tmp"
     tmp.write_text(json.dumps(body, indent=2))
     os.replace(tmp, d / "active.json")
@@ -92,7 +97,8 @@ class CalibrateWorker(ThreadedWorker[str]):
 
     thread_name = "calibrate-worker"
 
-    def __init__(self, bus: BusLike, store_dir: Path | None, cloud_wait_s: float = 120.0) -> None:
+    def __init__(self, bus: BusLike, store_dir: Path | None, cloud_wait_s: float = 120.0,
+                 worker_id: str | None = None) -> None:
         super().__init__(bus)
         self.store_dir = store_dir
         self.cloud_wait_s = cloud_wait_s
@@ -100,9 +106,17 @@ class CalibrateWorker(ThreadedWorker[str]):
         self.results: list[dict[str, Any]] = []
         self._lock = threading.Lock()
         self._latched: Latched | None = None
+        #: one calibrate worker per job: the job's owner among the live calibrate workers solves
+        #: and publishes it; the others keep its data and solve it if the owner is gone first
+        self.share = WorkShare(bus, "calibrate", worker_id)
+        self.share.on_departure = self._take_over
+        self.held: set[str] = set()
+        self._answered = RecentIds()
+        self._solved = RecentIds()  # the jobs this worker answered
 
     def on_start(self) -> None:
         k = self.bus.keys
+        self.share.watch()
         self._latched = self.bus.latched(k.hand_eye)
         active = self.store_dir / "hand_eye" / "active.json" if self.store_dir else None
         if active is not None and active.is_file():
@@ -111,12 +125,40 @@ class CalibrateWorker(ThreadedWorker[str]):
             except ValueError as exc:
                 log.error("%s: not JSON (%s); no active hand-eye published", active, exc)
         self.subscribe(k.hand_eye + "/sample", self._on_sample)
+        self.subscribe(k.hand_eye, self._on_answer)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.job_event("*"), self._on_event)
+        self.share.join()  # the token last (WorkShare.join)
 
     def on_stop(self) -> None:
+        self.share.stop()
         if self._latched is not None:
             self._latched.close()
+
+    def _on_answer(self, sample: Any) -> None:
+        """A calibration (or its failure) on ``calib/hand_eye``: that job is answered. One another
+        worker solved goes into this worker's store too, so either one starts with it."""
+        try:
+            body = sample.decode()
+            job_id = str(body["job_id"])
+        except (EncodingError, KeyError, TypeError, ValueError):
+            return
+        with self._lock:
+            self._answered.add(job_id)
+            self.held.discard(job_id)
+            mine = job_id in self._solved
+        if (not mine and self.store_dir is not None and body.get("T_ecs_from_mcs") is not None
+                and job_id in self.jobs):
+            store(self.store_dir, body, None)
+
+    def _take_over(self, worker: str) -> None:
+        with self._lock:
+            mine = sorted(j for j in self.held if self.share.mine(j))
+            self.held.difference_update(mine)
+        for job_id in mine:
+            log.warning("calibrate worker %s: solving job %s for %s, which is gone",
+                        self.share.worker_id, job_id, worker)
+            self.submit(job_id)
 
     def _job(self, job_id: str) -> JobData:
         return self.jobs.setdefault(job_id, JobData(job_id))
@@ -160,6 +202,11 @@ class CalibrateWorker(ThreadedWorker[str]):
             log.warning("job %s %s: no calibration", e["job_id"], e["state"])
 
     def handle(self, job_id: str) -> None:
+        if not self.share.mine(job_id):  # another calibrate worker's job: keep its data only
+            with self._lock:
+                if job_id not in self._answered:
+                    self.held.add(job_id)
+            return
         self._process_when_complete(job_id)
 
     def _process_when_complete(self, job_id: str) -> None:
@@ -178,13 +225,16 @@ class CalibrateWorker(ThreadedWorker[str]):
         self.process(job)
 
     def process(self, job: JobData) -> dict[str, Any] | None:
+        with self._lock:
+            self._solved.add(job.job_id)
         try:
             body, pairs = compute(job)
         except (HandEyeError, DegenerateGeometry) as exc:
             log.error("hand-eye of job %s failed: %s", job.job_id, exc)
             self._publish({"T_ecs_from_mcs": None, "rms_mm": None, "job_id": job.job_id,
-                           "error": str(exc)}, latch=False)
+                           "error": str(exc), "worker": self.share.worker_id}, latch=False)
             return None
+        body["worker"] = self.share.worker_id
         if self.store_dir is not None:
             body["file"] = str(store(self.store_dir, body, pairs))
         self._publish(body)
