@@ -269,7 +269,7 @@ def test_one_fuse_worker_per_job_and_a_gone_ones_job_taken_over(cell, endpoint, 
         assert not (tmp_path / "wb").exists()  # the other worker wrote nothing
         first = c.reports[0]
         assert first["stations"] == 3 and "translation_mm" in first, json.dumps(first)[:1500]
-        assert c.workers["wb"].held == set()  # it saw wa's report
+        assert c.workers["wb"].share.held == set()  # it saw wa's report
 
         # wa's next job: wa is gone as it starts to fuse; wb, which kept the data, reports it
         def gone(job_id: str) -> None:
@@ -361,7 +361,7 @@ def test_one_calibrate_worker_per_job_and_a_gone_ones_job_solved_by_the_other():
         wait_until(lambda: answers, 10, what="the first job's answer")
         time.sleep(0.5)
         assert [(a["job_id"], a["worker"]) for a in answers] == [(first, "wa")]
-        assert workers["wb"].held == set()
+        assert workers["wb"].share.held == set()
         # wa goes as its next job ends; wb, which kept the job, answers it
         workers["wa"]._process_when_complete = lambda job_id: workers["wa"].share.stop()
         second = next(j for j in (f"calibrate-x{k}" for k in range(100))

@@ -10,7 +10,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
-from scancell.bus.protocol import BusLike, BusSample, Subscription
+from scancell.bus.protocol import BusLike, BusSample, Latched, Subscription
+from scancell.protocols import messages
 
 log = logging.getLogger(__name__)
 
@@ -115,3 +116,14 @@ class HandEyeInForce:
                 return
         with self._lock:
             self._body = body
+
+
+def publish_worker_status(publisher: Latched | None, body: dict[str, Any]) -> None:
+    """A worker's latched ``workers/<kind>/<id>/status`` (``scancell.WorkerStatus``). Advisory:
+    on a closing session it is lost without a word."""
+    if publisher is None:
+        return
+    try:
+        publisher.publish(messages.encode_json(body, "scancell.WorkerStatus"))
+    except Exception as exc:
+        log.debug("worker status: %s", exc)

@@ -110,8 +110,6 @@ class CalibrateWorker(ThreadedWorker[str]):
         #: and publishes it; the others keep its data and solve it if the owner is gone first
         self.share = WorkShare(bus, "calibrate", worker_id)
         self.share.on_departure = self._take_over
-        self.held: set[str] = set()
-        self._answered = RecentIds()
         self._solved = RecentIds()  # the jobs this worker answered
 
     def on_start(self) -> None:
@@ -143,21 +141,15 @@ class CalibrateWorker(ThreadedWorker[str]):
             job_id = str(body["job_id"])
         except (EncodingError, KeyError, TypeError, ValueError):
             return
+        self.share.answered(job_id)
         with self._lock:
-            self._answered.add(job_id)
-            self.held.discard(job_id)
             mine = job_id in self._solved
         if (not mine and self.store_dir is not None and body.get("T_ecs_from_mcs") is not None
                 and job_id in self.jobs):
             store(self.store_dir, body, None)
 
     def _take_over(self, worker: str) -> None:
-        with self._lock:
-            mine = sorted(j for j in self.held if self.share.mine(j))
-            self.held.difference_update(mine)
-        for job_id in mine:
-            log.warning("calibrate worker %s: solving job %s for %s, which is gone",
-                        self.share.worker_id, job_id, worker)
+        for job_id in self.share.take_over(worker):
             self.submit(job_id)
 
     def _job(self, job_id: str) -> JobData:
@@ -203,9 +195,7 @@ class CalibrateWorker(ThreadedWorker[str]):
 
     def handle(self, job_id: str) -> None:
         if not self.share.mine(job_id):  # another calibrate worker's job: keep its data only
-            with self._lock:
-                if job_id not in self._answered:
-                    self.held.add(job_id)
+            self.share.hold(job_id)
             return
         self._process_when_complete(job_id)
 

@@ -47,7 +47,6 @@ from scancell.analysis.station_uncertainty import (
     station_uncertainty,
 )
 from scancell.bus.protocol import BusLike
-from scancell.bus.recent_ids import RecentIds
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
@@ -124,8 +123,6 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self.share = WorkShare(bus, "fuse", worker_id)
         self.share.on_departure = self._take_over
         #: ended jobs another worker owns, until their final report is seen
-        self.held: set[str] = set()
-        self._reported = RecentIds()
 
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
@@ -221,17 +218,10 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
 
     def _on_report(self, sample: Any) -> None:
         body = sample.decode()
-        with self._lock:
-            self._reported.add(str(body.get("job_id")))
-            self.held.discard(str(body.get("job_id")))
+        self.share.answered(str(body.get("job_id")))
 
     def _take_over(self, worker: str) -> None:
-        with self._lock:
-            mine = sorted(j for j in self.held if self.share.mine(j))
-            self.held.difference_update(mine)
-        for job_id in mine:
-            log.warning("fuse worker %s: taking over job %s from %s, which is gone",
-                        self.share.worker_id, job_id, worker)
+        for job_id in self.share.take_over(worker):
             self.submit(("end", job_id))
 
     # ---------------------------------------------------------------- worker thread
@@ -240,9 +230,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         job_id = arg.split("\0")[0]
         if not self.share.mine(job_id):  # another fuse worker's job: keep its data only
             if kind == "end":
-                with self._lock:
-                    if job_id not in self._reported:
-                        self.held.add(job_id)
+                self.share.hold(job_id)
             return
         if kind == "station":
             self.add_station(*arg.split("\0"))

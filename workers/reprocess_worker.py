@@ -21,7 +21,7 @@ from typing import Any
 from scancell.bus.zenoh_bus import Bus
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
-from scancell.workers.base import ThreadedWorker
+from scancell.workers.base import ThreadedWorker, publish_worker_status
 from scancell.workers.reprocess_batch import KIND
 from scancell.workers.work_share import WorkShare
 
@@ -157,7 +157,4 @@ class ReprocessWorker(ThreadedWorker[str]):
                 "working_on": self._working, "queued": len(self._queued),
                 "done": len(self.done), "members": self.share.members,
                 "load_1min": round(os.getloadavg()[0], 2), "stamp_ns": messages.now_ns()}
-        try:
-            self._status_pub.publish(messages.encode_json(body, "scancell.WorkerStatus"))
-        except Exception as exc:  # a closing session: the status is advisory
-            log.debug("worker status: %s", exc)
+        publish_worker_status(self._status_pub, body)

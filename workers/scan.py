@@ -37,7 +37,7 @@ from scancell.model.patterns import PROJECTOR_WIDTH, FringeSequence
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
-from scancell.workers.base import ThreadedWorker
+from scancell.workers.base import ThreadedWorker, publish_worker_status
 from scancell.workers.work_share import WorkShare
 
 log = logging.getLogger(__name__)
@@ -295,10 +295,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 "queued": max(self.pending() - (now is not None), 0), "standby": standby,
                 "decoded": len(self.decoded), "members": self.share.members,
                 "load_1min": round(os.getloadavg()[0], 2), "stamp_ns": messages.now_ns()}
-        try:
-            self._status_pub.publish(messages.encode_json(body, "scancell.WorkerStatus"))
-        except Exception as exc:  # a closing session: the status is advisory
-            log.debug("worker status: %s", exc)
+        publish_worker_status(self._status_pub, body)
 
     def _dispatch(self, scan: PendingScan) -> None:
         with self._lock:

@@ -28,6 +28,7 @@ import uuid
 from collections.abc import Callable
 
 from scancell.bus.protocol import BusLike, Subscription
+from scancell.bus.recent_ids import RecentIds
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,8 @@ class WorkShare:
         #: called (on a timer thread) with a departed worker's id, ``grace_s`` after it left
         self.on_departure: Callable[[str], None] | None = None
         self._members: set[str] = set()
+        self._held: set[str] = set()
+        self._answered = RecentIds()
         self._lock = threading.Lock()
         self._token: Subscription | None = None
         self._watch: Subscription | None = None
@@ -98,6 +101,35 @@ class WorkShare:
 
     def mine(self, item: str) -> bool:
         return self.owner(item) == self.worker_id
+
+    # ---- items held for another worker (a job this worker keeps the data of)
+    def hold(self, item: str) -> None:
+        """Keep ``item``, another worker's, until it is answered or its owner is gone."""
+        with self._lock:
+            if item not in self._answered:
+                self._held.add(item)
+
+    def answered(self, item: str) -> None:
+        """``item``'s answer is on the bus: nothing to take over."""
+        with self._lock:
+            self._answered.add(item)
+            self._held.discard(item)
+
+    @property
+    def held(self) -> set[str]:
+        with self._lock:
+            return set(self._held)
+
+    def take_over(self, gone: str) -> list[str]:
+        """The held items that are this worker's now that ``gone`` is gone (no longer held)."""
+        with self._lock:
+            mine = sorted(i for i in self._held
+                          if owner_of(i, self._members | {self.worker_id}) == self.worker_id)
+            self._held.difference_update(mine)
+        for item in mine:
+            log.warning("%s worker %s: taking over %s from %s, which is gone", self.kind,
+                        self.worker_id, item, gone)
+        return mine
 
     def _on_change(self, key: str, present: bool) -> None:
         worker = key.rsplit("/", 1)[-1]
