@@ -66,6 +66,19 @@ class _MemberWatch:
                 self.bus._watches.remove(self)
 
 
+class _Answering:
+    def __init__(self, bus: LocalBus, key: str, handler: Callable[[dict[str, Any]],
+                                                                  dict[str, Any]]) -> None:
+        self.bus = bus
+        self.key_expr = zenoh.KeyExpr(key)
+        self.handler = handler
+
+    def undeclare(self) -> None:
+        with self.bus._lock:
+            if self in self.bus._answering:
+                self.bus._answering.remove(self)
+
+
 class LocalBus:
     def __init__(self, cell: str) -> None:
         self.keys = CellKeys(cell)
@@ -75,6 +88,7 @@ class LocalBus:
         self._lock = threading.Lock()
         self._seq: dict[str, int] = {}
         self._last: dict[str, BusSample] = {}  # latched key -> last sample
+        self._answering: list[_Answering] = []
 
     def subscribe(self, key_expr: str, callback: Callable[[BusSample], None],
                   on_error: Callable[[str, Exception], None] | None = None) -> _Subscription:
@@ -114,6 +128,22 @@ class LocalBus:
         with self._lock:
             return [s for k, s in self._last.items() if ke.intersects(zenoh.KeyExpr(k))]
 
+    def answer(self, key: str, handler: Callable[[dict[str, Any]], dict[str, Any]],
+               schema: str) -> _Answering:
+        """Answer ``ask`` on ``key`` with ``handler(request)`` (in-process, synchronously)."""
+        a = _Answering(self, key, handler)
+        with self._lock:
+            self._answering.append(a)
+        return a
+
+    def ask(self, key_expr: str, request: dict[str, Any], schema: str,
+            timeout_s: float = 1.0) -> list[dict[str, Any]]:
+        """Every answer of the ``answer`` handlers matching ``key_expr``."""
+        ke = zenoh.KeyExpr(key_expr)
+        with self._lock:
+            handlers = [a for a in self._answering if a.key_expr.intersects(ke)]
+        return [a.handler(dict(request)) for a in handlers]
+
     def declare_member(self, key: str) -> _Member:
         self._member_change(key, True)
         return _Member(self, key)
@@ -141,3 +171,4 @@ class LocalBus:
         with self._lock:
             self._subs.clear()
             self._watches.clear()
+            self._answering.clear()

@@ -63,6 +63,16 @@ class BusLike(Protocol):
 
     def fetch_latched(self, key_expr: str, timeout_s: float = ...) -> list[BusSample]: ...
 
+    def answer(self, key: str, handler: Callable[[dict[str, Any]], dict[str, Any]],
+               schema: str) -> Subscription:
+        """Answer questions on ``key``: ``handler(request)`` gives the JSON answer."""
+        ...
+
+    def ask(self, key_expr: str, request: dict[str, Any], schema: str,
+            timeout_s: float = ...) -> list[dict[str, Any]]:
+        """Every answer from the ``answer`` handlers on ``key_expr``."""
+        ...
+
     def declare_member(self, key: str) -> Subscription:
         """A liveliness token on ``key``: present until undeclared or the process is gone."""
         ...

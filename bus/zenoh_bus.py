@@ -348,6 +348,28 @@ class Bus:
     def _endpoints(self) -> list[str]:
         return list(self.config.connect) if self.config else []
 
+    def ask(self, key_expr: str, request: dict[str, Any], schema: str,
+            timeout_s: float = 1.0) -> list[dict[str, Any]]:
+        """Every JSON answer to ``request`` from the queryables on ``key_expr`` (those that do
+        not answer within ``timeout_s`` are not waited for; error replies are logged)."""
+        replies = self.session.get(
+            key_expr, payload=json.dumps(request).encode(),
+            encoding=zenoh.Encoding(f"application/json;{schema}"), timeout=timeout_s)
+        out = []
+        for reply in replies:
+            if reply.ok is None:
+                log.warning("%s: %s", key_expr, reply.err.payload.to_bytes().decode(
+                    errors="replace"))
+                continue
+            try:
+                body = json.loads(reply.ok.payload.to_bytes())
+            except ValueError:
+                log.warning("%s: an answer that is not JSON", reply.ok.key_expr)
+                continue
+            if isinstance(body, dict):
+                out.append(body)
+        return out
+
     def answer(self, key: str, handler: Callable[[dict[str, Any]], dict[str, Any]],
                schema: str) -> zenoh.Queryable:
         """Answer queries on ``key``: ``handler(request)`` (the query's JSON payload, ``{}`` if

@@ -57,6 +57,10 @@ class CellKeys:
         """A live worker's liveliness token: ``workers/<kind>/<worker_id>`` (``*``: all)."""
         return f"{self.prefix}/workers/{kind}/{worker_id}"
 
+    def worker_answered(self, kind: str, worker_id: str) -> str:
+        """A worker's queryable: has it answered an item (``scancell.WorkerAnswered``)?"""
+        return f"{self.worker(kind, worker_id)}/answered"
+
     def worker_status(self, kind: str, worker_id: str) -> str:
         """A worker's latched ``scancell.WorkerStatus``: what it decodes, queues and holds."""
         return f"{self.worker(kind, worker_id)}/status"

@@ -4,12 +4,14 @@ normally, and the fused figures equal a single worker's (the recording decoded a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 from scancell.protocols import messages
@@ -18,6 +20,7 @@ from scancell.sim.world import get_world
 
 from .conftest import sim_cell_raw, wait_until
 from .test_scan_part import Events, _all_connected, plan_for
+from .test_work_share import scan_frames  # noqa: F401  (a fixture)
 
 pytestmark = pytest.mark.timeout(400)
 
@@ -128,3 +131,69 @@ def test_a_scan_worker_killed_mid_station_loses_nothing(make_daemon, client, cel
     assert again["stations"] == 3
     assert again["translation_mm"] == report["translation_mm"]
     assert again["rotation_deg"] == report["rotation_deg"]
+
+
+@pytest.mark.e2e
+def test_a_stalled_worker_that_comes_back_answers_nothing(cell, endpoint, scan_frames,  # noqa: F811
+                                                          tmp_path):
+    """The scan's owner is stopped (SIGSTOP) as it gets the scan: after zenoh's 10 s lease the
+    other worker takes the scan over; when the owner runs again (SIGCONT) it asks the others
+    before publishing and finds the scan answered. One cloud and one result on the bus."""
+    from scancell.bus.zenoh_bus import Bus, BusConfig
+    from scancell.cli.ctl import live_workers
+    from scancell.workers.work_share import owner_of
+
+    from .test_work_share import publish_scan
+
+    hub = Bus.open(BusConfig(listen=(endpoint,)), cell)
+    obs = Bus.open(BusConfig.for_client(endpoint), cell)
+    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
+    logs = [open(tmp_path / f"w{k}.log", "w") for k in range(2)]
+    procs = [subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",
+                               str(scan_frames[0])], env=env, stdout=logs[k],
+                              stderr=subprocess.STDOUT) for k in range(2)]
+    clouds: list[str] = []
+    results: list[dict] = []
+    stopped: dict[str, object] = {}
+    obs.subscribe(obs.keys.scan_cloud("*"), lambda s: clouds.append(s.attachment.meta["scan_id"]))
+    obs.subscribe(obs.keys.scan_result("*"), lambda s: results.append(s.decode()))
+    try:
+        wait_until(lambda: len([w for w in live_workers(obs) if w["kind"] == "scan"]) == 2, 60,
+                   period_s=0.5, what="two scan workers")
+        workers = {w["worker"]: w for w in live_workers(obs) if w["kind"] == "scan"}
+        ids = sorted(workers)
+        sid = next(f"stall-s{k:02d}" for k in range(100) if owner_of(f"stall-s{k:02d}", ids)
+                   == ids[0])
+        owner, other = workers[ids[0]], workers[ids[1]]
+
+        def on_status(s) -> None:  # the other holds the scan: the owner has its frames too
+            body = s.decode()
+            if body.get("worker") == other["worker"] and sid in body.get("standby", []) \
+                    and not stopped:
+                os.kill(int(owner["pid"]), signal.SIGSTOP)
+                stopped["at"] = time.monotonic()
+
+        obs.subscribe(obs.keys.worker_status("scan", "*"), on_status)
+        publish_scan(obs, sid, scan_frames[1])
+        wait_until(lambda: results, 60, period_s=0.2, what="the taken-over scan's result")
+        assert stopped, "the owner was not stopped in time"
+        assert [(r["worker"], r["taken_over_from"]) for r in results] == [
+            (other["worker"], owner["worker"])]
+        os.kill(int(owner["pid"]), signal.SIGCONT)
+        time.sleep(8.0)  # it runs again: reconnects, decodes what it held, asks, stays silent
+        assert clouds == [sid] and len(results) == 1, (
+            clouds, results, *(f.name for f in logs))  # the workers' logs are kept there
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p.pid, signal.SIGCONT)
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for f in logs:
+            f.close()
+        obs.close()
+        hub.close()

@@ -177,6 +177,8 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         #: scan ids whose result is on the bus, and whose cloud is (the last few thousand)
         self._finished = RecentIds()
         self._clouds_seen = RecentIds()
+        self._published = RecentIds()  # the scans this worker answered
+        self._answering: Any = None
         #: scan ids this worker decoded, in order
         self.decoded: list[str] = []
         self._decoding: PendingScan | None = None
@@ -209,6 +211,8 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 self._publish_response(ProjectorResponse.read(self.response_path))
             except ResponseCalibrationError as exc:
                 log.error("%s; fringes will not be pre-compensated", exc)
+        self._answering = self.bus.answer(k.worker_answered("scan", self.share.worker_id),
+                                          self._on_asked, "scancell.WorkerAnswered")
         # the token last (WorkShare.join)
         self.share.join()
         self._status_pub = self.bus.latched(
@@ -217,6 +221,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
 
     def on_stop(self) -> None:
         self.share.stop()
+        if self._answering is not None:
+            try:
+                self._answering.undeclare()
+            except Exception as exc:  # a closed session
+                log.debug("scan worker: %s", exc)
         for pub in (self._calib_pub, self._response_pub, self._status_pub):
             if pub is not None:
                 pub.close()
@@ -374,10 +383,14 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         with self._lock:  # another worker may have answered while this one decoded
             answered = self._finish_key(scan) in self._finished
             cloud_seen = scan.cloud_seen or scan.scan_id in self._clouds_seen
+        if not answered and scan.levels is None:
+            answered = self.answered_elsewhere(scan.scan_id)
         if answered:
             log.warning("scan %s (station %s): another worker answered while this one decoded; "
                         "nothing published", scan.scan_id, scan.station)
             return result
+        with self._lock:
+            self._published.add(scan.scan_id)
         if not cloud_seen:
             self.bus.publish(self.bus.keys.scan_cloud(scan.station), fg.encode_proto(msg),
                              Attachment(scan.stamp_ns or messages.now_ns(), self.done, None, meta))
@@ -386,7 +399,34 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                  result.timings["total"])
         return result
 
+    def answered_elsewhere(self, scan_id: str) -> bool:
+        """Whether another scan worker says it answered ``scan_id``: asked on the bus just
+        before publishing, so a worker that stalled or was cut off while another took its scan
+        over does not answer a second time."""
+        try:
+            answers = self.bus.ask(self.bus.keys.worker_answered("scan", "*"),
+                                   {"scan_id": scan_id}, "scancell.WorkerAnswered", 2.0)
+        except Exception as exc:  # no bus: nobody else can have answered
+            log.debug("scan %s: asking the other workers: %s", scan_id, exc)
+            return False
+        by = [a.get("worker") for a in answers
+              if a.get("answered") and a.get("worker") != self.share.worker_id]
+        if by:
+            log.warning("scan %s: worker %s answered it while this worker (%s) was away; "
+                        "nothing published", scan_id, by[0], self.share.worker_id)
+        return bool(by)
+
+    def _on_asked(self, request: dict[str, Any]) -> dict[str, Any]:
+        scan_id = str(request.get("scan_id", ""))
+        with self._lock:
+            done = scan_id in self._published
+        return {"worker": self.share.worker_id, "scan_id": scan_id, "answered": done}
+
     def _publish_result(self, scan: PendingScan, result: ScanResult | None, error: str | None) -> None:
+        if scan.levels is None and error is not None and self.answered_elsewhere(scan.scan_id):
+            return  # an incomplete or failed scan another worker answered meanwhile
+        with self._lock:
+            self._published.add(scan.scan_id)
         if scan.levels is not None:
             self.bus.publish_json(self.bus.keys.projector_response_result,
                                   {"job_id": scan.job_id, "ok": False, "error": error},
