@@ -225,10 +225,24 @@ class SimpleMessageRobot(Robot):
                 settled_since = None
 
     async def stop(self) -> None:
+        """Stop the motion and return once the robot stands: a joint state sent after the
+        controller took the stop, and a status no longer in motion (``joints()`` then gives
+        the stopped pose, not one from before the halt)."""
         self._stop_requested = True
         self._stops += 1
         await self._send_point(sm.SpecialSeq.STOP_TRAJECTORY, np.zeros(len(self.joint_names)),
                                0.0)
+        taken = time.monotonic()
+        deadline = taken + max(self.state_timeout, 2.0)
+        while True:
+            st = self._check_state()
+            moving = st.status is not None and st.status.in_motion == sm.TriState.ON
+            if st.stamp > taken and not moving:
+                return
+            if time.monotonic() > deadline:
+                raise DeviceFault(f"{self.name}: still {'in motion' if moving else 'silent'} "
+                                  f"{deadline - taken:.1f} s after the stop")
+            await asyncio.sleep(1 / 120)
 
     async def status(self) -> RobotStatus:
         s = self._check_state().status

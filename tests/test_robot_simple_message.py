@@ -77,8 +77,7 @@ def test_stop_mid_motion_halts_the_robot():
             await robot.stop()
             with pytest.raises(DeviceFault, match="stopped"):
                 await move
-            await asyncio.sleep(0.2)  # joints() is the state link's last message: a fresh one
-            q1 = (await robot.joints())[0]
+            q1 = (await robot.joints())[0]  # stop() returned: the robot stands
             await asyncio.sleep(0.3)
             q2 = (await robot.joints())[0]
             assert 0 < q1 < np.radians(60) and q1 == pytest.approx(q2, abs=1e-6)
