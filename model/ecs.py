@@ -108,3 +108,36 @@ def ecs_for_frame(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.ndarr
     if len(pts) == 3 and np.allclose(j6 - j6[0], frame - frame[0], atol=1e-6):
         return ecs_from_points(*pts)
     return ecs_from_circle(pts, j6, frame)
+
+
+def mcs_poses_at_j6(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.ndarray,
+                    T_ecs_from_mcs: np.ndarray) -> list[np.ndarray]:
+    """``T_world_from_mcs`` at each J6 angle the SMR ``points`` were measured at (relative
+    ``j6_deg``; the first is the station's scanning pose), from the ECS of the hand-eye frame
+    ``frame_j6_deg`` and the hand-eye ``T_ecs_from_mcs``: the scanning pose turned about the
+    fitted J6 axis by each commanded angle. With these a cluster of SMRs on the scanner is
+    located in ``mcs`` from the hand-eye job's own J6 turns."""
+    pts = np.asarray(points, float)
+    j6 = np.asarray(j6_deg, float)
+    T0 = ecs_for_frame(pts, j6, frame_j6_deg) @ np.asarray(T_ecs_from_mcs, float)
+    centre, n, _, _ = fit_rotation_circle(pts)
+    rel = pts - centre
+    rel -= np.outer(rel @ n, n)
+    u = rel[0] / np.linalg.norm(rel[0])
+    theta = np.arctan2(rel @ np.cross(n, u), rel @ u)  # measured, first point at 0
+    a = np.radians(j6 - j6[0])
+    direction = 1.0 if np.sum(np.sin(theta) * np.sin(a)) >= 0 else -1.0
+    out = []
+    for angle in a:
+        R = _axis_rotation(n, direction * angle)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = centre - R @ centre
+        out.append(T @ T0)
+    return out
+
+
+def _axis_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K

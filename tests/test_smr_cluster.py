@@ -91,3 +91,25 @@ def test_the_cluster_calibrated_from_known_poses():
     assert cal.to_json()["top"]["poses"] == 6
     with pytest.raises(ClusterGeometryError, match="cluster calibration"):
         calibrate_cluster(poses[:1], seen[:1])
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("profile, tol_mm", [("ideal", 1e-9), ("realistic", 0.05)])
+def test_the_j6_turned_scanner_poses_from_the_ecs_points_and_the_hand_eye(profile, tol_mm):
+    """The poses a cluster is calibrated from: the scanner at each J6 turn of the hand-eye job,
+    from the SMR's points and the hand-eye. Exact with ideal mechanics; with the realistic arm
+    the compliance changing with J6 moves the scanner by a few µm that the ECS cannot see."""
+    import scancell.sim.mechanics as mech
+    from scancell.model.ecs import mcs_poses_at_j6
+    from scancell.sim.cell import SimCell, SimCellConfig
+
+    cell = SimCell(SimCellConfig(camera_scale=16, part=None,
+                                 mechanics=mech.mechanics_profile(profile)))
+    q = np.radians(np.asarray(cell.cfg.home_deg, float)) + np.radians([10, 5, -5, 0, 10, 20])
+    angles = np.array([0.0, *cell.cfg.j6_angles_deg])
+    pts = np.array([cell.smr_center_world(cell.j6_turned(q, a)) for a in angles])
+    poses = mcs_poses_at_j6(pts, angles, angles, cell.true_T_ecs_from_mcs())
+    for a, T in zip(angles, poses, strict=True):
+        true = cell.T_world_from_mcs(cell.j6_turned(q, a))
+        e = pose_error(T, true)
+        assert np.linalg.norm(e[3:]) < tol_mm and np.linalg.norm(e[:3]) < tol_mm / 500, (a, e)
