@@ -141,6 +141,10 @@ class SimCellConfig:
     nests_world_mm: dict[str, tuple[float, float, float]] = field(
         default_factory=lambda: dict(DEFAULT_NESTS))
     home_deg: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, -90.0, 0.0)
+    #: SMR nests on the scanner's housing besides its rear SMR (issue 19): name -> (centre in
+    #: mcs, opening direction in mcs); the tracker targets them as ``scanner:<name>``
+    smr_cluster: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(
+        default_factory=dict)
     #: the scanner-check ball bar fixed in the cell beside the part (world, mm): its centre
     #: and its axis; None: none. Where ``[metrology.scanner_check]`` of sim.toml looks.
     check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
@@ -433,6 +437,9 @@ class SimCell:
         """Every reflector's centre (world, mm) now: the scanner's SMR, the calibration ball if
         placed, and the nests (``nest:<name>``)."""
         out = {"scanner": self.smr_center_world()}
+        T = self.T_world_from_mcs()
+        for name, (c, _) in self.cfg.smr_cluster.items():
+            out[f"scanner:{name}"] = T[:3, :3] @ np.asarray(c, float) + T[:3, 3]
         with contextlib.suppress(KeyError):
             out["ball"] = self.ball_center_world()
         for name in self.cfg.nests_world_mm:
@@ -443,11 +450,20 @@ class SimCell:
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
         """Centre, the SMR's rotation (its opening is the z column), opening direction and the
         self-occluding object names of a tracker target, at sim time ``t_s``."""
-        if target == "scanner":
+        if target == "scanner" or target.startswith("scanner:"):
             T = self._flange_now(self.clock.now() if t_s is None else t_s, window_s) \
                 @ self.T_flange_from_mcs
-            c = apply_T(T, self.cfg.smr_in_mcs_mm[None])[0]
-            return c, T[:3, :3], T[:3, :3] @ self.smr_opening_in_mcs, ()
+            if target == "scanner":
+                centre, opening = self.cfg.smr_in_mcs_mm, self.smr_opening_in_mcs
+            else:
+                try:
+                    centre, opening = self.cfg.smr_cluster[target.removeprefix("scanner:")]
+                except KeyError:
+                    raise KeyError(f"unknown tracker target {target!r}: the cluster has "
+                                   f"{sorted(self.cfg.smr_cluster)}") from None
+                opening = np.asarray(opening, float) / np.linalg.norm(opening)
+            c = apply_T(T, np.asarray(centre, float)[None])[0]
+            return c, T[:3, :3], T[:3, :3] @ opening, ()
         name = "ball" if target == "ball" else f"nest_{target.removeprefix('nest:')}"
         if target != "ball" and not (target.startswith("nest:")
                                      and target[5:] in self.cfg.nests_world_mm):

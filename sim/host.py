@@ -36,7 +36,7 @@ from scancell.sim.optics_profile import (
     OpticsProfile,
     optics_profile,
 )
-from scancell.sim.parts import PARTS
+from scancell.sim.parts import HOUSING_SMR_CLUSTER, PARTS
 from scancell.sim.world import SimWorld, register, unregister
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
         "camera_scale": {"type": "number", "minimum": 1},
         "part": {"enum": [*PARTS, ""]},
         "look_at_part": {"type": "boolean"},
+        "smr_cluster": {"enum": ["housing", ""]},
         "profile": {"enum": sorted(PROFILES)},
         "effects_off": {"type": "array", "items": {"enum": sorted({*EFFECTS, *MECH_EFFECTS})},
                         "uniqueItems": True},
@@ -102,9 +103,11 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
     """The simulated cell a ``[simulator]`` table describes (its geometry is the ground truth a
     worker compares against)."""
     optics, mechanics = sim_profiles(options)
+    cluster = options.get("smr_cluster")  # the schema admits "housing" or none
     return SimCell(SimCellConfig(
         seed=int(options.get("seed", 0)), camera_scale=float(options.get("camera_scale", 1.0)),
-        part=options.get("part", "car_rear") or None, optics=optics, mechanics=mechanics))
+        part=options.get("part", "car_rear") or None, optics=optics, mechanics=mechanics,
+        smr_cluster=dict(HOUSING_SMR_CLUSTER) if cluster == "housing" else {}))
 
 
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:

@@ -113,3 +113,36 @@ def test_the_j6_turned_scanner_poses_from_the_ecs_points_and_the_hand_eye(profil
         true = cell.T_world_from_mcs(cell.j6_turned(q, a))
         e = pose_error(T, true)
         assert np.linalg.norm(e[3:]) < tol_mm and np.linalg.norm(e[:3]) < tol_mm / 500, (a, e)
+
+
+@pytest.mark.unit
+def test_the_simulated_cluster_gives_the_scanner_pose_without_j6_turns():
+    """The simulated scanner with the housing cluster (``[simulator] smr_cluster = "housing"``):
+    looking at the part with its back to the tracker, the back triangle's SMRs are found and
+    measured by name, the side ones are refused by the acceptance cone, and the pose fitted to
+    the measured SMRs is the scanner's true pose within the tracker's noise."""
+    import scancell.sim.mechanics as mech
+    from scancell.sim.cell import SimCell, SimCellConfig
+    from scancell.sim.host import sim_cell
+    from scancell.sim.parts import HOUSING_SMR_CLUSTER
+    from scancell.sim.tracker_model import BeamBreak
+
+    cell = SimCell(SimCellConfig(camera_scale=16, mechanics=mech.mechanics_profile("ideal"),
+                                 smr_cluster=dict(HOUSING_SMR_CLUSTER)))
+    cell.move_joints(cell.start_joints())
+    seen, refused = {}, []
+    for name in HOUSING_SMR_CLUSTER:
+        try:
+            seen[name] = cell.measure_smr(f"scanner:{name}").point_mm
+        except BeamBreak as exc:
+            refused.append((name, str(exc)))
+    assert sorted(seen) == ["back1", "back2", "back3"], refused
+    assert all("acceptance" in why for _, why in refused)
+    assert set(cell.reflectors_world()) >= {f"scanner:{n}" for n in HOUSING_SMR_CLUSTER}
+    cluster = {n: np.asarray(c) for n, (c, _) in HOUSING_SMR_CLUSTER.items()}
+    fit = fit_cluster_pose(cluster, seen, SIGMA)
+    e = pose_error(fit.T_world_from_mcs, cell.T_world_from_mcs())
+    assert e @ np.linalg.solve(fit.cov, e) < chi2.ppf(0.999, 6), (e, fit.sigma())
+    with pytest.raises(KeyError, match="the cluster has"):
+        cell.measure_smr("scanner:nope")
+    assert not sim_cell({"camera_scale": 16, "part": ""}).cfg.smr_cluster  # none by default
