@@ -180,7 +180,7 @@ def test_a_stalled_worker_that_comes_back_answers_nothing(cell, endpoint, scan_f
         assert [(r["worker"], r["taken_over_from"]) for r in results] == [
             (other["worker"], owner["worker"])]
         os.kill(int(owner["pid"]), signal.SIGCONT)
-        time.sleep(8.0)  # it runs again: reconnects, decodes what it held, asks, stays silent
+        time.sleep(5.0)  # it runs again: reconnects, decodes what it held, asks, stays silent
         assert clouds == [sid] and len(results) == 1, (
             clouds, results, *(f.name for f in logs))  # the workers' logs are kept there
     finally:
