@@ -1,7 +1,8 @@
 """What the tracker's noise does to a station: the ECS error budget of the fusion report.
 
-Each station's pose comes from three tracker points (P1..P3) with a stated 1-sigma each. Drawing
-those points again from their uncertainty and rebuilding the ECS moves the station's cloud; the
+Each station's pose comes from tracker points with a stated 1-sigma each (P1..P3 of the J6
+turns, or the SMRs of the cluster). Drawing those points again from their uncertainty and
+rebuilding the pose moves the station's cloud; the
 mean shift along the scanner's view (which the overlap and true errors mostly see on a smooth
 part) is the error the tracker alone puts into that station. Set beside the measured overlap
 error, it tells whether the tracker or the rest (scanner, calibrations) dominates.
@@ -12,26 +13,24 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scancell.model.ecs import ecs_for_frame
+from scancell.analysis.station_pose import StationPose
 
 
-def ecs_noise_effect(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: list[float],
-                     frame_j6_deg: list[float], T_ecs_from_mcs: np.ndarray,
-                     cloud_mcs: np.ndarray, trials: int = 100, seed: int = 0) -> float:
-    """Mean |shift along the view| (mm) of the cloud's points (MCS, mm) when P1..P3 (world, mm)
-    are drawn from their 1-sigma (per axis, mm); Monte Carlo over ``trials`` draws."""
-    pts = np.asarray(points_mm, float)
-    sig = np.broadcast_to(np.asarray(sigma_mm, float), pts.shape)
+def ecs_noise_effect(pose: StationPose, cloud_mcs: np.ndarray, trials: int = 100,
+                     seed: int = 0) -> float:
+    """Mean |shift along the view| (mm) of the cloud's points (MCS, mm) when the station's
+    tracker points (world, mm) are drawn from their 1-sigma (per axis, mm); Monte Carlo over
+    ``trials`` draws."""
+    pts, sig = pose.points_mm, pose.sigma_mm
     sample = np.asarray(cloud_mcs, float)
     sample = sample[:: max(1, len(sample) // 2000)]
-    T0 = ecs_for_frame(pts, j6_deg, frame_j6_deg) @ T_ecs_from_mcs
+    T0 = pose.T_world_from_mcs()
     X0 = sample @ T0[:3, :3].T + T0[:3, 3]
     view = T0[:3, 2]
     rng = np.random.default_rng(seed)
     shifts = []
     for _ in range(trials):
-        T = ecs_for_frame(pts + rng.standard_normal(pts.shape) * sig, j6_deg,
-                          frame_j6_deg) @ T_ecs_from_mcs
+        T = pose.T_world_from_mcs(pts + rng.standard_normal(pts.shape) * sig)
         X = sample @ T[:3, :3].T + T[:3, 3]
         shifts.append(float(np.abs((X - X0) @ view).mean()))
     return float(np.mean(shifts))

@@ -11,11 +11,13 @@ translation, mm), the same convention as the network's stations.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
 from scancell.analysis.handeye import kabsch
 from scancell.analysis.tracker_network import TrackerSigma
+from scancell.model.cell_geometry import CellGeometry
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -131,3 +133,136 @@ def calibrate_cluster(poses: list[np.ndarray], measured_world: list[dict[str, np
     check_cluster_geometry(points, f"cluster calibration ({len(poses)} poses)")
     sigma = {n: v.std(axis=0, ddof=1) / np.sqrt(len(v)) for n, v in kept.items()}
     return ClusterCalibration(points, sigma, {n: len(v) for n, v in kept.items()})
+
+
+def cluster_turns(facing: Callable[[float], Iterable[str]], candidates_deg: Iterable[float],
+                  sightings: int = 3, first: Iterable[float] = ()) -> list[float]:
+    """J6 turns (deg, relative) for the cluster's calibration: after the turns ``first`` (the
+    ECS's, whose SMRs count), greedily the candidate that adds the most sightings still
+    missing until each SMR ``facing(turn)`` can name is seen from ``sightings`` turns or no
+    candidate adds one. ``facing(turn)`` names the SMRs that face the tracker at that turn."""
+    first = [float(a) for a in first]
+    seen_at = {float(a): set(facing(float(a))) for a in candidates_deg}
+    for a in first:
+        seen_at.setdefault(a, set(facing(a)))
+    count: dict[str, int] = {n: 0 for names in seen_at.values() for n in names}
+    chosen = list(first)
+    for a in chosen:
+        for n in seen_at[a]:
+            count[n] += 1
+
+    def gain(a: float) -> int:
+        return sum(1 for n in seen_at[a] if count[n] < sightings)
+
+    while True:
+        left = [a for a in seen_at if a not in chosen]
+        if not left:
+            break
+        best = max(left, key=lambda a: (gain(a), -abs(a)))
+        if gain(best) == 0:
+            break
+        chosen.append(best)
+        for n in seen_at[best]:
+            count[n] += 1
+    return chosen[len(first):]
+
+
+def locate_by_cluster(cal: ClusterCalibration, measured_world: list[dict[str, np.ndarray]],
+                      sigma: TrackerSigma, T_world_from_tracker: np.ndarray | None = None
+                      ) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
+    """SMRs not in ``cal`` located in ``mcs`` from poses where the tracker saw them beside >= 3
+    calibrated ones: at each such pose the scanner's pose is fitted to the calibrated SMRs
+    (:func:`fit_cluster_pose`) and the others carried into ``mcs`` through it. Returns name ->
+    (centre in mcs, 1-sigma per axis: the pose's covariance and the tracker's, and the scatter
+    over the poses, mm, how many poses). Poses with fewer than 3 calibrated SMRs are skipped."""
+    found: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    Tt = np.eye(4) if T_world_from_tracker is None else np.asarray(T_world_from_tracker, float)
+    for seen in measured_world:
+        known = {n: p for n, p in seen.items() if n in cal.points_mcs}
+        new = {n: np.asarray(p, float) for n, p in seen.items() if n not in cal.points_mcs}
+        if not new or len(known) < 3:
+            continue
+        try:
+            fit = fit_cluster_pose(cal.points_mcs, known, sigma, Tt)
+        except ClusterGeometryError:
+            continue
+        R, t = fit.T_world_from_mcs[:3, :3], fit.T_world_from_mcs[:3, 3]
+        for n, p in new.items():
+            p_mcs = R.T @ (p - t)
+            # p_mcs = Rᵀ Exp(-w)(p - t - dt): its Jacobian in (w, dt), plus the point's own noise
+            d = p - t
+            J = np.hstack([R.T @ np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]]),
+                           -R.T])
+            W = sigma.whitening(Tt[:3, :3].T @ (p - Tt[:3, 3])) @ Tt[:3, :3].T
+            cov = J @ fit.cov @ J.T + R.T @ np.linalg.inv(W.T @ W) @ R
+            found.setdefault(n, []).append((p_mcs, np.sqrt(np.diag(cov))))
+    out = {}
+    for n, v in found.items():
+        pts = np.array([p for p, _ in v])
+        own = np.sqrt(np.mean([s ** 2 for _, s in v], axis=0) / len(v))
+        scatter = pts.std(axis=0, ddof=1) / np.sqrt(len(v)) if len(v) > 1 else np.zeros(3)
+        out[n] = (pts.mean(axis=0), np.hypot(own, scatter), len(v))
+    return out
+
+
+def cluster_tilts(geometry: CellGeometry, q0_rad: np.ndarray, known: set[str],
+                  wanted: set[str], poses: int = 2) -> list[tuple[np.ndarray, set[str]]]:
+    """Robot poses (joints, rad) near ``q0_rad`` at which SMRs of ``wanted`` face the tracker
+    together with >= 3 of ``known`` (so :func:`locate_by_cluster` can place them). For each
+    pair of a wanted and a known SMR the scanner is turned about its cluster's centre, the
+    least from ``q0_rad``, until the beam runs along the bisector of their two openings
+    (or a little nearer either, in steps of 5 %: the SMRs sit off the centre, so their
+    beams differ by a few degrees), and solved by the robot model inside its joint limits.
+    Greedy: up to ``poses`` poses for each wanted SMR any candidate shows; each with the SMRs
+    facing there."""
+    from scancell.model.robot_model import IKError
+
+    T0 = geometry.T_world_from_mcs(q0_rad, None)
+    nominal = geometry.cluster_nominal()
+    centre_mcs = np.mean([c for c, _ in nominal.values()], axis=0)
+    centre = T0[:3, :3] @ centre_mcs + T0[:3, 3]
+    beam = np.asarray(geometry.tracker_world_mm, float) - centre
+    b = T0[:3, :3].T @ (beam / np.linalg.norm(beam))  # the beam in mcs now
+    base_inv = np.linalg.inv(geometry.base_at(None))
+    T_fm_inv = np.linalg.inv(geometry.T_flange_from_mcs)
+    candidates: list[tuple[np.ndarray, set[str]]] = []
+    tried: set[tuple] = set()
+    for w in sorted(wanted):
+        for k in sorted(known):
+            ow, ok = nominal[w][1], nominal[k][1]
+            pair = tuple(np.round(np.concatenate([ow, ok]), 6))
+            if pair in tried:  # SMRs of one face share their opening: one search per face pair
+                continue
+            tried.add(pair)
+            for f in np.arange(0.3, 0.71, 0.05):
+                target = f * ow + (1 - f) * ok
+                if np.linalg.norm(target) < 1e-6:
+                    continue
+                target /= np.linalg.norm(target)
+                # R_small maps the wanted beam direction onto the present one (both in mcs)
+                axis = np.cross(target, b)
+                angle = np.arctan2(np.linalg.norm(axis), float(target @ b))
+                R_small = (Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+                           if np.linalg.norm(axis) > 1e-9 else np.eye(3))
+                T = np.eye(4)
+                T[:3, :3] = T0[:3, :3] @ R_small
+                T[:3, 3] = centre - T[:3, :3] @ centre_mcs
+                try:
+                    q = geometry.robot.ik(base_inv @ T @ T_fm_inv, q0_rad)
+                except IKError:
+                    continue
+                facing = set(geometry.facing_smrs(q, None))
+                if facing & wanted and len(facing & known) >= 3:
+                    candidates.append((q, facing))
+    chosen: list[tuple[np.ndarray, set[str]]] = []
+    count = {n: 0 for n in wanted}
+    while candidates:
+        best = max(candidates, key=lambda c: (sum(count[n] < poses for n in c[1] & wanted),
+                                              len(c[1] & known)))
+        if not any(count[n] < poses for n in best[1] & wanted):
+            break
+        chosen.append(best)
+        candidates.remove(best)
+        for n in best[1] & wanted:
+            count[n] += 1
+    return chosen

@@ -16,6 +16,8 @@ refraction          job      range scale from the weather's uncertainty (or 10 p
 tracker_location    job      the nests' location of the tracker (fit RMS, or drift allowed)
 settling            station  the arm's residual motion between P1 and the scan
 hand_eye            scanner  the calibration's rotation and translation sigma
+cluster_calibration scanner  each cluster SMR's calibrated centre (its sigma); stations whose
+                             pose came from the SMR cluster only
 scanner_scale       scanner  the scanner's scale stability (warm-up), ppm
 scanner_noise       point    each point's depth noise (the scanner's noise model), scaled in
                              each draw by the model's own stated accuracy (a relative 1-sigma)
@@ -34,13 +36,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scancell.model.ecs import ecs_for_frame
+from scancell.analysis.station_pose import StationPose
 
 ARCSEC = np.pi / 180 / 3600
 
 SCOPES = {"tracker_noise": "station", "tracker_systematic": "job", "refraction": "job",
           "tracker_location": "job", "settling": "station", "hand_eye": "scanner",
-          "scanner_scale": "scanner", "scanner_noise": "point"}
+          "cluster_calibration": "scanner", "scanner_scale": "scanner", "scanner_noise": "point"}
+
+
+#: the scanner sources that move every station's cloud by one error fixed in the scanner
+RIGID_IN_SCANNER = ("hand_eye", "scanner_scale")
 
 
 @dataclass(frozen=True)
@@ -115,10 +121,10 @@ def _scanner_error(source: str, rng: np.random.Generator, T_em: np.ndarray, s: S
     return T_em2, scale
 
 
-def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.ndarray,
-          j6: list[float], frame: list[float], T_em: np.ndarray, cloud: np.ndarray,
+def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud: np.ndarray,
           noise: np.ndarray, view: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
     """One draw of the given sources: each point's displacement along the view (mm)."""
+    pts, sig, T_em = pose.points_mm, pose.sigma_mm, pose.T_ecs_from_mcs
     p = pts.copy()
     origin = np.asarray(s.tracker_origin_mm, float)
     if "tracker_noise" in sources:
@@ -129,11 +135,13 @@ def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.
         p = origin + (p - origin) * (1.0 + rng.normal(0.0, s.refraction_ppm * 1e-6))
     if "tracker_location" in sources:
         p = p + rng.normal(0.0, s.location_mm / np.sqrt(3), 3)
-    T_we = ecs_for_frame(p, j6, frame)
     T_em2 = _scanner_error("hand_eye", rng, T_em, s)[0] if "hand_eye" in sources else T_em
     scale = _scanner_error("scanner_scale", rng, T_em, s)[1] if "scanner_scale" in sources \
         else 1.0
-    T = T_we @ T_em2
+    cluster = pose.cluster_mcs
+    if "cluster_calibration" in sources and cluster is not None:
+        cluster = cluster + rng.standard_normal(cluster.shape) * pose.cluster_sigma_mm
+    T = pose.T_world_from_mcs(p, T_em2, cluster)
     X = (cloud * scale) @ T[:3, :3].T + T[:3, 3]
     if "settling" in sources:
         X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
@@ -144,23 +152,21 @@ def _draw(sources: set[str], rng: np.random.Generator, pts: np.ndarray, sig: np.
     return d
 
 
-def station_uncertainty(points_mm: np.ndarray, sigma_mm: np.ndarray, j6_deg: list[float],
-                        frame_j6_deg: list[float], T_ecs_from_mcs: np.ndarray,
-                        cloud_mcs: np.ndarray, point_noise_mm: np.ndarray | float,
-                        stated: StatedSources, trials: int = 200, sample: int = 2000,
-                        seed: int = 0) -> StationUncertainty:
-    """Monte Carlo of one station: P1..P3 (world, mm) with their 1-sigma, the hand-eye, the
-    station's cloud (MCS, mm) and its per-point depth noise (mm)."""
-    pts = np.asarray(points_mm, float)
-    sig = np.broadcast_to(np.asarray(sigma_mm, float), pts.shape)
+def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
+                        point_noise_mm: np.ndarray | float, stated: StatedSources,
+                        trials: int = 200, sample: int = 2000, seed: int = 0
+                        ) -> StationUncertainty:
+    """Monte Carlo of one station: its pose's tracker points (world, mm) with their 1-sigma,
+    the hand-eye and cluster calibrations, the station's cloud (MCS, mm) and its per-point
+    depth noise (mm)."""
     cloud = np.asarray(cloud_mcs, float)
     noise = np.broadcast_to(np.asarray(point_noise_mm, float), (len(cloud),))
     step = max(1, len(cloud) // sample)
     c, n = cloud[::step], np.nan_to_num(noise[::step])
-    T0 = ecs_for_frame(pts, j6_deg, frame_j6_deg) @ T_ecs_from_mcs
+    T0 = pose.T_world_from_mcs()
     X0 = c @ T0[:3, :3].T + T0[:3, 3]
     view = T0[:3, 2]
-    args = (pts, sig, j6_deg, frame_j6_deg, T_ecs_from_mcs, c, n, view, stated, X0)
+    args = (pose, c, n, view, stated, X0)
     share = {}
     for k, src in enumerate(SCOPES):
         rng = np.random.default_rng([seed, k])
@@ -203,7 +209,7 @@ def scanner_fixed_overlap(clouds_world: dict[str, np.ndarray],
             view = (np.asarray(T_world_from_ecs[a], float) @ T_em)[:3, 2]
             overlaps.append((a, b, x, view))
     out = {}
-    for k, src in enumerate(n for n, scope in SCOPES.items() if scope == "scanner"):
+    for k, src in enumerate(RIGID_IN_SCANNER):
         if not overlaps:
             out[src] = 0.0
             continue
@@ -234,7 +240,11 @@ def budget_by_source(stations: dict[str, StationUncertainty],
     out: dict[str, dict[str, Any]] = {}
     for src, scope in SCOPES.items():
         v = float(np.mean([u.share_mm[src] for u in stations.values()])) if stations else 0.0
-        if scope == "scanner":
+        if src not in RIGID_IN_SCANNER and scope == "scanner":
+            # the cluster's calibration: fixed in the scanner, but two stations fitted to
+            # different SMRs of it disagree by it as independent stations would (at most)
+            ov = float(np.sqrt(2.0)) * v
+        elif scope == "scanner":
             ov = (scanner_overlap_mm or {}).get(src, 0.0)
         else:
             ov = 0.0 if scope == "job" else float(np.sqrt(2.0)) * v

@@ -137,7 +137,7 @@ class Daemon:
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
                                                                  self.simulator, setup,
-                                                                 metrology),
+                                                                 metrology, self.cfg.geometry),
             "calibrate_projector": lambda ctx: calibrate_projector(ctx, self.supervisors,
                                                                    response),
             "acceptance": lambda ctx: acceptance(ctx, self.supervisors, self.simulator,

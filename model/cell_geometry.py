@@ -11,6 +11,14 @@ import numpy as np
 from scancell.model.robot_model import RobotModel
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
+#: the scanner's rear SMR (the paper's, the ECS and hand-eye one) in a cluster's names
+REAR_SMR = "rear"
+
+
+def _unit(v: Any) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
 
 class GeometryError(ValueError):
     """A ``[planner]`` table is missing a key or has a malformed value."""
@@ -39,6 +47,52 @@ class CellGeometry:
     rail_axis: tuple[float, float, float] | None = None
     rail_positions_mm: tuple[float, ...] = ()
     robot: RobotModel = field(default_factory=RobotModel)
+    #: SMR nests on the scanner besides its rear SMR, as drawn (CAD): name -> (centre in mcs,
+    #: opening direction in mcs). Where the job points the tracker; the hand-eye job measures
+    #: their true positions (the cluster calibration).
+    smr_cluster: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def cluster_nominal(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every SMR on the scanner as drawn: the rear SMR (``rear``, the paper's) and the
+        cluster's; name -> (centre in mcs mm, unit opening in mcs)."""
+        out = {REAR_SMR: (np.asarray(self.smr_in_mcs_mm, float),
+                          _unit(self.smr_opening_in_mcs))}
+        out.update({n: (np.asarray(c, float), _unit(o)) for n, (c, o) in self.smr_cluster.items()})
+        return out
+
+    def T_world_from_mcs(self, q_rad: np.ndarray, rail_mm: float | None) -> np.ndarray:
+        """The scanner's pose by the robot model (nominal, mm): where to point the tracker."""
+        return self.base_at(rail_mm) @ self.robot.fk(np.asarray(q_rad, float)) \
+            @ self.T_flange_from_mcs
+
+    def smr_positions(self, q_rad: np.ndarray, rail_mm: float | None,
+                      T_world_from_tracker: np.ndarray | None = None
+                      ) -> dict[str, tuple[np.ndarray, float]]:
+        """Every SMR on the scanner at this pose by the robot model: name -> (centre in the
+        tracker's frame, mm; angle between its opening and the beam, deg). The tracker head
+        sits at ``tracker_world_mm`` of its frame, which is ``world`` unless the nests
+        re-located it (``T_world_from_tracker``)."""
+        T_wt = np.eye(4) if T_world_from_tracker is None else np.asarray(T_world_from_tracker,
+                                                                          float)
+        T_tm = np.linalg.inv(T_wt) @ self.T_world_from_mcs(q_rad, rail_mm)
+        head = np.asarray(self.tracker_world_mm, float)
+        out = {}
+        for name, (c, o) in self.cluster_nominal().items():
+            p = T_tm[:3, :3] @ c + T_tm[:3, 3]
+            to_tracker = (head - p) / np.linalg.norm(head - p)
+            cos = float(np.clip(to_tracker @ (T_tm[:3, :3] @ o), -1.0, 1.0))
+            out[name] = (p, float(np.degrees(np.arccos(cos))))
+        return out
+
+    def facing_smrs(self, q_rad: np.ndarray, rail_mm: float | None,
+                    T_world_from_tracker: np.ndarray | None = None, margin_deg: float = 3.0
+                    ) -> dict[str, np.ndarray]:
+        """The SMRs of :meth:`smr_positions` whose opening faces the tracker within the
+        acceptance less ``margin_deg``: name -> centre in the tracker's frame (mm). Occlusion
+        is not predicted: the tracker finds out."""
+        return {n: p for n, (p, angle) in
+                self.smr_positions(q_rad, rail_mm, T_world_from_tracker).items()
+                if angle <= self.smr_acceptance_deg - margin_deg}
 
     def base_at(self, rail_mm: float | None) -> np.ndarray:
         T = np.array(self.T_world_from_base, float)
@@ -63,8 +117,30 @@ class CellGeometry:
                        tuple(t.get("field_mm", (380.0, 280.0))),
                        tuple(t.get("depth_mm", (-90.0, 90.0))),
                        rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
-                       rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())))
+                       rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())),
+                       smr_cluster=_cluster(t.get("smr_cluster", {})))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:
             raise GeometryError(f"missing key {exc}") from None
+
+
+def _cluster(t: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``smr_cluster = {name = {mcs_mm = [x, y, z], opening = [x, y, z]}, ...}``."""
+    if not isinstance(t, dict):
+        raise GeometryError("smr_cluster must be a table of SMRs: name = {mcs_mm, opening}")
+    out = {}
+    for name, v in t.items():
+        if name == REAR_SMR:
+            raise GeometryError(f"smr_cluster: {REAR_SMR!r} is the rear SMR (smr_in_mcs_mm); "
+                                f"give the cluster's others")
+        try:
+            c, o = np.asarray(v["mcs_mm"], float), np.asarray(v["opening"], float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise GeometryError(f"smr_cluster.{name}: needs mcs_mm and opening, 3 numbers "
+                                f"each ({exc})") from None
+        if c.shape != (3,) or o.shape != (3,) or not np.linalg.norm(o) > 0:
+            raise GeometryError(f"smr_cluster.{name}: mcs_mm and opening must be 3 numbers, "
+                                f"the opening not zero")
+        out[str(name)] = (c, o / np.linalg.norm(o))
+    return out

@@ -111,12 +111,14 @@ def ecs_for_frame(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.ndarr
 
 
 def mcs_poses_at_j6(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.ndarray,
-                    T_ecs_from_mcs: np.ndarray) -> list[np.ndarray]:
+                    T_ecs_from_mcs: np.ndarray, at_j6_deg: np.ndarray | None = None
+                    ) -> list[np.ndarray]:
     """``T_world_from_mcs`` at each J6 angle the SMR ``points`` were measured at (relative
     ``j6_deg``; the first is the station's scanning pose), from the ECS of the hand-eye frame
     ``frame_j6_deg`` and the hand-eye ``T_ecs_from_mcs``: the scanning pose turned about the
     fitted J6 axis by each commanded angle. With these a cluster of SMRs on the scanner is
-    located in ``mcs`` from the hand-eye job's own J6 turns."""
+    located in ``mcs`` from the hand-eye job's own J6 turns. ``at_j6_deg`` (relative to the
+    first point's J6, as ``j6_deg``): the poses at these angles instead."""
     pts = np.asarray(points, float)
     j6 = np.asarray(j6_deg, float)
     T0 = ecs_for_frame(pts, j6, frame_j6_deg) @ np.asarray(T_ecs_from_mcs, float)
@@ -128,7 +130,8 @@ def mcs_poses_at_j6(points: np.ndarray, j6_deg: np.ndarray, frame_j6_deg: np.nda
     a = np.radians(j6 - j6[0])
     direction = 1.0 if np.sum(np.sin(theta) * np.sin(a)) >= 0 else -1.0
     out = []
-    for angle in a:
+    at = a if at_j6_deg is None else np.radians(np.asarray(at_j6_deg, float) - j6[0])
+    for angle in at:
         R = _axis_rotation(n, direction * angle)
         T = np.eye(4)
         T[:3, :3] = R

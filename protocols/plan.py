@@ -7,12 +7,16 @@ TOML (or the same structure as JSON)::
     speed = 0.2                  # fraction of the robot's maximum joint speed
     j6_angles_deg = [120.0, -120.0] # the J6 turns for P2, P3 (those of the hand-eye calibration)
     tracker_repeats = 5          # tracker shots averaged per point
+    ecs = "j6"                   # the scanner's pose: "j6" (the paper's J6 turns of the rear
+                                 # SMR) or "cluster" (the SMR cluster, no robot motion; J6
+                                 # turns where fewer than 3 SMRs face the tracker)
     nominal = "/data/cad/car_rear.step"  # optional: the part's CAD, for the inspect worker
 
     [[station]]
     name = "s01"
     joints_deg = [0.0, 10.0, -5.0, 0.0, -60.0, 0.0]
     axis_mm = 0.0                # optional: external axis position
+    ecs = "j6"                   # optional: this station's ECS method (default the plan's)
 
 Stations are in joint space (degrees; ``scancell plan`` writes them from the robot model), or
 as the scanner's pose in the tracker frame, solved by inverse kinematics on the daemon's robot
@@ -39,6 +43,9 @@ from scancell.protocols.keys import check_name
 #: The SMR's opening must face along J6 for the tracker to keep it over such turns.
 DEFAULT_J6_ANGLES_DEG: tuple[float, float] = (120.0, -120.0)
 
+#: how a station's scanner pose is measured: the paper's J6 turns, or the SMR cluster
+ECS_METHODS = ("j6", "cluster")
+
 
 class PlanError(ValueError):
     """A plan that cannot be run; the message names the station and the key."""
@@ -53,6 +60,8 @@ class PlanStation:
     mcs_pose_world: tuple[float, ...] | None = None
     #: The J6 turn direction the planner found the tracker sees (the job tries it first).
     j6_sign: int = 1
+    #: this station's ECS method (None: the plan's)
+    ecs: str | None = None
 
 
 @dataclass(frozen=True)
@@ -65,6 +74,8 @@ class Plan:
     extra: dict[str, Any] = field(default_factory=dict)  # planner's report: coverage, overlaps
     #: the part's nominal CAD (a path the inspect worker can read), or None
     nominal: str | None = None
+    #: the ECS method of stations that do not name one (ECS_METHODS)
+    ecs: str = "j6"
 
     def to_json(self) -> dict[str, Any]:
         head: dict[str, Any] = {"name": self.name, "speed": self.speed,
@@ -72,6 +83,8 @@ class Plan:
                                 "tracker_repeats": self.tracker_repeats}
         if self.nominal:
             head["nominal"] = self.nominal
+        if self.ecs != "j6":
+            head["ecs"] = self.ecs
         if self.extra:
             head["report"] = self.extra
         stations = []
@@ -83,6 +96,8 @@ class Plan:
                 d["mcs_pose_world"] = list(s.mcs_pose_world)
             if s.j6_sign != 1:
                 d["j6_sign"] = s.j6_sign
+            if s.ecs is not None:
+                d["ecs"] = s.ecs
             if s.axis_mm is not None:
                 d["axis_mm"] = s.axis_mm
             stations.append(d)
@@ -158,6 +173,7 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
     if nominal is not None and (not isinstance(nominal, str) or not nominal.strip()):
         raise PlanError(f"{where}: [plan] nominal must be the path of the part's CAD (STEP or "
                         f"mesh), got {nominal!r}")
+    ecs = _ecs_method(head.get("ecs", "j6"), f"{where}: [plan] ecs")
     out: list[PlanStation] = []
     seen: set[str] = set()
     for i, s in enumerate(stations):
@@ -190,8 +206,18 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
         sign = s.get("j6_sign", 1)
         if sign not in (1, -1):
             raise PlanError(f"{at} ({name}): j6_sign must be 1 or -1, got {sign!r}")
+        station_ecs = (None if s.get("ecs") is None
+                       else _ecs_method(s["ecs"], f"{at} ({name}) ecs"))
         out.append(PlanStation(name, joints, None if axis is None
-                               else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign))
+                               else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign,
+                               station_ecs))
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
                 dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {},
-                nominal)
+                nominal, ecs)
+
+
+def _ecs_method(v: Any, where: str) -> str:
+    if v not in ECS_METHODS:
+        raise PlanError(f"{where}: must be one of {', '.join(repr(m) for m in ECS_METHODS)}, "
+                        f"got {v!r}")
+    return str(v)

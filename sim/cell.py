@@ -145,6 +145,9 @@ class SimCellConfig:
     #: mcs, opening direction in mcs); the tracker targets them as ``scanner:<name>``
     smr_cluster: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(
         default_factory=dict)
+    #: how far each cluster nest sits off its drawing (1-sigma per axis, mm): what the hand-eye
+    #: job's cluster calibration has to find
+    smr_cluster_build_mm: float = 0.2
     #: the scanner-check ball bar fixed in the cell beside the part (world, mm): its centre
     #: and its axis; None: none. Where ``[metrology.scanner_check]`` of sim.toml looks.
     check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
@@ -197,6 +200,13 @@ class SimCell:
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
         self.precompensation: np.ndarray | None = None
+        #: the cluster as built: each nest off its drawn centre by the housing's machining and
+        #: the nest's seating (``cfg.smr_cluster_build_mm``, 1-sigma per axis; seeded)
+        build = np.random.default_rng([self.cfg.seed, 11])
+        self.smr_cluster = {
+            n: (np.asarray(c, float) + build.normal(0.0, self.cfg.smr_cluster_build_mm, 3),
+                np.asarray(o, float) / np.linalg.norm(o))
+            for n, (c, o) in self.cfg.smr_cluster.items()}
         if self.cfg.part:
             mesh = parts.PARTS[self.cfg.part]()
             self.scene.add(SceneObject(self.cfg.part, mesh, self.cfg.T_world_from_part,
@@ -324,7 +334,10 @@ class SimCell:
                 "tracker_world_mm": self.tracker.position.tolist(),
                 "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
                 "rail_axis": self.cfg.rail_axis.tolist(),
-                "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0]}
+                "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0],
+                # as drawn: the true nests sit where the housing's machining put them
+                "smr_cluster": {n: {"mcs_mm": list(c), "opening": list(o)}
+                                for n, (c, o) in self.cfg.smr_cluster.items()}}
 
     def part_mesh_world(self) -> o3d.geometry.TriangleMesh:
         """The part's true surface in ``world`` (mm)."""
@@ -438,7 +451,7 @@ class SimCell:
         placed, and the nests (``nest:<name>``)."""
         out = {"scanner": self.smr_center_world()}
         T = self.T_world_from_mcs()
-        for name, (c, _) in self.cfg.smr_cluster.items():
+        for name, (c, _) in self.smr_cluster.items():
             out[f"scanner:{name}"] = T[:3, :3] @ np.asarray(c, float) + T[:3, 3]
         with contextlib.suppress(KeyError):
             out["ball"] = self.ball_center_world()
@@ -457,11 +470,10 @@ class SimCell:
                 centre, opening = self.cfg.smr_in_mcs_mm, self.smr_opening_in_mcs
             else:
                 try:
-                    centre, opening = self.cfg.smr_cluster[target.removeprefix("scanner:")]
+                    centre, opening = self.smr_cluster[target.removeprefix("scanner:")]
                 except KeyError:
                     raise KeyError(f"unknown tracker target {target!r}: the cluster has "
                                    f"{sorted(self.cfg.smr_cluster)}") from None
-                opening = np.asarray(opening, float) / np.linalg.norm(opening)
             c = apply_T(T, np.asarray(centre, float)[None])[0]
             return c, T[:3, :3], T[:3, :3] @ opening, ()
         name = "ball" if target == "ball" else f"nest_{target.removeprefix('nest:')}"

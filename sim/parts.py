@@ -220,19 +220,20 @@ def scanner_body() -> o3d.geometry.TriangleMesh:
 
 #: SMR nests on the housing (issue 19): a triangle of three 1.5" SMRs, 70 mm from its centre,
 #: 25 mm out from each of the back, left and right faces; the back ones open backwards, the side
-#: ones along the face normal tipped 31 deg backwards. Three on one face fix the pose; with a J6
-#: roll chosen per station, >= 3 face the tracker in 97 % of the car rear's reachable views
-#: (benchmarks/bench_smr_visibility.py). name -> (centre in mcs, opening direction in mcs)
+#: ones half-way between the face normal and backwards (45 deg), so that the tracker sees a side
+#: face and the back at once over a band of directions: the hand-eye job's J6 turns calibrate
+#: the side faces from the poses the rear SMR gives. Three on one face fix the pose.
+#: name -> (centre in mcs, opening direction in mcs)
 HOUSING_SMR_CLUSTER = {
     "back1": ((210.0, -36.0, -190.0), (0.0, 0.0, -1.0)),
     "back2": ((88.8, -34.0, -190.0), (0.0, 0.0, -1.0)),
     "back3": ((151.2, 70.0, -190.0), (0.0, 0.0, -1.0)),
-    "left1": ((-85.0, 59.4, -127.1), (-0.8575, 0.0, -0.5145)),
-    "left2": ((-85.0, -61.8, -122.9), (-0.8575, 0.0, -0.5145)),
-    "left3": ((-85.0, 2.5, -20.0), (-0.8575, 0.0, -0.5145)),
-    "right1": ((385.0, -59.4, -52.9), (0.8575, 0.0, -0.5145)),
-    "right2": ((385.0, -2.5, -160.0), (0.8575, 0.0, -0.5145)),
-    "right3": ((385.0, 61.8, -57.1), (0.8575, 0.0, -0.5145)),
+    "left1": ((-85.0, 59.4, -127.1), (-0.7071, 0.0, -0.7071)),
+    "left2": ((-85.0, -61.8, -122.9), (-0.7071, 0.0, -0.7071)),
+    "left3": ((-85.0, 2.5, -20.0), (-0.7071, 0.0, -0.7071)),
+    "right1": ((385.0, -59.4, -52.9), (0.7071, 0.0, -0.7071)),
+    "right2": ((385.0, -2.5, -160.0), (0.7071, 0.0, -0.7071)),
+    "right3": ((385.0, 61.8, -57.1), (0.7071, 0.0, -0.7071)),
 }
 
 

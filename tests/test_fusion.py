@@ -133,6 +133,7 @@ def test_error_budget_follows_the_tracker_noise(stations):
     """The ECS share scales with the tracker's sigma and is zero without noise; the budget
     names what dominates."""
     from scancell.analysis.error_budget import budget, ecs_noise_effect
+    from scancell.analysis.station_pose import StationPose
 
     cell, st = stations
     q = cell.q_commanded
@@ -141,10 +142,12 @@ def test_error_budget_follows_the_tracker_noise(stations):
     frame = [0.0, *cell.cfg.j6_angles_deg]
     T = cell.true_T_ecs_from_mcs()
     cloud = st[-1].points_mcs
-    args = ([0.0, *cell.cfg.j6_angles_deg], frame, T, cloud)
-    assert ecs_noise_effect(pts, np.zeros(3), *args) < 1e-9
-    one = ecs_noise_effect(pts, np.full(3, 0.005), *args)
-    two = ecs_noise_effect(pts, np.full(3, 0.010), *args)
+    def pose(sigma: float) -> StationPose:
+        return StationPose("j6", pts, np.full(pts.shape, sigma), T, tuple(frame), tuple(frame))
+
+    assert ecs_noise_effect(pose(0.0), cloud) < 1e-9
+    one = ecs_noise_effect(pose(0.005), cloud)
+    two = ecs_noise_effect(pose(0.010), cloud)
     assert 0.0005 < one < 0.05 and two == pytest.approx(2 * one, rel=0.15)
     b = budget({"s1": one, "s2": one}, overlap_mean_mm=10 * one, true_mean_mm=0.02,
                hand_eye_rms_mm=0.008)

@@ -318,6 +318,23 @@ def test_a_plan_names_its_nominal():
         parse_plan({"plan": {"nominal": 3}, "station": [station]})
 
 
+def test_a_plan_chooses_the_ecs_method_for_all_or_one_station():
+    from scancell.protocols.plan import PlanError, parse_plan
+
+    s1 = {"name": "s01", "joints_deg": [0, 0, 0, 0, -60, 0]}
+    plan = parse_plan({"plan": {"name": "p", "ecs": "cluster"},
+                       "station": [s1, {**s1, "name": "s02", "ecs": "j6"}]})
+    assert plan.ecs == "cluster" and [s.ecs for s in plan.stations] == [None, "j6"]
+    again = parse_plan(plan.to_json())  # round trip
+    assert again.ecs == "cluster" and again.stations[1].ecs == "j6"
+    assert 'ecs = "cluster"' in plan.to_toml()
+    assert parse_plan({"plan": {}, "station": [s1]}).ecs == "j6"  # the paper's by default
+    with pytest.raises(PlanError, match=r"\[plan\] ecs.*'j6', 'cluster', got 'laser'"):
+        parse_plan({"plan": {"ecs": "laser"}, "station": [s1]})
+    with pytest.raises(PlanError, match=r"station\[1\] \(s02\) ecs"):
+        parse_plan({"plan": {}, "station": [s1, {**s1, "name": "s02", "ecs": 3}]})
+
+
 def test_a_scan_of_the_dented_part_through_the_simulator_shows_the_dent(cad):
     """The real path: the simulated scanner renders the defect part (realistic optics, the
     dark paint exposed 4x), the decoder makes the cloud, the fixture's pose puts it in the

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scancell.analysis.error_budget import budget
+from scancell.analysis.station_pose import StationPose
 from scancell.analysis.station_uncertainty import (
     SCOPES,
     StatedSources,
@@ -17,6 +18,10 @@ from scancell.analysis.station_uncertainty import (
     station_uncertainty,
 )
 from scancell.model.ecs import ecs_for_frame
+
+
+def j6_pose(pts, sig, j6, T_em) -> StationPose:
+    return StationPose("j6", pts, sig, T_em, tuple(j6), tuple(j6))
 
 
 def station(seed: int = 0):
@@ -38,11 +43,14 @@ STATED = StatedSources(refraction_ppm=0.4, tracker_systematic_mm=0.008, location
 @pytest.mark.unit
 def test_every_source_has_a_share_and_the_budget_names_them():
     pts, sig, j6, T_em, cloud = station()
-    u = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, STATED, trials=60)
-    assert set(u.share_mm) == set(SCOPES) and all(v > 0 for v in u.share_mm.values())
+    u = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, STATED, trials=60)
+    assert set(u.share_mm) == set(SCOPES)
+    shares = dict(u.share_mm)
+    assert shares.pop("cluster_calibration") == 0.0  # a J6 station has no cluster
+    assert all(v > 0 for v in shares.values())
     assert u.share_mm["scanner_noise"] == pytest.approx(0.02 * np.sqrt(2 / np.pi), rel=0.1)
     assert len(u.point_sigma_mm) == len(cloud) and 0 < u.interval_mm[0] < u.interval_mm[1]
-    none = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.0, StatedSources(
+    none = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.0, StatedSources(
         refraction_ppm=0.0), trials=20)
     assert none.share_mm["settling"] == 0.0 and none.share_mm["hand_eye"] == 0.0
     b = budget({}, 0.03, 0.04, 0.01, budget_by_source({"a": u}))
@@ -54,14 +62,14 @@ def test_every_source_has_a_share_and_the_budget_names_them():
 @pytest.mark.unit
 def test_the_95_percent_interval_covers_independent_draws():
     pts, sig, j6, T_em, cloud = station(3)
-    u = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, STATED, trials=200, seed=5)
+    u = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, STATED, trials=200, seed=5)
     # "truths": the same sources drawn independently of the prediction's draws
     T0 = ecs_for_frame(pts, j6, j6) @ T_em
     step = max(1, len(cloud) // 2000)
     c = cloud[::step]
     X0 = c @ T0[:3, :3].T + T0[:3, 3]
     rng = np.random.default_rng(1234)
-    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, pts, sig, j6, j6, T_em, c,
+    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, j6_pose(pts, sig, j6, T_em), c,
                                           np.full(len(c), 0.02), T0[:3, 2], STATED,
                                           X0)).mean()) for k in range(60)}
     cov = coverage({k: u.interval_mm for k in truths}, truths)
@@ -82,13 +90,13 @@ def test_the_noise_models_own_accuracy_widens_the_interval_to_a_scanner_quieter_
     c = cloud[:: max(1, len(cloud) // 2000)]
     X0 = c @ T0[:3, :3].T + T0[:3, 3]
     rng = np.random.default_rng(99)
-    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, pts, sig, j6, j6, T_em, c,
+    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, j6_pose(pts, sig, j6, T_em), c,
                                           np.full(len(c), 0.85 * 0.02), T0[:3, 2], quiet,
                                           X0)).mean()) for k in range(40)}
-    exact = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, quiet, trials=200)
+    exact = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, quiet, trials=200)
     assert coverage({k: exact.interval_mm for k in truths}, truths)["share"] < 0.2
     stated = StatedSources(**{**quiet.__dict__, "scanner_noise_rel": 0.15})
-    widened = station_uncertainty(pts, sig, j6, j6, T_em, cloud, 0.02, stated, trials=200)
+    widened = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, stated, trials=200)
     assert coverage({k: widened.interval_mm for k in truths}, truths)["share"] >= 0.9
     assert widened.share_mm["scanner_noise"] == pytest.approx(exact.share_mm["scanner_noise"],
                                                               rel=0.05)
@@ -133,10 +141,27 @@ def test_a_scanner_fixed_error_shows_between_stations_that_look_differently():
     assert scaled["scanner_scale"] > 0 and scaled["hand_eye"] > 0
     # and the budget carries them into the overlap column; job-wide ones still cancel
     pts, sig, j6, T_em1, cloud = station()
-    u = station_uncertainty(pts, sig, j6, j6, T_em1, cloud, 0.02, STATED, trials=20)
+    u = station_uncertainty(j6_pose(pts, sig, j6, T_em1), cloud, 0.02, STATED, trials=20)
     b = budget_by_source({"a": u}, scaled)
     assert b["hand_eye"]["scope"] == "scanner"
     assert b["hand_eye"]["overlap_mm"] == round(scaled["hand_eye"], 5)
     assert b["refraction"]["overlap_mm"] == 0.0
     assert scanner_fixed_overlap(clouds, {"a": T_a, "b": T_b}, T_em, [], STATED) == {
         "hand_eye": 0.0, "scanner_scale": 0.0}
+
+
+@pytest.mark.unit
+def test_a_cluster_station_without_a_usable_cluster_calibration_is_refused_by_name():
+    from scancell.analysis.station_pose import StationPoseError, station_pose
+
+    record = {"station": "s07", "ecs_method": "cluster",
+              "smr_points_mm": {"back1": [0, 0, 0], "back2": [50, 0, 0], "left1": [0, 50, 0]}}
+    hand_eye = {"job_id": "he-1", "T_ecs_from_mcs": np.eye(4).tolist()}
+    with pytest.raises(StationPoseError, match=r"s07.*he-1 has no cluster calibration"):
+        station_pose(record, hand_eye)
+    hand_eye["smr_cluster"] = {n: {"mcs_mm": [0, 0, 0]} for n in ("back1", "back2")}
+    with pytest.raises(StationPoseError, match=r"s07: 2 calibrated SMRs seen \(back1, back2; "
+                                               r"not calibrated: left1\): a pose needs 3"):
+        station_pose(record, hand_eye)
+    with pytest.raises(StationPoseError, match="unknown ecs_method 'laser'"):
+        station_pose({**record, "ecs_method": "laser"}, hand_eye)

@@ -159,12 +159,10 @@ def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],
     """Each station scan (scan id -> its ``scancell.StationEcs``) in the tracker frame: its ECS
     from P1..P3 and the hand-eye calibration in force, as the fuse worker puts scan_part
     stations there."""
-    from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
-    from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
+    from scancell.analysis.station_pose import StationPoseError, station_T_world_from_ecs
 
     if hand_eye is None or not ecs:
         return {}
-    frame = [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
     T_ecs_from_mcs = np.asarray(hand_eye["T_ecs_from_mcs"], float)
     out = {}
     for scan_id, e in ecs.items():
@@ -172,9 +170,9 @@ def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],
         if cloud is None:
             continue
         try:
-            T = ecs_for_frame(np.asarray(e["points_mm"]), e["j6_deg"], frame) @ T_ecs_from_mcs
-        except DegenerateGeometry as exc:
-            log.error("acceptance %s, station %s: no ECS: %s", e["job_id"], e["station"], exc)
+            T = station_T_world_from_ecs(e, hand_eye) @ T_ecs_from_mcs
+        except StationPoseError as exc:
+            log.error("acceptance %s: %s", e["job_id"], exc)
             continue
         out[scan_id] = cloud @ T[:3, :3].T + T[:3, 3]
     return out

@@ -24,9 +24,22 @@ import numpy as np
 from scancell.analysis.fit import FitError, detect_sphere
 from scancell.analysis.handeye import HandEyeError, Pair, solve_hand_eye
 from scancell.analysis.pair_table import write_pairs
+from scancell.analysis.smr_cluster import (
+    ClusterGeometryError,
+    calibrate_cluster,
+    locate_by_cluster,
+)
+from scancell.analysis.tracker_network import TrackerSigma
 from scancell.bus.protocol import BusLike, Latched
 from scancell.bus.recent_ids import RecentIds
-from scancell.model.ecs import SMR_RADIUS_MM, DegenerateGeometry, ecs_from_circle, ecs_from_points
+from scancell.model.cell_geometry import REAR_SMR
+from scancell.model.ecs import (
+    SMR_RADIUS_MM,
+    DegenerateGeometry,
+    ecs_from_circle,
+    ecs_from_points,
+    mcs_poses_at_j6,
+)
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import EncodingError
@@ -40,12 +53,15 @@ log = logging.getLogger(__name__)
 @dataclass
 class JobData:
     job_id: str
-    ecs: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)  # index -> (J6, point)
+    #: index -> (J6 deg, point mm, its 1-sigma mm)
+    ecs: dict[int, tuple[float, np.ndarray, np.ndarray]] = field(default_factory=dict)
     balls: dict[str, dict[str, Any]] = field(default_factory=dict)  # id -> sample
+    cluster: dict[str, dict[str, Any]] = field(default_factory=dict)  # id -> sample
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # scan_id -> points (MCS)
     done: bool = False
     expected: int = 0
     expected_ecs: int = 0  # from the job's done event
+    expected_cluster: int = 0
 
 
 def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
@@ -74,7 +90,89 @@ def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
     body.update(job_id=job.job_id, T_world_from_ecs=T_world_from_ecs.tolist(),
                 j6_angles_deg=[float(a) for a in angles[1:]],
                 version=time.strftime("%Y-%m-%dT%H:%M:%S"), pairs=len(pairs))
+    if job.cluster:
+        try:
+            body["smr_cluster"], body["smr_cluster_dropped"] = cluster_calibration(
+                pts, angles, [job.ecs[k][2] for k in order], list(job.cluster.values()),
+                np.asarray(body["T_ecs_from_mcs"], float))
+        except (ClusterGeometryError, DegenerateGeometry) as exc:
+            body["smr_cluster_error"] = str(exc)
     return body, pairs
+
+
+def cluster_calibration(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
+                        ecs_sigma: list[np.ndarray], samples: list[dict[str, Any]],
+                        T_ecs_from_mcs: np.ndarray) -> tuple[dict[str, Any], dict[str, str]]:
+    """Every SMR of the scanner in ``mcs`` (``scancell.HandEye`` ``smr_cluster``), and those
+    left out with the reason (``smr_cluster_dropped``): the poses at
+    the cluster's J6 turns from the rear SMR's J6 circle (the ECS points) and the hand-eye;
+    the rear SMR itself from the ECS points. Its 1-sigma per axis: the scatter over the turns
+    (not less than the tracker's sigma of one turn's mean over the turns), or, when larger,
+    the tracker's noise on the ECS points and the SMRs carried through the whole solution
+    (:func:`_propagated_sigma`): an error in the ECS moves every turn's pose alike, which the
+    scatter cannot show."""
+    tipped = [s for s in samples if s.get("j6_deg") is None]
+    samples = [s for s in samples if s.get("j6_deg") is not None]
+    turns = sorted({float(s["j6_deg"]) for s in samples} | {float(a) for a in ecs_j6_deg})
+    poses = mcs_poses_at_j6(ecs_points, ecs_j6_deg, ecs_j6_deg[:3], T_ecs_from_mcs,
+                            at_j6_deg=turns)
+    seen: list[dict[str, np.ndarray]] = [{} for _ in turns]
+    shot_sigma: dict[str, list[np.ndarray]] = {}
+    for a, p, sg in zip(ecs_j6_deg, ecs_points, ecs_sigma, strict=True):
+        seen[turns.index(float(a))][REAR_SMR] = np.asarray(p, float)
+        shot_sigma.setdefault(REAR_SMR, []).append(np.asarray(sg, float))
+    for s in samples:
+        seen[turns.index(float(s["j6_deg"]))][str(s["smr"])] = np.asarray(s["point_mm"], float)
+        shot_sigma.setdefault(str(s["smr"]), []).append(
+            np.asarray(s.get("sigma_mm", [0.0] * 3), float))
+    cal = calibrate_cluster(poses, seen)
+    out = cal.to_json()
+    spread = _propagated_sigma(ecs_points, ecs_j6_deg, ecs_sigma, samples, T_ecs_from_mcs,
+                               turns, seen)
+    for name, entry in out.items():
+        floor = np.mean(shot_sigma[name], axis=0) / np.sqrt(cal.seen[name])
+        entry["sigma_mm"] = np.round(np.maximum(np.hypot(cal.sigma_mm[name], floor),
+                                                spread[name]), 5).tolist()
+    by_pose: dict[str, dict[str, np.ndarray]] = {}
+    for s in tipped:
+        by_pose.setdefault(str(s.get("pose")), {})[str(s["smr"])] = np.asarray(s["point_mm"],
+                                                                                float)
+    for name, (p, sigma, n) in locate_by_cluster(cal, list(by_pose.values()),
+                                                 TrackerSigma()).items():
+        out[name] = {"mcs_mm": p.round(4).tolist(), "sigma_mm": sigma.round(5).tolist(),
+                     "poses": n, "through_cluster": True}
+    seen_somewhere = set(shot_sigma) | {str(s["smr"]) for s in tipped}
+    return out, {n: ("seen from one J6 turn only" if n in shot_sigma else
+                     "seen only at tipped poses with fewer than 3 calibrated SMRs")
+                 for n in sorted(seen_somewhere - set(out))}
+
+
+def _propagated_sigma(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
+                      ecs_sigma: list[np.ndarray], samples: list[dict[str, Any]],
+                      T_ecs_from_mcs: np.ndarray, turns: list[float],
+                      seen: list[dict[str, np.ndarray]], draws: int = 60,
+                      seed: int = 0) -> dict[str, np.ndarray]:
+    """Per SMR, the standard deviation (mm, per mcs axis) of the cluster's calibration over
+    ``draws`` solutions with the ECS points and the SMRs' points drawn from their stated
+    1-sigma (Monte Carlo: the solution is a chain of fits with no closed-form covariance)."""
+    rng = np.random.default_rng(seed)
+    ecs_points = np.asarray(ecs_points, float)
+    ecs_s = np.array([np.broadcast_to(np.asarray(s, float), 3) for s in ecs_sigma])
+    shot_s = {(turns.index(float(s["j6_deg"])), str(s["smr"])):
+              np.asarray(s.get("sigma_mm", [0.0] * 3), float) for s in samples}
+    runs: dict[str, list[np.ndarray]] = {}
+    for _ in range(draws):
+        pts = ecs_points + rng.normal(size=ecs_points.shape) * ecs_s
+        poses = mcs_poses_at_j6(pts, ecs_j6_deg, ecs_j6_deg[:3], T_ecs_from_mcs,
+                                at_j6_deg=turns)
+        drawn = [dict(d) for d in seen]
+        for i, a in enumerate(ecs_j6_deg):
+            drawn[turns.index(float(a))][REAR_SMR] = pts[i]
+        for (i, n), sg in shot_s.items():
+            drawn[i][n] = seen[i][n] + rng.normal(size=3) * sg
+        for n, p in calibrate_cluster(poses, drawn).points_mcs.items():
+            runs.setdefault(n, []).append(p)
+    return {n: np.std(v, axis=0, ddof=1) for n, v in runs.items()}
 
 
 def store(root: Path, body: dict[str, Any], pairs: list[Pair] | None) -> Path:
@@ -161,7 +259,10 @@ class CalibrateWorker(ThreadedWorker[str]):
             job = self._job(s["job_id"])
             job.expected = int(s.get("balls", job.expected))
             if s["kind"] == "ecs":
-                job.ecs[int(s["index"])] = (float(s.get("j6_deg", 0.0)), np.asarray(s["point_mm"]))
+                job.ecs[int(s["index"])] = (float(s.get("j6_deg", 0.0)), np.asarray(s["point_mm"]),
+                                            np.asarray(s.get("sigma_mm", [0.0] * 3), float))
+            elif s["kind"] == "cluster":
+                job.cluster[s["id"]] = s
             else:
                 job.balls[s["id"]] = s
 
@@ -189,6 +290,7 @@ class CalibrateWorker(ThreadedWorker[str]):
                 job = self._job(e["job_id"])
                 job.expected_ecs = int(result.get("ecs_points", 0))
                 job.expected = int(result.get("balls", job.expected))
+                job.expected_cluster = int(result.get("cluster_points", 0))
             self.submit(e["job_id"])
         else:
             log.warning("job %s %s: no calibration", e["job_id"], e["state"])
@@ -208,7 +310,8 @@ class CalibrateWorker(ThreadedWorker[str]):
                 job = self._job(job_id)
                 missing = [s["scan_id"] for s in job.balls.values()
                            if s["scan_id"] not in job.clouds]
-                short = len(job.ecs) < job.expected_ecs or len(job.balls) < job.expected
+                short = (len(job.ecs) < job.expected_ecs or len(job.balls) < job.expected
+                         or len(job.cluster) < job.expected_cluster)
             if (not missing and not short) or time.monotonic() > deadline:
                 break
             time.sleep(0.2)

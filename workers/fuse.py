@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import Station, check_rigid, fuse
+from scancell.analysis.station_pose import StationPoseError, station_pose
 from scancell.analysis.station_uncertainty import (
     StatedSources,
     StationUncertainty,
@@ -47,11 +48,9 @@ from scancell.analysis.station_uncertainty import (
     station_uncertainty,
 )
 from scancell.bus.protocol import BusLike
-from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
-from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.workers.base import HandEyeInForce, ThreadedWorker
 from scancell.workers.work_share import WorkShare
 
@@ -248,22 +247,20 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             log.error("station %s of %s: no hand-eye calibration on calib/hand_eye; not fused",
                       station, job_id)
             return None
-        frame = [0.0, *he.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
         try:
-            T_world_from_ecs = ecs_for_frame(np.asarray(ecs["points_mm"]), ecs["j6_deg"], frame)
-        except DegenerateGeometry as exc:
-            log.error("station %s of %s: no ECS: %s", station, job_id, exc)
+            pose = station_pose(ecs, he)
+        except StationPoseError as exc:
+            log.error("station %s of %s: no pose: %s", station, job_id, exc)
             return None
-        T_ecs_from_mcs = np.asarray(he["T_ecs_from_mcs"])
+        T_ecs_from_mcs = pose.T_ecs_from_mcs
+        T_world_from_ecs = pose.T_world_from_mcs(weighted=True) @ np.linalg.inv(T_ecs_from_mcs)
         noise = None
-        if ecs.get("sigma_mm") is not None and len(cloud):
-            noise = ecs_noise_effect(np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]),
-                                     ecs["j6_deg"], frame, T_ecs_from_mcs, cloud)
-        if ecs.get("sigma_mm") is not None and len(cloud):
+        stated_sigma = ecs.get("sigma_mm") is not None or ecs.get("smr_sigma_mm") is not None
+        if stated_sigma and len(cloud):
+            noise = ecs_noise_effect(pose, cloud)
             unc = job.uncertainty.get(station)
             su = station_uncertainty(
-                np.asarray(ecs["points_mm"]), np.asarray(ecs["sigma_mm"]), ecs["j6_deg"], frame,
-                T_ecs_from_mcs, cloud, 0.0 if unc is None else unc,
+                pose, cloud, 0.0 if unc is None else unc,
                 StatedSources.from_json(ecs.get("uncertainty_sources"), he),
                 seed=zlib.crc32(station.encode()))
             with self._lock:

@@ -10,9 +10,8 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.fusion import FusionError, Station
-from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
+from scancell.analysis.station_pose import StationPoseError, station_T_world_from_ecs
 from scancell.protocols import foxglove_schemas as fg
-from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.recorder.reading import samples
 
 
@@ -41,16 +40,15 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
         raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")
     if not ecs:
         raise FusionError(f"{path}: no scan_part stations (scan/<station>/ecs) in the recording")
-    frame = [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
     stations = []
     for scan_id, e in sorted(ecs.items(), key=lambda kv: kv[1].get("index", 0)):
         if scan_id not in clouds:
             raise FusionError(f"{path}: station {e['station']}: no cloud for scan {scan_id} "
                               f"(was a scan worker running? try `scancell reprocess`)")
         try:
-            T = ecs_for_frame(np.asarray(e["points_mm"]), e["j6_deg"], frame)
-        except DegenerateGeometry as exc:
-            raise FusionError(f"{path}: station {e['station']}: {exc}") from None
+            T = station_T_world_from_ecs(e, hand_eye)
+        except StationPoseError as exc:
+            raise FusionError(f"{path}: {exc}") from None
         stations.append(Station(e["station"], clouds[scan_id], T,
                                 uncertainty=uncertainty.get(scan_id)))
     return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye

@@ -3,9 +3,14 @@
 At the current robot pose: the scanner's SMR measured by the tracker at J6 = q6 and at the
 J6 turns (the ECS); then, for each of N positions of the calibration ball spread over the
 scanner's field and depth, a coupled scan (``cmd/scan`` frames) and a tracker measurement of
-the ball. Every observation goes out on ``calib/hand_eye/sample``; ``scancell worker
-calibrate`` turns them into ``T_ecs_from_mcs``. On the simulated cell the world places the
-ball (as an operator would); on a real cell the job waits for ``cmd/job/confirm`` each time.
+the ball. When the cell's geometry names an SMR cluster on the scanner (``[planner]
+smr_cluster``), the job then turns J6 through the angles at which the cluster's SMRs face the
+tracker and measures them (``kind = "cluster"``): the poses the rear SMR's J6 circle gives
+locate each in the scanner's frame; SMRs no J6 turn shows are measured with the scanner tipped
+towards them, located through the pose the others give there. Every observation goes out
+on ``calib/hand_eye/sample``; ``scancell worker calibrate`` turns them into ``T_ecs_from_mcs``
+and the cluster's calibration. On the simulated cell the world places the ball (as an
+operator would); on a real cell the job waits for ``cmd/job/confirm`` each time.
 """
 
 from __future__ import annotations
@@ -14,8 +19,10 @@ import contextlib
 from typing import Any
 
 import numpy as np
+from scancell.analysis.smr_cluster import cluster_tilts, cluster_turns
+from scancell.daemon.jobs.cluster_measure import measure_cluster
 from scancell.daemon.jobs.devices import measuring_devices
-from scancell.daemon.jobs.ecs_measure import averaged, measure_ecs
+from scancell.daemon.jobs.ecs_measure import EcsPoint, averaged, measure_ecs
 from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
@@ -23,6 +30,7 @@ from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_jo
 from scancell.devices.base import Robot, Tracker
 from scancell.devices.simulator import BallPlacer, Simulator
 from scancell.model.ball_layout import ball_layout
+from scancell.model.cell_geometry import REAR_SMR, CellGeometry
 from scancell.protocols.commands import CommandError
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
@@ -48,7 +56,8 @@ class OperatorPlacer:
 async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              simulator: Simulator | None,
                              setup: ScannerSetup | None = None,
-                             metrology: MetrologySettings | None = None) -> dict[str, Any]:
+                             metrology: MetrologySettings | None = None,
+                             geometry: CellGeometry | None = None) -> dict[str, Any]:
     req = ctx.request
     n = int(req.get("balls", 15))
     turns = [float(a) for a in req.get("j6_angles_deg", [*DEFAULT_J6_ANGLES_DEG, 60.0, -60.0])]
@@ -109,5 +118,70 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
         for k, e in enumerate(ecs):
             sample("ecs", f"P{k + 1}", e.point_mm, index=k, j6_deg=e.j6_deg, repeats=repeats,
                    sigma_mm=[float(v) for v in e.sigma_mm])
+        cluster: dict[str, Any] = {}
+        if geometry is not None and geometry.smr_cluster and req.get("cluster", True):
+            cluster = await measure_cluster_turns(ctx, robot, tracker, geometry, q0, ecs[0],
+                                                  speed, repeats, metrology, sample)
     return {"balls": n, "ecs_points": len(ecs), "j6_angles_deg": [e.j6_deg for e in ecs[1:]],
-            "weather": weather, "settle_s": [e.settle_s for e in ecs]}
+            "weather": weather, "settle_s": [e.settle_s for e in ecs], **cluster}
+
+
+async def measure_cluster_turns(ctx: JobContext, robot: Robot, tracker: Tracker,
+                                geometry: CellGeometry, q0: np.ndarray, p1: EcsPoint,
+                                speed: float, repeats: int, metrology: MetrologySettings | None,
+                                sample: Any) -> dict[str, Any]:
+    """The cluster's SMRs at the J6 turns where they face the tracker (each from up to 3
+    turns; poses ``j6<turn>``), then those the turns do not show at up to 2 tipped poses
+    (``t<k>``) beside >= 3 the turns locate; published as ``cluster`` samples. The robot ends
+    back at ``q0`` and the tracker on the rear SMR. The robot model's prediction of each SMR is
+    corrected by where the rear SMR really is."""
+    rear0 = geometry.smr_positions(q0, None)[REAR_SMR][0]
+    offset = p1.point_mm - rear0  # the robot's absolute error and the rail, as the rear sees
+
+    def turned(turn: float) -> np.ndarray:
+        q = np.array(q0, float)
+        q[5] += np.radians(turn)
+        return q
+
+    def facing(turn: float) -> list[str]:
+        q = turned(turn)
+        if not geometry.robot.within_limits(q):
+            return []
+        return sorted(set(geometry.facing_smrs(q, None)) - {REAR_SMR})
+
+    turns = cluster_turns(facing, np.arange(-180.0, 180.0, 15.0))
+    sightings: dict[str, int] = {}
+    for t in turns:
+        for name in facing(t):
+            sightings[name] = sightings.get(name, 0) + 1
+    # SMRs the J6 turns never show (or once): tip the scanner so that they face the tracker
+    # beside >= 3 the turns do locate
+    known = {n for n, c in sightings.items() if c >= 2} | {REAR_SMR}
+    tilts = cluster_tilts(geometry, q0, known, set(geometry.smr_cluster) - known)
+    views = [(f"j6{turn:+.0f}", turned(turn), turn) for turn in turns]
+    views += [(f"t{k + 1}", q, None) for k, (q, _) in enumerate(tilts)]
+    points = 0
+    try:
+        for k, (pose, q, turn) in enumerate(views):
+            ctx.event("running", "cluster", f"SMR cluster: pose {pose} ({k + 1}/{len(views)})",
+                      k, len(views))
+            await robot.move_joints(q, speed)
+            aims = {n: p + offset for n, p in geometry.facing_smrs(q, None).items()
+                    if n != REAR_SMR or turn is None}
+            shots = await measure_cluster(tracker, geometry, q, None, repeats,
+                                          {"job_id": ctx.job_id, "pose": pose}, metrology,
+                                          predicted=aims)
+            for name, p in shots.points_mm.items():
+                sample("cluster", f"{name}@{pose}", p, smr=name, pose=pose, j6_deg=turn,
+                       repeats=repeats, sigma_mm=[float(v) for v in shots.sigma_mm[name]])
+                points += 1
+            for name, why in shots.skipped.items():
+                ctx.event("running", "cluster", f"SMR {name} at pose {pose} not measured: {why}")
+    finally:
+        await robot.move_joints(q0, speed)
+        with contextlib.suppress(Exception):
+            await tracker.find_reflector(p1.point_mm)
+    shown = set(sightings) | {n for _, f in tilts for n in f}
+    missing = sorted(set(geometry.smr_cluster) - shown)
+    return {"cluster_points": points, "cluster_poses": [v[0] for v in views],
+            "cluster_never_facing": missing}

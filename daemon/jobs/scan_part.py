@@ -19,6 +19,8 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from scancell.analysis.smr_cluster import ClusterGeometryError, check_cluster_geometry
+from scancell.daemon.jobs.cluster_measure import ClusterShots, measure_cluster
 from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop_motion
 from scancell.daemon.jobs.ecs_measure import EcsPoint, measure_ecs, settled_point
 from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
@@ -29,10 +31,10 @@ from scancell.daemon.jobs.scanner_check import due, scanner_check
 from scancell.daemon.jobs.station import Station
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
-from scancell.model.cell_geometry import CellGeometry
+from scancell.model.cell_geometry import REAR_SMR, CellGeometry
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
-from scancell.protocols.plan import Plan, PlanError, PlanStation, parse_plan
+from scancell.protocols.plan import ECS_METHODS, Plan, PlanError, PlanStation, parse_plan
 
 VERB = "scan_part"
 
@@ -87,8 +89,7 @@ def solve_poses(plan: Plan, geometry: CellGeometry | None, seed_rad: np.ndarray 
                                                f"{list(st.mcs_pose_world)} not reachable: {exc}"
                                ) from None
         seed = q
-        out.append(PlanStation(st.name, tuple(float(v) for v in np.degrees(q)), st.axis_mm,
-                               st.mcs_pose_world, st.j6_sign))
+        out.append(replace(st, joints_deg=tuple(float(v) for v in np.degrees(q))))
     return replace(plan, stations=tuple(out))
 
 
@@ -127,6 +128,7 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
     axis = serving_device(supervisors, req.get("axis"), Axis, VERB).device if needs_axis else None
     check_plan(plan, robot, axis)
+    ecs_method_of(req, plan, geometry)
 
 
 
@@ -134,54 +136,114 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           st: PlanStation, how: Station, i: int, n: int, eta: float | None,
                           plan_name: str) -> dict[str, Any]:
-    """The paper's procedure at one station: move, tracker P1, scan, J6 turns for P2 and P3;
+    """One station: move, then the scanner's pose by the station's ECS method and the scan;
     publishes ``scan/<station>/ecs`` (``scancell.StationEcs``) and returns it. A failure is a
-    StepFailed naming the station and the step."""
+    StepFailed naming the station and the step.
+
+    - ``j6`` (the paper's): tracker P1, scan, J6 turns for P2 and P3, J6 back.
+    - ``cluster``: the SMRs of the cluster facing the tracker, each found at its predicted
+      position and measured, then the scan; no robot motion. Fewer than 3 measured, or on a
+      line: the J6 turns instead, and the record says why (``cluster_fallback``).
+    """
     step = "move"
+    timing: dict[str, float] = {}
+    t_step = time.monotonic()
 
     def event(step: str, msg: str, **extra: Any) -> None:
         ctx.event("running", step, msg, i, n, station=st.name,
                   eta_s=None if eta is None else round(eta, 1), **extra)
 
+    def clock(name: str) -> None:
+        nonlocal t_step
+        now = time.monotonic()
+        timing[name] = round(timing.get(name, 0.0) + now - t_step, 2)
+        t_step = now
+
+    method = st.ecs or how.ecs
+    cluster: ClusterShots | None = None
+    fallback: str | None = None
+    ecs: list[EcsPoint] = []
     try:
         event("move", f"station {st.name} ({i + 1}/{n}): moving")
         if st.axis_mm is not None and how.axis is not None:
             await how.axis.move_to(st.axis_mm)
         q0 = np.radians(st.joints_deg)
         await how.robot.move_joints(q0, how.speed)
-        step = "p1"
-        event("p1", f"station {st.name}: tracker P1")
+        clock("move")
         meta = {"job_id": ctx.job_id, "station": st.name}
-        p, s, settle_s = await settled_point(how.tracker, how.repeats,
-                                             {**meta, "ecs": 0, "j6_deg": 0.0}, how.metrology)
+        T_wt = how.drift.T_world_from_tracker if how.drift is not None else None
+        if method == "cluster":
+            step = "cluster"
+            event("cluster", f"station {st.name}: the SMR cluster")
+            if how.geometry is None or not how.geometry.smr_cluster:
+                raise CommandError("invalid", "ecs = \"cluster\" needs the scanner's SMR "
+                                              "cluster in the cell's geometry ([planner] "
+                                              "smr_cluster)")
+            cluster = await measure_cluster(how.tracker, how.geometry, q0, st.axis_mm,
+                                            how.repeats, {**meta, "ecs": "cluster"},
+                                            how.metrology, T_wt)
+            fallback = cluster_problem(cluster, how.geometry)
+            clock("tracker")
+            if fallback is not None:
+                event("cluster", f"station {st.name}: {fallback}; J6 turns instead")
+                cluster = None
+        if cluster is None:
+            step = "p1"
+            event("p1", f"station {st.name}: tracker P1")
+            if how.geometry is not None and how.geometry.smr_cluster:
+                # the tracker may be locked on a cluster SMR: back to the rear one
+                await how.tracker.find_reflector(
+                    how.geometry.smr_positions(q0, st.axis_mm, T_wt)[REAR_SMR][0])
+            p, s, settle_s = await settled_point(how.tracker, how.repeats,
+                                                 {**meta, "ecs": 0, "j6_deg": 0.0},
+                                                 how.metrology)
+            clock("tracker")
         step = "scan"
         event("scan", f"station {st.name}: scanning")
         reply = await scan(supervisors, {
             "station": st.name, "scan_id": f"{ctx.job_id}-{st.name}",
             "projector": how.projector, "cameras": how.cameras},
             hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=how.setup)
-        step = "ecs"
-        ecs = await measure_ecs(
-            how.robot, how.tracker, q0, [st.j6_sign * a for a in how.turns], how.speed,
-            how.repeats, meta,
-            lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 {turn:+.1f} deg"),
-            p1=EcsPoint(0.0, p, s, settle_s), metrology=how.metrology)
+        clock("scan")
+        if cluster is None:
+            step = "ecs"
+            ecs = await measure_ecs(
+                how.robot, how.tracker, q0, [st.j6_sign * a for a in how.turns], how.speed,
+                how.repeats, meta,
+                lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 "
+                                                           f"{turn:+.1f} deg"),
+                p1=EcsPoint(0.0, p, s, settle_s), metrology=how.metrology)
+            clock("j6_turns")
     except asyncio.CancelledError:
         raise
     except Exception as exc:
         why = exc.message if isinstance(exc, CommandError) else f"{exc}"
         raise StepFailed(st.name, step, why) from exc
     to_world = how.drift.to_world if how.drift is not None else np.asarray
-    record = {"job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"],
-              "index": i, "total": n, "plan": plan_name,
-              "points_mm": [[float(v) for v in to_world(e.point_mm)] for e in ecs],
-              "settle_s": [e.settle_s for e in ecs],
-              "sigma_mm": [[float(v) for v in e.sigma_mm] for e in ecs],
-              "j6_deg": [e.j6_deg for e in ecs], "tracker_repeats": how.repeats,
-              "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm,
-              "stamp_ns": messages.now_ns()}
+    record: dict[str, Any] = {
+        "job_id": ctx.job_id, "station": st.name, "scan_id": reply["scan_id"], "index": i,
+        "total": n, "plan": plan_name, "tracker_repeats": how.repeats,
+        "joints_deg": list(st.joints_deg), "axis_mm": st.axis_mm, "stamp_ns": messages.now_ns(),
+        "timing_s": timing}
+    if cluster is not None:
+        record.update(cluster.to_json())
+        record.update(ecs_method="cluster", settle_s=[cluster.settle_s],
+                      smr_points_mm={k: [float(v) for v in to_world(p)]
+                                     for k, p in cluster.points_mm.items()})
+        sigmas = list(cluster.sigma_mm.values())
+    else:
+        record.update(ecs_method="j6",
+                      points_mm=[[float(v) for v in to_world(e.point_mm)] for e in ecs],
+                      settle_s=[e.settle_s for e in ecs],
+                      sigma_mm=[[float(v) for v in e.sigma_mm] for e in ecs],
+                      j6_deg=[e.j6_deg for e in ecs])
+        if fallback is not None:
+            record["cluster_fallback"] = fallback
+        if how.drift is not None:
+            record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]
+        sigmas = [e.sigma_mm for e in ecs]
     m = how.metrology or MetrologySettings()
-    shot_sigma = float(np.mean([np.mean(e.sigma_mm) for e in ecs])) * np.sqrt(how.repeats)
+    shot_sigma = float(np.mean([np.mean(sg) for sg in sigmas])) * np.sqrt(how.repeats)
     record["uncertainty_sources"] = {
         "refraction_ppm": m.refraction_ppm(how.weather_applied),
         "tracker_systematic_mm": 0.5 * shot_sigma,
@@ -191,11 +253,47 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
                       else 0.1),
         "scanner_scale_ppm": m.scanner_scale_ppm, "scanner_noise_rel": m.scanner_noise_rel}
     if how.drift is not None:
-        record["tracker_points_mm"] = [[float(v) for v in e.point_mm] for e in ecs]
         record["T_world_from_tracker"] = how.drift.T_world_from_tracker.tolist()
     ctx.bus.publish_json(ctx.bus.keys.station_ecs(st.name), record, "scancell.StationEcs")
-    event("station_done", f"station {st.name} ({i + 1}/{n}) measured")
+    event("station_done", f"station {st.name} ({i + 1}/{n}) measured ({method} ECS"
+                          f"{', J6 fallback' if fallback else ''}; "
+                          + ", ".join(f"{k} {v:.1f} s" for k, v in timing.items()) + ")")
     return record
+
+
+def tracker_point(record: dict[str, Any]) -> np.ndarray:
+    """Where the tracker last saw the scanner at a station (its own frame, mm)."""
+    if record.get("ecs_method") == "cluster":
+        return np.asarray(next(iter(record["smr_tracker_mm"].values())), float)
+    return np.asarray(record["tracker_points_mm" if "tracker_points_mm" in record
+                             else "points_mm"][0], float)
+
+
+def ecs_method_of(req: dict[str, Any], plan: Plan, geometry: CellGeometry | None) -> str:
+    """The job's ECS method: the request's ``ecs``, else the plan's; "cluster" needs the
+    scanner's SMR cluster in the cell's geometry."""
+    method = req.get("ecs", plan.ecs)
+    if method not in ECS_METHODS:
+        raise CommandError("invalid", f"ecs must be one of {', '.join(ECS_METHODS)}, got "
+                                      f"{method!r}")
+    wanted = {method, *(s.ecs for s in plan.stations if s.ecs)}
+    if "cluster" in wanted and (geometry is None or not geometry.smr_cluster):
+        raise CommandError("invalid", "ecs = \"cluster\" needs the scanner's SMR cluster in "
+                                      "the cell's geometry ([planner] smr_cluster, or the "
+                                      "simulator's smr_cluster = \"housing\")")
+    return str(method)
+
+
+def cluster_problem(shots: ClusterShots, geometry: CellGeometry) -> str | None:
+    """Why the SMRs measured do not fix the scanner's pose (None: they do), naming those
+    skipped and why."""
+    nominal = geometry.cluster_nominal()
+    try:
+        check_cluster_geometry({k: nominal[k][0] for k in shots.points_mm}, "the SMR cluster")
+    except ClusterGeometryError as exc:
+        skipped = "; ".join(f"{k}: {v}" for k, v in shots.skipped.items())
+        return f"{exc}{f' (not measured: {skipped})' if skipped else ''}"
+    return None
 
 
 async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
@@ -207,6 +305,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     speed = float(req.get("speed", plan.speed))
     repeats = int(req.get("tracker_repeats", plan.tracker_repeats))
     turns = [float(a) for a in req.get("j6_angles_deg", plan.j6_angles_deg)]
+    ecs_method = ecs_method_of(req, plan, geometry)
     devs = measuring_devices(supervisors, req, VERB)
     robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
@@ -267,7 +366,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 await check_scanner("start")
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
                           repeats, turns, setup, metrology, drift if drift.enabled else None,
-                          bool(result["weather"].get("source")))
+                          bool(result["weather"].get("source")), geometry, ecs_method)
             for i, st in enumerate(plan.stations):
                 if drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)
@@ -275,10 +374,12 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     await check_scanner(f"before {st.name}")
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
                 record = await measure_station(ctx, supervisors, st, how, i, n, eta, plan.name)
-                scanner_at = np.asarray(record["tracker_points_mm" if drift.enabled
-                                               else "points_mm"][0])
+                scanner_at = tracker_point(record)
                 done.append({"station": st.name, "scan_id": record["scan_id"],
-                             "settle_s": record["settle_s"]})
+                             "settle_s": record["settle_s"], "ecs_method": record["ecs_method"],
+                             "timing_s": record["timing_s"],
+                             **({"cluster_fallback": record["cluster_fallback"]}
+                                if "cluster_fallback" in record else {})})
             if drift.enabled:
                 await nest_check("end", scanner_at)
         except BaseException:

@@ -10,6 +10,7 @@ from scancell.daemon.jobs.metrology import MetrologySettings
 from scancell.daemon.jobs.nests import DriftControl
 from scancell.daemon.jobs.scan import ScannerSetup
 from scancell.devices.base import Axis, Robot, Tracker
+from scancell.model.cell_geometry import CellGeometry
 
 
 @dataclass(frozen=True)
@@ -31,3 +32,7 @@ class Station:
     drift: DriftControl | None = None
     #: whether the tracker was told the weather (the refraction's uncertainty)
     weather_applied: bool = False
+    #: the cell's geometry: where the scanner's SMRs are (the cluster method aims by it)
+    geometry: CellGeometry | None = None
+    #: the ECS method of stations that do not name one ("j6" or "cluster")
+    ecs: str = "j6"
