@@ -28,7 +28,9 @@ def _all_connected(client) -> bool:
 @pytest.mark.e2e
 def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell, endpoint,
                                                       tmp_path):
-    d = make_daemon(sim_cell_raw(camera_scale=4))
+    raw = sim_cell_raw(camera_scale=4)
+    raw["simulator"]["smr_cluster"] = "housing"  # and the cluster's calibration
+    d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
     world = get_world(d.cfg.simulator["world"])
     world.cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
@@ -65,6 +67,20 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
         # 1/4 resolution and 5 balls: the accuracy figures are in benchmarks/RESULTS.md
         assert rotation_angle_arcsec(T[:3, :3] @ truth[:3, :3].T) < 600
         assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 1.0
+        # every nest of the cluster in mcs: its shape (distances between nests, which a
+        # hand-eye error does not change) as built, within 0.05 mm
+        cluster = {n: np.array(e["mcs_mm"]) for n, e in res["smr_cluster"].items()}
+        built = {n: c for n, (c, _) in world.cell.smr_cluster.items()}
+        built["rear"] = world.cell.cfg.smr_in_mcs_mm
+        assert set(cluster) == set(built), (res.get("smr_cluster_dropped"),
+                                            res.get("smr_cluster_error"))
+        names = sorted(built)
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                d_meas = np.linalg.norm(cluster[a] - cluster[b])
+                d_true = np.linalg.norm(built[a] - built[b])
+                assert abs(d_meas - d_true) < 0.05, (a, b, d_meas - d_true)
+        assert res["smr_cluster"]["left1"].get("through_cluster")  # seen only with a tilt
         time.sleep(1.0)
         assert len([r for r in results if r["job_id"] == started["job_id"]]) == 1  # once
         stores = [tmp_path / name / "hand_eye" for name in ("calib", "calib2")]

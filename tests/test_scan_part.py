@@ -62,6 +62,7 @@ class Events:
 @pytest.fixture
 def sim(make_daemon, client, tmp_path):
     raw = sim_cell_raw(camera_scale=8, hdr=True)  # the true error needs the dark paint
+    raw["simulator"]["smr_cluster"] = "housing"  # for the cluster station
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="sim devices connected")
     world = get_world(d.cfg.simulator["world"])
@@ -70,9 +71,13 @@ def sim(make_daemon, client, tmp_path):
     scan_worker.start()
     # the true mounting as the calibration in force (the calibration job has its own tests)
     he = client.bus.latched(client.bus.keys.hand_eye)
+    cluster = {n: {"mcs_mm": c.tolist(), "sigma_mm": [0.005] * 3}
+               for n, (c, _) in world.cell.smr_cluster.items()}
+    cluster["rear"] = {"mcs_mm": world.cell.cfg.smr_in_mcs_mm.tolist(), "sigma_mm": [0.005] * 3}
     he.publish(messages.encode_json({
         "T_ecs_from_mcs": world.cell.true_T_ecs_from_mcs((120.0, -120.0)).tolist(),
-        "j6_angles_deg": [120.0, -120.0], "rms_mm": 0.0, "job_id": "truth"}, "scancell.HandEye"))
+        "j6_angles_deg": [120.0, -120.0], "rms_mm": 0.0, "job_id": "truth",
+        "smr_cluster": cluster}, "scancell.HandEye"))
     fuse = FuseWorker(client.bus, FuseSettings(tmp_path / "fused", voxel_mm=1.0, mesh=False,
                                                truth=world.cell.surface_distance))
     fuse.start()
@@ -109,6 +114,9 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     with world.lock:
         plan = plan_for(world.cell)
     plan["plan"]["nominal"] = world.nominal["stl"]
+    plan["station"][1]["ecs"] = "cluster"  # s02: its pose from the SMR cluster, no J6 turn
+    records: list = []
+    client.bus.subscribe(client.bus.keys.station_ecs("*"), lambda s: records.append(s.decode()))
     job = client.call("job/scan_part", {"plan": plan})["job_id"]
     with pytest.raises(CommandError, match="busy"):
         client.call("home", {"joints_deg": [0, 0, 0, 0, 0, 0]})
@@ -116,9 +124,17 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     final = events.final(job)
     assert final["state"] == "done", final
     steps = [(e.get("station"), e["step"]) for e in events.of(job) if e["state"] == "running"]
-    for s in ("s01", "s02", "s03"):
-        assert [st for name, st in steps if name == s][:3] == ["move", "p1", "scan"]
+    for s in ("s01", "s03"):
+        assert [st for name, st in steps if name == s][:4] == ["move", "p1", "scan", "ecs"]
         assert (s, "station_done") in steps
+    assert [st for name, st in steps if name == "s02"][:3] == ["move", "cluster", "scan"]
+    assert "ecs" not in [st for name, st in steps if name == "s02"]
+    by_station = {r["station"]: r for r in records if r["job_id"] == job}
+    assert [by_station[s]["ecs_method"] for s in ("s01", "s02", "s03")] == ["j6", "cluster", "j6"]
+    s02 = by_station["s02"]
+    assert {"back1", "back2", "back3"} <= set(s02["smr_points_mm"]), s02.get("smr_skipped")
+    assert "j6_turns" not in s02["timing_s"] and by_station["s01"]["timing_s"]["j6_turns"] > 0
+    assert [d["ecs_method"] for d in final["result"]["stations"]] == ["j6", "cluster", "j6"]
     assert any(e.get("eta_s") for e in events.of(job))
     r = reports[0]
     assert r["job_id"] == job and r["stations"] == 3 and r["state"] == "done"

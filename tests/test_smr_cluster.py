@@ -214,3 +214,57 @@ def test_the_cluster_calibrated_on_the_simulated_cell_matches_the_nests_as_built
         # turns that the ECS cannot see), which the stated sigma does not carry
         assert np.all(err < 4 * np.asarray(entry["sigma_mm"]) + 0.01), (name, err, entry)
         assert np.linalg.norm(err) < 0.06, (name, err)
+
+
+class _BlockedTracker:
+    """A tracker at the cluster's predicted SMRs; the beam to the SMRs in ``blocked`` is
+    broken (DeviceFault), one SMR locks on a reflector 80 mm away."""
+
+    def __init__(self, predicted: dict[str, np.ndarray], blocked: set[str],
+                 stray: str | None = None) -> None:
+        self.predicted, self.blocked, self.stray = predicted, blocked, stray
+        self.locked: np.ndarray | None = None
+
+    async def find_reflector(self, approx_mm: np.ndarray) -> None:
+        from scancell.devices.errors import DeviceFault
+
+        name = min(self.predicted, key=lambda n: np.linalg.norm(self.predicted[n] - approx_mm))
+        if name in self.blocked:
+            raise DeviceFault(f"beam broken on the way to {name}")
+        self.locked = self.predicted[name] + ([80.0, 0, 0] if name == self.stray else 0.0)
+
+    async def measure_published(self, meta=None):
+        from scancell.devices.base import TrackerMeasurement
+
+        return TrackerMeasurement(self.locked.copy(), np.full(3, 0.01), 0)
+
+
+@pytest.mark.unit
+def test_a_cluster_station_with_too_few_smrs_says_which_and_why():
+    """Mock level: the SMRs a cluster station measures, those skipped with the tracker's
+    reason, and the reason the job falls back to the J6 turns."""
+    import asyncio
+
+    from scancell.daemon.jobs.cluster_measure import measure_cluster
+    from scancell.daemon.jobs.scan_part import cluster_problem
+    from scancell.model.cell_geometry import CellGeometry
+    from scancell.sim.cell import SimCell, SimCellConfig
+    from scancell.sim.parts import HOUSING_SMR_CLUSTER
+
+    cell = SimCell(SimCellConfig(camera_scale=16, smr_cluster=dict(HOUSING_SMR_CLUSTER)))
+    geometry = CellGeometry.from_table(cell.planner_table())
+    q = cell.ik_for_mcs(cell.mcs_pose_looking_at(cell.cfg.T_world_from_part[:3, 3]))
+    predicted = geometry.facing_smrs(q, None)
+    assert {"back1", "back2", "back3"} <= set(predicted)
+    everything = asyncio.run(measure_cluster(_BlockedTracker(predicted, set()), geometry, q,
+                                             None, 2, {}))
+    assert set(everything.points_mm) == set(predicted) and not everything.skipped
+    assert cluster_problem(everything, geometry) is None
+    others = set(predicted) - {"back1"}
+    shots = asyncio.run(measure_cluster(
+        _BlockedTracker(predicted, others - {"back2"}, stray="back2"), geometry, q, None, 2, {}))
+    assert set(shots.points_mm) == {"back1"}
+    assert "beam broken on the way to back3" in shots.skipped["back3"]
+    assert "80 mm from where it should be" in shots.skipped["back2"]
+    why = cluster_problem(shots, geometry)
+    assert why is not None and "back2: locked 80 mm" in why and "back3: beam broken" in why
