@@ -75,13 +75,18 @@ def frame_angles(hand_eye: dict[str, Any]) -> list[float]:
     return [0.0, *hand_eye.get("j6_angles_deg", list(DEFAULT_J6_ANGLES_DEG))[:2]]
 
 
-def station_pose(record: dict[str, Any], hand_eye: dict[str, Any]) -> StationPose:
+def station_pose(record: dict[str, Any], hand_eye: dict[str, Any],
+                 method: str | None = None) -> StationPose:
     """The :class:`StationPose` of a ``scancell.StationEcs`` record under the hand-eye
-    calibration ``hand_eye`` (``scancell.HandEye``); raises StationPoseError naming the
-    station and what is missing."""
+    calibration ``hand_eye`` (``scancell.HandEye``), by the record's ``ecs_method`` or by
+    ``method`` (a cluster station measured with ``compare_ecs`` holds the J6 points too);
+    raises StationPoseError naming the station and what is missing."""
     name = record.get("station", "?")
     T_em = np.asarray(hand_eye["T_ecs_from_mcs"], float)
-    method = record.get("ecs_method", "j6")
+    method = method or record.get("ecs_method", "j6")
+    if method == "j6" and "points_mm" not in record:
+        raise StationPoseError(f"station {name}: no J6 points (measured by "
+                               f"{record.get('ecs_method')!r} without compare_ecs)")
     if method == "j6":
         pts = np.asarray(record["points_mm"], float)
         sig = np.broadcast_to(np.asarray(record.get("sigma_mm", 0.0), float), pts.shape)

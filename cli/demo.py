@@ -125,6 +125,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="reduced size, for tests")
     p.add_argument("--no-acceptance", action="store_true",
                    help="skip the VDI/VDE 2634 acceptance stage (ablation runs)")
+    p.add_argument("--compare-ecs", action="store_true",
+                   help="the scanner carries the SMR cluster; every station measures its pose "
+                        "by the cluster and by the paper's J6 turns, and the summary compares "
+                        "the two (true error, time)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -148,6 +152,8 @@ def main(args: argparse.Namespace) -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     sets = [*flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port())),
             f"simulator.camera_scale={scale}"]
+    if args.compare_ecs:
+        sets.append("simulator.smr_cluster=housing")
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
     stage = Stage(10)
     procs = Processes(run_dir / "logs")
@@ -241,6 +247,9 @@ def main(args: argparse.Namespace) -> int:
         plan = plan_from_text((run_dir / "plan.toml").read_text(), "plan.toml")
         plan["plan"]["nominal"] = str(step)  # the inspect worker takes the plan's nominal
         request: dict[str, Any] = {"plan": plan}
+        if args.compare_ecs:
+            plan["plan"]["ecs"] = "cluster"
+            request["compare_ecs"] = True
         if quick:
             request["stations"] = [s["name"] for s in plan["station"][:3]]
         reports: list[dict] = []
@@ -279,6 +288,9 @@ def main(args: argparse.Namespace) -> int:
 
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
+        summary["station_timing_s"] = station_timing(final.get("result") or {})
+        if report.get("ecs_comparison"):
+            summary["ecs_comparison"] = report["ecs_comparison"]
         summary["scanner"] = scanner_summary([r for r in scan_results
                                               if str(r.get("scan_id", "")).startswith(job)])
         print(table(summary))
@@ -419,6 +431,18 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
+def station_timing(result: dict[str, Any]) -> dict[str, Any]:
+    """The scan job's stage clock: per stage (move, tracker, scan, J6 turns, ...) the mean
+    seconds per station, and the mean station's total."""
+    per = [d.get("timing_s") or {} for d in result.get("stations", [])]
+    if not per:
+        return {}
+    stages = sorted({k for t in per for k in t})
+    mean = {k: round(sum(t.get(k, 0.0) for t in per) / len(per), 2) for k in stages}
+    return {"mean_per_station": mean, "station_mean": round(sum(mean.values()), 2),
+            "stations": len(per)}
+
+
 def table(s: dict[str, Any]) -> str:
     from scancell.model.paper import PAPER
 
@@ -440,6 +464,17 @@ def table(s: dict[str, Any]) -> str:
             ("true error of the fused model, mean / max (mm)",
              f"{f(e['mean'], '.4f')} / {f(e['max'], '.4f')}", "not measurable"),
             ("stations / points", f"{s['stations']} / {s['points']}", "~22 / ~2 M")]
+    clock = s.get("station_timing_s") or {}
+    if clock:
+        rows.append(("time per station (s): " + ", ".join(
+            f"{k} {v:.1f}" for k, v in clock["mean_per_station"].items()),
+            f"{clock['station_mean']:.1f}", "3 (scan)"))
+    cmp = (s.get("ecs_comparison") or {}).get("mean")
+    if cmp:
+        for m, label in (("cluster", "SMR cluster"), ("j6", "J6 turns (the paper's)")):
+            rows.append((f"ECS by the {label}: true error (mm) / tracker time (s)",
+                         f"{f(cmp[m]['true_error_mm'], '.4f')} / {f(cmp[m]['seconds'], '.1f')}",
+                         "-"))
     sc = s.get("scanner") or {}
     if sc:
         rows.append(("lit camera pixels decoded, mean / worst", f"{sc['decoded_of_lit_mean']:.1%}"

@@ -331,7 +331,7 @@ def test_a_plan_chooses_the_ecs_method_for_all_or_one_station():
     assert parse_plan({"plan": {}, "station": [s1]}).ecs == "j6"  # the paper's by default
     with pytest.raises(PlanError, match=r"\[plan\] ecs.*'j6', 'cluster', got 'laser'"):
         parse_plan({"plan": {"ecs": "laser"}, "station": [s1]})
-    with pytest.raises(PlanError, match=r"station\[1\] \(s02\) ecs"):
+    with pytest.raises(PlanError, match=r"station 2 \(s02\) ecs: must be one of .*got 3"):
         parse_plan({"plan": {}, "station": [s1, {**s1, "name": "s02", "ecs": 3}]})
 
 

@@ -117,7 +117,10 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     plan["station"][1]["ecs"] = "cluster"  # s02: its pose from the SMR cluster, no J6 turn
     records: list = []
     client.bus.subscribe(client.bus.keys.station_ecs("*"), lambda s: records.append(s.decode()))
-    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    with pytest.raises(CommandError, match=r"compare_ecs.*not of type .boolean"):
+        client.call("job/scan_part", {"plan": plan, "compare_ecs": "yes"})
+    # compare_ecs: s02 also takes the J6 turns after its scan, to compare the two methods
+    job = client.call("job/scan_part", {"plan": plan, "compare_ecs": True})["job_id"]
     with pytest.raises(CommandError, match="busy"):
         client.call("home", {"joints_deg": [0, 0, 0, 0, 0, 0]})
     wait_until(lambda: reports, 240, period_s=0.5, what="fusion report")
@@ -127,13 +130,18 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     for s in ("s01", "s03"):
         assert [st for name, st in steps if name == s][:4] == ["move", "p1", "scan", "ecs"]
         assert (s, "station_done") in steps
-    assert [st for name, st in steps if name == "s02"][:3] == ["move", "cluster", "scan"]
-    assert "ecs" not in [st for name, st in steps if name == "s02"]
+    assert [st for name, st in steps if name == "s02"][:5] == ["move", "cluster", "scan", "p1",
+                                                                "ecs"]
     by_station = {r["station"]: r for r in records if r["job_id"] == job}
     assert [by_station[s]["ecs_method"] for s in ("s01", "s02", "s03")] == ["j6", "cluster", "j6"]
     s02 = by_station["s02"]
     assert {"back1", "back2", "back3"} <= set(s02["smr_points_mm"]), s02.get("smr_skipped")
     assert "j6_turns" not in s02["timing_s"] and by_station["s01"]["timing_s"]["j6_turns"] > 0
+    assert s02["timing_s"]["compare_j6_turns"] > s02["timing_s"]["tracker"]
+    from scancell.protocols.commands import validate
+
+    for record in by_station.values():  # both methods' records as their schema documents them
+        validate(record, "scancell.StationEcs", "record")
     assert [d["ecs_method"] for d in final["result"]["stations"]] == ["j6", "cluster", "j6"]
     assert any(e.get("eta_s") for e in events.of(job))
     r = reports[0]
@@ -141,6 +149,11 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     # true hand-eye: what is left is the tracker, the robot's repeatability and the scanner
     assert r["true_error_mm"]["mean"] < 0.1, r["true_error_mm"]
     assert set(r["error_budget"]["ecs_noise_mm"]) == {"s01", "s02", "s03"}
+    compared = r["ecs_comparison"]["stations"]
+    assert list(compared) == ["s02"], compared  # the one station measured both ways
+    for method in ("cluster", "j6"):  # each within the true-error bound, against the truth
+        assert compared["s02"][method]["true_error_mm"] < 0.1, compared
+    assert compared["s02"]["apart_mm"] < 0.1, compared
     assert "dominant" in r["error_budget"]
     assert r["translation_mm"]["mean"] < 0.1 and r["translation_mm"]["p_lt_0_6"] > 0.98, r
     assert {(t.parent_frame_id, t.child_frame_id) for t in tfs} >= {

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import Station, check_rigid, fuse
 from scancell.analysis.station_pose import StationPoseError, station_pose
@@ -320,6 +321,11 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job),
                             self.scan_workers(job))
+        with self._lock:
+            records, clouds = dict(job.ecs), dict(job.clouds)
+        comparison = ecs_comparison(records, clouds, he, self.settings.truth)
+        if comparison is not None:
+            body["ecs_comparison"] = comparison
         body["worker"] = self.share.worker_id
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)

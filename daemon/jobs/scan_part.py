@@ -143,7 +143,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
     - ``j6`` (the paper's): tracker P1, scan, J6 turns for P2 and P3, J6 back.
     - ``cluster``: the SMRs of the cluster facing the tracker, each found at its predicted
       position and measured, then the scan; no robot motion. Fewer than 3 measured, or on a
-      line: the J6 turns instead, and the record says why (``cluster_fallback``).
+      line: the J6 turns instead, and the record says why (``cluster_fallback``). With
+      ``compare_ecs`` the J6 turns follow the scan too, their points beside the cluster's.
     """
     step = "move"
     timing: dict[str, float] = {}
@@ -205,7 +206,16 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
             "projector": how.projector, "cameras": how.cameras},
             hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=how.setup)
         clock("scan")
-        if cluster is None:
+        if cluster is not None and how.compare_ecs:
+            step = "p1"  # the paper's ECS at the same pose, for the comparison
+            event("p1", f"station {st.name}: tracker P1 (J6 ECS to compare)")
+            await how.tracker.find_reflector(
+                how.geometry.smr_positions(q0, st.axis_mm, T_wt)[REAR_SMR][0])
+            p, s, settle_s = await settled_point(how.tracker, how.repeats,
+                                                 {**meta, "ecs": 0, "j6_deg": 0.0},
+                                                 how.metrology)
+            clock("compare_p1")
+        if cluster is None or how.compare_ecs:
             step = "ecs"
             ecs = await measure_ecs(
                 how.robot, how.tracker, q0, [st.j6_sign * a for a in how.turns], how.speed,
@@ -213,7 +223,7 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
                 lambda k, turn, note: event("ecs", note or f"station {st.name}: J6 "
                                                            f"{turn:+.1f} deg"),
                 p1=EcsPoint(0.0, p, s, settle_s), metrology=how.metrology)
-            clock("j6_turns")
+            clock("j6_turns" if cluster is None else "compare_j6_turns")
     except asyncio.CancelledError:
         raise
     except Exception as exc:
@@ -231,6 +241,10 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
                       smr_points_mm={k: [float(v) for v in to_world(p)]
                                      for k, p in cluster.points_mm.items()})
         sigmas = list(cluster.sigma_mm.values())
+        if ecs:  # compare_ecs: the J6 ECS at the same pose beside it (station_pose(method=))
+            record.update(points_mm=[[float(v) for v in to_world(e.point_mm)] for e in ecs],
+                          sigma_mm=[[float(v) for v in e.sigma_mm] for e in ecs],
+                          j6_deg=[e.j6_deg for e in ecs])
     else:
         record.update(ecs_method="j6",
                       points_mm=[[float(v) for v in to_world(e.point_mm)] for e in ecs],
@@ -306,6 +320,9 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     repeats = int(req.get("tracker_repeats", plan.tracker_repeats))
     turns = [float(a) for a in req.get("j6_angles_deg", plan.j6_angles_deg)]
     ecs_method = ecs_method_of(req, plan, geometry)
+    compare = req.get("compare_ecs", False)
+    if not isinstance(compare, bool):
+        raise CommandError("invalid", f"compare_ecs must be true or false, got {compare!r}")
     devs = measuring_devices(supervisors, req, VERB)
     robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
@@ -366,7 +383,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 await check_scanner("start")
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
                           repeats, turns, setup, metrology, drift if drift.enabled else None,
-                          bool(result["weather"].get("source")), geometry, ecs_method)
+                          bool(result["weather"].get("source")), geometry, ecs_method,
+                          compare)
             for i, st in enumerate(plan.stations):
                 if drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)

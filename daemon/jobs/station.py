@@ -36,3 +36,5 @@ class Station:
     geometry: CellGeometry | None = None
     #: the ECS method of stations that do not name one ("j6" or "cluster")
     ecs: str = "j6"
+    #: cluster stations also take the J6 turns after the scan, to compare the two methods
+    compare_ecs: bool = False
