@@ -165,3 +165,5 @@ def test_a_cluster_station_without_a_usable_cluster_calibration_is_refused_by_na
         station_pose(record, hand_eye)
     with pytest.raises(StationPoseError, match="unknown ecs_method 'laser'"):
         station_pose({**record, "ecs_method": "laser"}, hand_eye)
+    with pytest.raises(StationPoseError, match=r"s07: no J6 points .*without compare_ecs"):
+        station_pose(record, hand_eye, method="j6")
