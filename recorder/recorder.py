@@ -175,7 +175,17 @@ class Recorder:
             self._thread.join(60)
         self.state = "stopped"
         with contextlib.suppress(Exception):
+            self._announce_drops()  # drops after the writer's last tick are announced too
             self._publish_status(time.monotonic())
+
+    def _announce_drops(self) -> dict[str, int]:
+        """A ``dropped`` event per key for the drops not yet announced; returns them."""
+        with self._cond:
+            drops, self._drop_events = self._drop_events, {}
+        for key, n in drops.items():
+            self._event("dropped", key=key, messages=n,
+                        message=f"{n} messages on {key} dropped: recorder queue full")
+        return drops
 
     def _fetch_config(self) -> dict[str, Any] | None:
         try:
@@ -371,11 +381,7 @@ class Recorder:
             elif s.job_id is None and (now - s.opened >= self.settings.split_s
                                        or s.file.bytes >= self.settings.split_bytes):
                 self._close_session("split")
-        with self._cond:
-            drops, self._drop_events = self._drop_events, {}
-        for key, n in drops.items():
-            self._event("dropped", key=key, messages=n,
-                        message=f"{n} messages on {key} dropped: recorder queue full")
+        drops = self._announce_drops()
         if drops or now - self._last_status >= self.settings.status_period_s:
             self._publish_status(now)
 

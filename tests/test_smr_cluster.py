@@ -268,3 +268,27 @@ def test_a_cluster_station_with_too_few_smrs_says_which_and_why():
     assert "80 mm from where it should be" in shots.skipped["back2"]
     why = cluster_problem(shots, geometry)
     assert why is not None and "back2: locked 80 mm" in why and "back3: beam broken" in why
+
+
+@pytest.mark.unit
+def test_a_cluster_calibration_from_too_few_smrs_is_refused_by_name():
+    """The hand-eye job saw one cluster SMR besides the rear one: two SMRs fix no scanner
+    pose, and the calibration says so (the worker publishes it as ``smr_cluster_error``)."""
+    from scancell.sim.cell import SimCell, SimCellConfig
+    from scancell.sim.parts import HOUSING_SMR_CLUSTER
+    from scancell.workers.calibrate import cluster_calibration
+
+    cell = SimCell(SimCellConfig(camera_scale=16, part=None,
+                                 smr_cluster=dict(HOUSING_SMR_CLUSTER)))
+    q0 = cell.start_joints()
+    angles = np.array([0.0, 120.0, -120.0, 60.0, -60.0])
+    ecs = np.array([cell.smr_center_world(cell.j6_turned(q0, a)) for a in angles])
+    samples = []
+    for turn in (-15.0, -30.0, -45.0):
+        cell.move_joints(cell.j6_turned(q0, turn))
+        samples.append({"smr": "back1", "j6_deg": turn, "sigma_mm": [0.005] * 3,
+                        "point_mm": cell.measure_smr("scanner:back1").point_mm.tolist()})
+    with pytest.raises(ClusterGeometryError, match=r"cluster calibration .*2 SMR\(s\) "
+                                                   r"\(back1, rear\)"):
+        cluster_calibration(ecs, angles, [np.full(3, 0.005)] * 5, samples,
+                            cell.true_T_ecs_from_mcs((120.0, -120.0)))
