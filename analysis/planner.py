@@ -17,7 +17,7 @@ three J6 positions.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -53,16 +53,30 @@ class PlanReport:
     neighbours: list[tuple[str, str, float]]
     candidates: int
     candidates_kept: int
+    #: Shares of all the part's surface samples the plan leaves unmeasured, by reason (see
+    #: :data:`UNMEASURED_REASONS`).
+    unmeasured: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         ov = [o for _, _, o in self.neighbours]
         return {"stations": self.stations, "coverage": round(self.coverage, 4),
                 "reachable": round(self.reachable, 4), "candidates": self.candidates,
+                "unmeasured": {k: round(v, 4) for k, v in self.unmeasured.items()},
                 "candidates_kept": self.candidates_kept,
                 "neighbour_overlap_min": round(min(ov), 3) if ov else None,
                 "neighbour_overlap_median": round(float(np.median(ov)), 3) if ov else None,
                 "neighbour_overlap_max": round(max(ov), 3) if ov else None,
                 "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40)}
+
+
+#: Why a surface sample is left unmeasured, first reason that applies:
+#: ``beam``: views see it, but at none of them does the tracker see the SMR (acceptance cone,
+#: or the part in the beam) through the J6 turns; ``reach``: the tracker would see the SMR at a
+#: view that sees it, but the robot cannot take that view inside its reach and joint limits
+#: (J6 turns included); ``view``: no candidate view sees it (too steep to every view direction
+#: tried, or hidden); ``overlap``: a usable view sees it, but the plan stopped at its coverage
+#: target or at a view adding too little (``--coverage``).
+UNMEASURED_REASONS = ("beam", "reach", "view", "overlap")
 
 
 def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
@@ -166,7 +180,12 @@ class Planner:
 
     # ------------------------------------------------------------------ planning
     def candidates(self, overlap: float) -> tuple[list[Candidate], int]:
+        """The usable views and how many were tried; :attr:`seen_by_view` and
+        :attr:`seen_in_beam` record what the views see at all and where the tracker would
+        see the SMR (the unmeasured surface's reasons)."""
         g = self.g
+        self.seen_by_view = np.zeros(len(self.points), bool)
+        self.seen_in_beam = np.zeros(len(self.points), bool)
         step = (1.0 - overlap) * min(g.field_mm)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
         pcd.normals = o3d.utility.Vector3dVector(self.normals)
@@ -184,9 +203,11 @@ class Planner:
                     continue
                 # the rail position nearest the target first: the arm works best mid-reach
                 along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis or (0, 0, 0))
+                self.seen_by_view |= sees
                 if self._j6_sign(T) is None:
                     tried += 1
                     continue
+                self.seen_in_beam |= sees
                 for rail in sorted(rails, key=lambda r: abs((r or 0.0) - along)):
                     tried += 1
                     r = self.reachable(T, seed, rail)
@@ -228,8 +249,15 @@ class Planner:
             if shares:
                 share, j = max(shares)
                 overlaps.append((stations[i].name, stations[j].name, float(share)))
+        missed = ~covered
+        reasons = {"beam": missed & self.seen_by_view & ~self.seen_in_beam,
+                   "reach": missed & self.seen_in_beam & ~possible,
+                   "view": missed & ~self.seen_by_view,
+                   "overlap": missed & possible}
         report = PlanReport(len(stations), float(covered[possible].mean()),
-                            float(possible.mean()), overlaps, tried, len(cands) + len(chosen))
+                            float(possible.mean()), overlaps, tried, len(cands) + len(chosen),
+                            {"share": float(missed.mean()),
+                             **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}})
         plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=report.to_json())
         return plan, report
 

@@ -61,8 +61,13 @@ def main(args: argparse.Namespace) -> int:
         Path(args.json).write_text(json.dumps({**r, "neighbours": report.neighbours}, indent=2))
     print(f"{r['stations']} stations -> {args.out} ({time.perf_counter() - t0:.0f} s)")
     print(f"coverage {r['coverage']:.1%} of the surface the cell can measure; that is "
-          f"{r['reachable']:.1%} of the part (the rest: out of reach, or the tracker cannot see "
-          f"the SMR from there)")
+          f"{r['reachable']:.1%} of the part")
+    u = r["unmeasured"]
+    if u["share"] > 0:
+        print(f"left unmeasured: {u['share']:.1%} of the part; beam {u['beam']:.1%} (the tracker "
+              f"cannot see the SMR from the views that see it), reach {u['reach']:.1%} (the "
+              f"robot cannot take those views), view {u['view']:.1%} (no view sees it), "
+              f"overlap {u['overlap']:.1%} (left at the coverage target)")
     print(f"nearest-neighbour overlap: min {r['neighbour_overlap_min']}, median "
           f"{r['neighbour_overlap_median']}, max {r['neighbour_overlap_max']}; "
           f"{r['stations_with_overlap_10_40']}/{r['stations']} stations within 10-40 %")

@@ -45,6 +45,20 @@ def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(plann
     assert plan_from_text(plan.to_toml(), "plan.toml")["station"][0]["name"] == "s01"
 
 
+@pytest.mark.unit
+def test_the_surface_left_unmeasured_is_counted_by_reason(planned):
+    """Every sample the plan leaves is counted once, under the first reason that applies;
+    on the car rear with the one rear SMR the beam is what leaves the flanks out."""
+    from scancell.analysis.planner import UNMEASURED_REASONS
+
+    _, _, _, plan, report = planned
+    u = report.to_json()["unmeasured"]
+    assert u["share"] == pytest.approx(1 - report.coverage * report.reachable, abs=0.002)
+    assert sum(u[k] for k in UNMEASURED_REASONS) == pytest.approx(u["share"], abs=0.002)
+    assert u["beam"] == max(u[k] for k in UNMEASURED_REASONS) and u["beam"] > 0.1, u
+    assert plan.extra["unmeasured"] == u and "# unmeasured: " in plan.to_toml()
+
+
 @pytest.mark.process
 def test_plan_cli_and_bad_input(tmp_path):
     run = [sys.executable, "-m", "scancell"]
