@@ -22,10 +22,11 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
+from scancell.analysis.smr_cluster import ClusterGeometryError, check_cluster_geometry
 from scancell.model.cell_geometry import CellGeometry, GeometryError
 from scancell.model.robot_model import IKError
 from scancell.model.transforms import T_rot_z, look_at_flange
-from scancell.protocols.plan import Plan, PlanStation
+from scancell.protocols.plan import ECS_METHODS, Plan, PlanStation
 
 
 class PlanningError(GeometryError):
@@ -41,6 +42,8 @@ class Candidate:
     sees: np.ndarray  # bool over the surface samples
     j6_sign: float
     rail_mm: float | None = None
+    #: the SMRs the tracker sees at the view (``ecs = "cluster"``)
+    smrs: tuple[str, ...] = ()
 
 
 @dataclass
@@ -87,11 +90,30 @@ def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
     return [v] + [np.cos(t) * v + np.sin(t) * d for d in (a, -a, b, -b)]
 
 
+#: J6 rolls (deg) a cluster view may take to bring a face of the cluster round to the tracker,
+#: the least first
+CLUSTER_ROLLS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0, 150.0, -150.0,
+                     180.0)
+#: the job measures the SMRs facing the tracker within the acceptance less this (deg)
+FACING_MARGIN_DEG = 3.0
+
+
 class Planner:
+    """Stations for a part. ``ecs = "j6"``: the tracker must see the rear SMR at the view and
+    at both J6 turns (the paper's); ``"cluster"``: >= 3 SMRs of the scanner, not on a line,
+    must face the tracker with no part in the beam, the view rolled about J6 if that brings a
+    face round; no J6 turns."""
+
     def __init__(self, mesh: o3d.geometry.TriangleMesh, geometry: CellGeometry,
-                 samples: int = 12000, seed: int = 0) -> None:
+                 samples: int = 12000, seed: int = 0, ecs: str = "j6") -> None:
         if len(mesh.triangles) == 0:
             raise PlanningError("the part mesh has no triangles")
+        if ecs not in ECS_METHODS:
+            raise PlanningError(f"ecs must be one of {', '.join(ECS_METHODS)}, got {ecs!r}")
+        if ecs == "cluster" and not geometry.smr_cluster:
+            raise PlanningError("ecs = \"cluster\" needs the scanner's SMR cluster in the cell's "
+                                "geometry ([planner] smr_cluster)")
+        self.ecs = ecs
         self.g = geometry
         mesh.compute_triangle_normals()
         o3d.utility.random.seed(seed)
@@ -129,6 +151,37 @@ class Planner:
         return bool(self._clear(smr[None] + 25.0 * to_tracker[None] / np.linalg.norm(to_tracker),
                                 g.tracker_world_mm[None])[0])
 
+    def smrs_in_sight(self, T_world_from_flange: np.ndarray) -> list[str]:
+        """The scanner's SMRs (rear and cluster) facing the tracker within the acceptance less
+        FACING_MARGIN_DEG, with no part in the beam."""
+        g = self.g
+        pos = g.smr_positions_at(T_world_from_flange @ g.T_flange_from_mcs)
+        names = [n for n, (_, a) in pos.items() if a <= g.smr_acceptance_deg - FACING_MARGIN_DEG]
+        if not names:
+            return []
+        pts = np.array([pos[n][0] for n in names])
+        to = g.tracker_world_mm - pts
+        to /= np.linalg.norm(to, axis=1)[:, None]
+        clear = self._clear(pts + 25.0 * to, np.repeat(g.tracker_world_mm[None], len(pts), 0))
+        return [n for n, ok in zip(names, clear, strict=True) if ok]
+
+    def _cluster_roll(self, T_world_from_flange: np.ndarray
+                      ) -> tuple[np.ndarray, list[str]] | None:
+        """The view rolled about J6 (the least of CLUSTER_ROLLS_DEG) at which >= 3 SMRs not on
+        a line are in sight, and those SMRs; None if no roll gives them."""
+        nominal = self.g.cluster_nominal()
+        for roll in CLUSTER_ROLLS_DEG:
+            T = T_world_from_flange @ T_rot_z(roll)
+            names = self.smrs_in_sight(T)
+            if len(names) < 3:
+                continue
+            try:
+                check_cluster_geometry({n: nominal[n][0] for n in names}, "view")
+            except ClusterGeometryError:
+                continue
+            return T, names
+        return None
+
     def _j6_sign(self, T_world_from_flange: np.ndarray) -> float | None:
         """The J6 turn direction with the SMR in the tracker's sight at all three positions (J6
         turns the flange about its z axis, so no joint solution is needed to know)."""
@@ -140,9 +193,10 @@ class Planner:
 
     def reachable(self, T_world_from_flange: np.ndarray, seed: np.ndarray | None,
                   rail_mm: float | None = None) -> tuple[np.ndarray, float] | None:
-        """Joints and J6 turn sign, or None if the pose cannot be used."""
+        """Joints and J6 turn sign, or None if the pose cannot be used (the J6 turns are
+        checked for ``ecs = "j6"`` only)."""
         g = self.g
-        sign = self._j6_sign(T_world_from_flange)
+        sign = self._j6_sign(T_world_from_flange) if self.ecs == "j6" else 1.0
         if sign is None:
             return None
         base = g.base_at(rail_mm)
@@ -153,7 +207,8 @@ class Planner:
             q = g.robot.ik(T_base_from_flange, seed)
         except IKError:
             return None
-        qs = [q] + [q + np.radians([0, 0, 0, 0, 0, sign * a]) for a in g.j6_angles_deg]
+        qs = [q] + ([q + np.radians([0, 0, 0, 0, 0, sign * a]) for a in g.j6_angles_deg]
+                    if self.ecs == "j6" else [])
         if all(g.robot.within_limits(x) for x in qs):
             return q, sign
         return None
@@ -204,7 +259,16 @@ class Planner:
                 # the rail position nearest the target first: the arm works best mid-reach
                 along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis or (0, 0, 0))
                 self.seen_by_view |= sees
-                if self._j6_sign(T) is None:
+                smrs: tuple[str, ...] = ()
+                if self.ecs == "cluster":
+                    rolled = self._cluster_roll(T)
+                    if rolled is None:
+                        tried += 1
+                        continue
+                    T, names = rolled
+                    smrs = tuple(names)
+                    sees = self.seen(T)  # the roll turns the field about the view
+                elif self._j6_sign(T) is None:
                     tried += 1
                     continue
                 self.seen_in_beam |= sees
@@ -213,7 +277,8 @@ class Planner:
                     r = self.reachable(T, seed, rail)
                     if r is not None:
                         seed = r[0]
-                        out.append(Candidate(f"c{tried}", r[0], c, view, sees, r[1], rail))
+                        out.append(Candidate(f"c{tried}", r[0], c, view, sees, r[1], rail,
+                                             smrs))
                         break
         return out, tried
 
@@ -222,8 +287,8 @@ class Planner:
         cands, tried = self.candidates(overlap)
         if not cands:
             raise PlanningError(f"none of {tried} candidate views is reachable with the tracker "
-                                f"seeing the SMR: is the part in reach of the robot (world frame, "
-                                f"mm)?")
+                                f"seeing {'3 SMRs' if self.ecs == 'cluster' else 'the SMR'}: is "
+                                f"the part in reach of the robot (world frame, mm)?")
         possible = np.any([c.sees for c in cands], axis=0)
         covered = np.zeros(len(self.points), bool)
         chosen: list[Candidate] = []
@@ -258,7 +323,11 @@ class Planner:
                             float(possible.mean()), overlaps, tried, len(cands) + len(chosen),
                             {"share": float(missed.mean()),
                              **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}})
-        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=report.to_json())
+        extra = report.to_json()
+        if self.ecs == "cluster":
+            extra["smrs_in_sight"] = {st.name: list(c.smrs)
+                                      for st, c in zip(stations, chosen, strict=True)}
+        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=extra, ecs=self.ecs)
         return plan, report
 
 

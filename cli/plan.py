@@ -24,14 +24,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overlap", type=float, default=0.25,
                    help="overlap aimed at between neighbours, 0.10-0.40 (default 0.25)")
     p.add_argument("--samples", type=int, default=6000, help="surface samples")
+    p.add_argument("--ecs", choices=("j6", "cluster"), default="j6",
+                   help="how the stations' scanner pose is measured: j6 (the paper's J6 turns of "
+                        "the rear SMR, default) or cluster (>= 3 SMRs of the scanner's cluster "
+                        "in sight, J6 rolled per view if needed)")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="override a key of the cell config, as for the daemon, e.g. "
+                        "--set simulator.smr_cluster=housing (repeatable)")
     p.add_argument("--json", default=None, help="also write the planning report as JSON")
 
 
-def geometry_for(config: str | None):
-    """The cell's ``CellGeometry`` (its ``[planner]``, or its simulator's); raises ConfigError."""
-    from scancell.config import ConfigError, load_cell_config
+def geometry_for(config: str | None, sets: list[str] | None = None):
+    """The cell's ``CellGeometry`` (its ``[planner]``, or its simulator's) with the ``--set``
+    overrides ``sets``; raises ConfigError."""
+    from scancell.config import ConfigError, load_cell_config, merge_overrides
 
-    cfg = load_cell_config(config or default_cell_config())
+    cfg = load_cell_config(config or default_cell_config(), merge_overrides(sets or []))
     if cfg.geometry is None:
         raise ConfigError(f"{cfg.path}: no [planner] table (robot base, scanner mount, SMR, "
                           f"tracker position): see docs/commissioning.md")
@@ -51,7 +59,8 @@ def main(args: argparse.Namespace) -> int:
     mesh = o3d.io.read_triangle_mesh(str(part))
     t0 = time.perf_counter()
     try:
-        planner = Planner(mesh, geometry_for(args.cell), samples=args.samples)
+        planner = Planner(mesh, geometry_for(args.cell, args.set), samples=args.samples,
+                          ecs=args.ecs)
         plan, report = planner.plan(args.coverage, args.overlap, name=part.stem)
     except (PlanningError, ConfigError) as exc:
         return fail("plan", str(exc))

@@ -72,9 +72,15 @@ class CellGeometry:
         tracker's frame, mm; angle between its opening and the beam, deg). The tracker head
         sits at ``tracker_world_mm`` of its frame, which is ``world`` unless the nests
         re-located it (``T_world_from_tracker``)."""
+        return self.smr_positions_at(self.T_world_from_mcs(q_rad, rail_mm), T_world_from_tracker)
+
+    def smr_positions_at(self, T_world_from_mcs: np.ndarray,
+                         T_world_from_tracker: np.ndarray | None = None
+                         ) -> dict[str, tuple[np.ndarray, float]]:
+        """:meth:`smr_positions` with the scanner at ``T_world_from_mcs`` (mm)."""
         T_wt = np.eye(4) if T_world_from_tracker is None else np.asarray(T_world_from_tracker,
                                                                           float)
-        T_tm = np.linalg.inv(T_wt) @ self.T_world_from_mcs(q_rad, rail_mm)
+        T_tm = np.linalg.inv(T_wt) @ np.asarray(T_world_from_mcs, float)
         head = np.asarray(self.tracker_world_mm, float)
         out = {}
         for name, (c, o) in self.cluster_nominal().items():

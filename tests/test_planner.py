@@ -46,6 +46,36 @@ def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(plann
 
 
 @pytest.mark.unit
+def test_a_cluster_plan_sees_three_smrs_at_every_station_and_covers_the_flanks(planned):
+    """``ecs = "cluster"``: every station inside the joint limits with >= 3 SMRs facing the
+    tracker (the job's margin) and the simulator's beam reaching each of them; no J6 turns,
+    so the flanks the rear SMR cannot show come in: far less is lost to the beam."""
+    from scancell.sim.parts import HOUSING_SMR_CLUSTER
+
+    _, _, _, _, j6_report = planned
+    cell = SimCell(SimCellConfig(camera_scale=8, smr_cluster=dict(HOUSING_SMR_CLUSTER)))
+    g = CellGeometry.from_table(cell.planner_table())
+    plan, report = Planner(cell.part_mesh_world(), g, samples=2000, ecs="cluster").plan(
+        coverage=0.9, overlap=0.25)
+    assert plan.ecs == "cluster" and 'ecs = "cluster"' in plan.to_toml()
+    assert report.reachable > j6_report.reachable + 0.15, (report.to_json(),
+                                                           j6_report.to_json())
+    assert report.unmeasured["beam"] < j6_report.unmeasured["beam"] / 3
+    for st in plan.stations:
+        q = np.radians(st.joints_deg)
+        assert g.robot.within_limits(q)
+        facing = set(g.facing_smrs(q, st.axis_mm))
+        assert set(plan.extra["smrs_in_sight"][st.name]) <= facing and len(facing) >= 3
+        cell.rail_mm = st.axis_mm or 0.0
+        cell.move_joints(q)
+        for name in plan.extra["smrs_in_sight"][st.name]:
+            cell.beam_check("scanner" if name == "rear" else f"scanner:{name}")
+    with pytest.raises(PlanningError, match="needs the scanner's SMR cluster"):
+        Planner(cell.part_mesh_world(), CellGeometry.from_table(
+            SimCell(SimCellConfig(camera_scale=8)).planner_table()), samples=500, ecs="cluster")
+
+
+@pytest.mark.unit
 def test_the_surface_left_unmeasured_is_counted_by_reason(planned):
     """Every sample the plan leaves is counted once, under the first reason that applies;
     on the car rear with the one rear SMR the beam is what leaves the flanks out."""
@@ -77,6 +107,9 @@ def test_plan_cli_and_bad_input(tmp_path):
     r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out", "x.toml",
                         "--overlap", "0.7"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "overlap" in r.stderr
+    r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out", "x.toml",
+                        "--ecs", "cluster"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "needs the scanner's SMR cluster" in r.stderr, r.stderr
     with pytest.raises(PlanningError, match="no triangles"):
         import open3d as o3d
 
