@@ -12,6 +12,7 @@ import argparse
 import faulthandler
 import importlib
 import logging
+import signal
 import sys
 
 #: command -> (one-line help, module under scancell.cli)
@@ -78,9 +79,11 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    try:  # a crash in native code (zenoh, numba, Open3D) names where it was
-        faulthandler.enable()
-    except (AttributeError, ValueError, OSError):  # stderr is not a file (called in-process)
+    try:  # a crash in native code (zenoh, numba, Open3D) names where it was, and a process
+        faulthandler.enable()  # that hangs prints every thread's stack on SIGUSR1
+        if hasattr(signal, "SIGUSR1"):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (AttributeError, ValueError, OSError, RuntimeError):  # stderr is not a file
         pass
     try:
         return int(command_module(args.command).main(args) or 0)

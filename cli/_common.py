@@ -75,6 +75,22 @@ class Worker(Protocol):
     def stop(self) -> None: ...
 
 
+def stop_on_signals() -> threading.Event:
+    """An event SIGINT and SIGTERM set (handlers installed now, from the main thread)."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def wait_for(stop: threading.Event) -> None:
+    """Block the main thread until ``stop`` is set, waking every 0.2 s: a signal the kernel
+    delivers to one of zenoh's native threads only flags Python's handler, which runs once the
+    main thread executes bytecode again; a bare ``Event.wait()`` then never returns."""
+    while not stop.wait(0.2):
+        pass
+
+
 def serve(args: argparse.Namespace, name: str, make: Callable[[Any], Worker],
           banner: Callable[[Any], str], finish: Callable[[Any], None] | None = None) -> int:
     """Open the bus as a client of the daemon, start the worker, print a banner and run until
@@ -90,16 +106,14 @@ def serve(args: argparse.Namespace, name: str, make: Callable[[Any], Worker],
     except NoDaemon as exc:
         return fail(name, str(exc), 3)
     worker = make(bus)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     try:
         worker.start()
     except OSError as exc:
         bus.close()
         return fail(name, f"cannot start: {exc}")
     print(banner(bus), flush=True)
-    stop.wait()
+    wait_for(stop)
     worker.stop()
     bus.close()
     if finish is not None:

@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import threading
 from pathlib import Path
 from typing import Any
 
-from scancell.cli._common import fail
+from scancell.cli._common import fail, stop_on_signals, wait_for
 
 
 def router_config_path() -> Path:
@@ -94,11 +92,9 @@ def main(args: argparse.Namespace) -> int:
         session = open_router(cfg)
     except (ValueError, ConnectionError) as exc:
         return fail("router", str(exc))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     print(f"zenoh router {session.zid()} running ({path}"
           + (f", cells {', '.join(cells)}" if cells else "") + ")", flush=True)
-    stop.wait()
+    wait_for(stop)
     session.close()
     return 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -180,6 +181,27 @@ def wait_until(pred, timeout_s: float = 10.0, period_s: float = 0.05, what: str 
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(period_s)
+
+
+def stop_process(proc: subprocess.Popen, timeout_s: float = 30.0,
+                 signalled: bool = False) -> tuple[str, str]:
+    """SIGTERM to a ``scancell`` process (unless ``signalled``) and its output once it exited
+    with 0. Reads its pipes while waiting (a child blocked on a full pipe never exits); one still
+    running after ``timeout_s`` is asked for its threads' stacks (SIGUSR1, the CLI's
+    faulthandler), killed, and the test fails with what it printed."""
+    if not signalled:  # a second SIGTERM during the interpreter's exit would kill it
+        proc.send_signal(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"{proc.args} still running {timeout_s} s after SIGTERM; its "
+                             f"stderr:\n{(err or '')[-6000:]}") from None
+    assert proc.returncode == 0, f"{proc.args} exited {proc.returncode}:\n{(err or '')[-6000:]}"
+    return out or "", err or ""
 
 
 def start_scan_worker(endpoint: str, cell: str, calib: Path) -> subprocess.Popen:

@@ -18,7 +18,7 @@ from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.sim.world import get_world
 from scancell.workers.scan import ScanWorker
 
-from .conftest import sim_cell_raw, wait_until
+from .conftest import sim_cell_raw, stop_process, wait_until
 
 
 def _all_connected(client) -> bool:
@@ -109,7 +109,7 @@ def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell,
         for worker in workers:
             worker.send_signal(signal.SIGTERM)
         for worker in workers:
-            assert worker.wait(20) == 0, worker.stderr.read()
+            stop_process(worker, signalled=True)
 
 
 @pytest.mark.e2e

@@ -20,7 +20,7 @@ from scancell.protocols.encoding import Attachment
 from scancell.recorder.reading import info, samples
 from scancell.recorder.session_file import SessionFile
 
-from .conftest import MOCK_CELL, free_port, wait_until
+from .conftest import MOCK_CELL, free_port, stop_process, wait_until
 
 
 def _scancell(*args: str, env: dict | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -150,8 +150,7 @@ def test_a_full_disk_is_reported_and_the_recorder_process_lives_on(make_daemon, 
         assert proc.poll() is None
         assert client.call("device/robot/joints")["joints_deg"]  # the daemon never noticed
     finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0, proc.stderr.read()
+        stop_process(proc)
     first = sorted(tmp_path.glob("*.mcap"))[0]
     out = _scancell("record", "recover", str(first), "--out", str(tmp_path / "r.mcap"))
     assert out.returncode == 0, out.stderr

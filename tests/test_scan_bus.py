@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import threading
@@ -19,7 +18,7 @@ from scancell.model.transforms import apply_T
 from scancell.protocols import foxglove_schemas as fg
 from scancell.sim.world import get_world
 
-from .conftest import sim_cell_raw, start_scan_worker, wait_until
+from .conftest import sim_cell_raw, start_scan_worker, stop_process, wait_until
 
 
 def _all_connected(client) -> bool:
@@ -111,8 +110,7 @@ def test_scan_command_and_worker_process_give_the_file_path_cloud(sim_daemon, cl
     finally:
         for s in subs:
             s.undeclare()
-        worker.send_signal(signal.SIGTERM)
-        assert worker.wait(20) == 0, worker.stderr.read()
+        stop_process(worker)
 
 
 @pytest.mark.process
