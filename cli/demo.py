@@ -125,6 +125,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="reduced size, for tests")
     p.add_argument("--no-acceptance", action="store_true",
                    help="skip the VDI/VDE 2634 acceptance stage (ablation runs)")
+    p.add_argument("--ecs", choices=("j6", "cluster"), default="j6",
+                   help="how the stations' scanner pose is measured: j6 (the paper's J6 turns, "
+                        "default) or cluster (the scanner carries the SMR cluster; the plan uses "
+                        "it, with J6 rolls instead of turns, and aims at 98 %% coverage)")
     p.add_argument("--compare-ecs", action="store_true",
                    help="the scanner carries the SMR cluster; every station measures its pose "
                         "by the cluster and by the paper's J6 turns, and the summary compares "
@@ -143,6 +147,9 @@ def main(args: argparse.Namespace) -> int:
         return fail("demo", f"{config} has no [simulator]: the demo runs on the simulated cell")
     from scancell.sim.host import flatten_overrides, relocated_ports, sim_cell
 
+    if args.compare_ecs and args.ecs == "cluster":
+        return fail("demo", "--compare-ecs measures both ways on the J6 plan's stations (the "
+                            "J6 turns need the rear SMR in sight); leave out --ecs cluster")
     quick = args.quick
     scale = 4 if quick else 1
     balls = 5 if quick else 15
@@ -152,7 +159,8 @@ def main(args: argparse.Namespace) -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     sets = [*flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port())),
             f"simulator.camera_scale={scale}"]
-    if args.compare_ecs:
+    cluster = args.compare_ecs or args.ecs == "cluster"
+    if cluster:
         sets.append("simulator.smr_cluster=housing")
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
     stage = Stage(10)
@@ -230,8 +238,7 @@ def main(args: argparse.Namespace) -> int:
         if he.get("T_ecs_from_mcs") is None:
             raise RuntimeError(f"hand-eye calibration failed: {he.get('error')}")
         summary["hand_eye"] = hand_eye_truth(
-            he, {**cfg.simulator, **({"smr_cluster": "housing"} if args.compare_ecs else {})},
-            sim_cell)
+            he, {**cfg.simulator, **({"smr_cluster": "housing"} if cluster else {})}, sim_cell)
         print(f"   RMS {he['rms_mm']:.4f} mm over {he['pairs']} pairs; against the truth: "
               f"{summary['hand_eye']['rotation_error_arcsec']:.1f}\" / "
               f"{summary['hand_eye']['translation_error_mm']:.4f} mm")
@@ -239,9 +246,11 @@ def main(args: argparse.Namespace) -> int:
         stage("station planning for the car-body rear")
         part = run_dir / "car_rear.ply"
         run(["sim", "part", "--out", str(part)], env, "exporting the part")
+        by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
+                       "--coverage", "0.98"] if args.ecs == "cluster" else [])
         print("   " + run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"),
-                            "--cell", str(config), "--json", str(run_dir / "plan.json")], env,
-                           "planning").strip().replace("\n", "\n   "))
+                            "--cell", str(config), "--json", str(run_dir / "plan.json"),
+                            *by_cluster], env, "planning").strip().replace("\n", "\n   "))
 
         stage("measurement job (scan_part), fused live by the fuse worker")
         from scancell.protocols.plan import plan_from_text
@@ -291,6 +300,7 @@ def main(args: argparse.Namespace) -> int:
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
         summary["station_timing_s"] = station_timing(final.get("result") or {})
+        summary["surface_coverage_2mm"] = part_coverage(part, report)
         if report.get("ecs_comparison"):
             summary["ecs_comparison"] = report["ecs_comparison"]
         summary["scanner"] = scanner_summary([r for r in scan_results
@@ -456,6 +466,20 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
+def part_coverage(part: Path, report: dict[str, Any]) -> float | None:
+    """The share of the part's surface (``car_rear.ply``, kept in the run folder) within 2 mm
+    of a point of the fused model (``fused.ply``)."""
+    import open3d as o3d
+    from scancell.analysis.cloud_io import read_ply
+    from scancell.analysis.surface_coverage import surface_coverage
+
+    ply = (report.get("files") or {}).get("ply")
+    if not ply:
+        return None
+    points, _ = read_ply(ply)
+    return round(surface_coverage(o3d.io.read_triangle_mesh(str(part)), points), 4)
+
+
 def station_timing(result: dict[str, Any]) -> dict[str, Any]:
     """The scan job's stage clock: per stage (move, tracker, scan, J6 turns, ...) the mean
     seconds per station, and the mean station's total."""
@@ -489,6 +513,9 @@ def table(s: dict[str, Any]) -> str:
             ("true error of the fused model, mean / max (mm)",
              f"{f(e['mean'], '.4f')} / {f(e['max'], '.4f')}", "not measurable"),
             ("stations / points", f"{s['stations']} / {s['points']}", "~22 / ~2 M")]
+    if s.get("surface_coverage_2mm") is not None:
+        rows.append(("part surface within 2 mm of a fused point", f"{s['surface_coverage_2mm']:.1%}",
+                     "whole part"))
     clock = s.get("station_timing_s") or {}
     if clock:
         rows.append(("time per station, mean (s)", f"{clock['station_mean']:.1f}", "-"))

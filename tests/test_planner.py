@@ -153,3 +153,22 @@ def test_plan_run_and_watch_on_the_simulated_cell(planned, make_daemon, client,
                           str(tmp_path / "nope.toml")], capture_output=True, text=True,
                          timeout=60, env=env)
     assert bad.returncode == 2 and "nope.toml" in bad.stderr
+
+
+@pytest.mark.unit
+def test_surface_coverage_counts_the_part_within_2_mm_of_a_measured_point():
+    import open3d as o3d
+    from scancell.analysis.surface_coverage import surface_coverage
+
+    plate = o3d.geometry.TriangleMesh.create_box(200.0, 100.0, 10.0)  # mm
+    xs, ys = np.meshgrid(np.arange(0.0, 100.0, 1.0), np.arange(0.0, 100.0, 1.0))
+    top_left_half = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 10.0)])
+    share = surface_coverage(plate, top_left_half, samples=20_000)
+    # the top's left half (10 000 of 46 000 mm²) and the sides' 2 mm under its edges
+    assert share == pytest.approx((10_000 + 2 * 300) / plate.get_surface_area(), abs=0.01)
+    lifted = top_left_half + np.array([0.0, 0.0, 5.0])
+    assert surface_coverage(plate, lifted, samples=5000) == 0.0
+    with pytest.raises(ValueError, match="no measured points"):
+        surface_coverage(plate, np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="no triangles"):
+        surface_coverage(o3d.geometry.TriangleMesh(), top_left_half)
