@@ -150,6 +150,7 @@ def test_worker_waits_for_a_sample_later_than_the_job_end_and_reports_once():
         worker.stop()
 
 
+@pytest.mark.timeout(300)  # ~70 s alone, over 120 s beside the demo on 2 cores
 @pytest.mark.e2e
 def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon, client,
                                                                      tmp_path):

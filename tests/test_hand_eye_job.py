@@ -25,6 +25,7 @@ def _all_connected(client) -> bool:
     return all(s["state"] == "connected" for s in client.status()["devices"].values())
 
 
+@pytest.mark.timeout(300)  # ~70 s alone, over 120 s beside the demo on 2 cores
 @pytest.mark.e2e
 def test_calibrate_hand_eye_job_to_stored_calibration(make_daemon, client, cell, endpoint,
                                                       tmp_path):
