@@ -31,7 +31,7 @@ lint: $(STAMP)
 # Every tier: unit, process and e2e (markers in pyproject.toml). Files run whole, in
 # collection order (tests/conftest.py puts the e2e files first: the longest start first).
 test: lint
-	$(PY) -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder --durations=15
+	$(PY) -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder --durations=30
 
 # The unit tier alone: in-process tests, no sockets to other processes (about a minute).
 test-fast: lint

@@ -55,7 +55,7 @@ def _ask(session: zenoh.Session, key: str, payload: bytes, timeout_s: float) -> 
 
 
 @pytest.mark.process
-@settings(max_examples=5000, deadline=None, database=None,
+@settings(max_examples=2000, deadline=None, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
                                  HealthCheck.data_too_large])
 @given(data=st.data())
