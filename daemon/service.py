@@ -144,7 +144,7 @@ class Daemon:
                                                  self.cfg.acceptance, setup, self.cfg.geometry,
                                                  metrology),
             "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup,
-                                               metrology),
+                                               metrology, self.simulator),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg),
             "two_face": lambda ctx: two_face(ctx, self.supervisors, metrology)})
         self.router = CommandRouter(

@@ -42,6 +42,15 @@ class ArtefactPlacer(Protocol):
     async def remove(self) -> None: ...
 
 
+class TrackerMover(Protocol):
+    """Who sets the tracker up at another station of a plan."""
+
+    async def move(self, name: str, T_world_from_base: np.ndarray) -> None:
+        """Set the tracker up at station ``name``, roughly at ``T_world_from_base`` (its head
+        at the translation, world, mm); returns once it stands there, warm and levelled."""
+        ...
+
+
 class Simulator(Protocol):
     """A simulated cell started from a ``[simulator]`` table; its servers speak the real
     devices' protocols on sockets, so the daemon's drivers cannot tell it from hardware."""
@@ -73,6 +82,10 @@ class Simulator(Protocol):
 
     def artefact_placer(self) -> ArtefactPlacer:
         """The simulated world placing the acceptance test's artefacts."""
+        ...
+
+    def tracker_mover(self) -> TrackerMover:
+        """The simulated world setting the tracker up at a plan's other stations."""
         ...
 
 

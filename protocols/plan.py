@@ -17,6 +17,12 @@ TOML (or the same structure as JSON)::
     joints_deg = [0.0, 10.0, -5.0, 0.0, -60.0, 0.0]
     axis_mm = 0.0                # optional: external axis position
     ecs = "j6"                   # optional: this station's ECS method (default the plan's)
+    tracker = "t1"               # optional: the tracker station it is measured from (default
+                                 # "home": where the tracker stands when the job starts)
+
+    [tracker.t1]                 # a tracker station the job moves the tracker to (roughly:
+    position_mm = [2500.0, -3000.0, 0.0]   # the reference nests locate it), world, mm
+    yaw_deg = 40.0               # its turn about world z (deg)
 
 Stations are in joint space (degrees; ``scancell plan`` writes them from the robot model), or
 as the scanner's pose in the tracker frame, solved by inverse kinematics on the daemon's robot
@@ -62,6 +68,32 @@ class PlanStation:
     j6_sign: int = 1
     #: this station's ECS method (None: the plan's)
     ecs: str | None = None
+    #: the tracker station it is measured from (HOME_TRACKER: where the tracker stands at the
+    #: job's start)
+    tracker: str = "home"
+
+
+#: the tracker station where the tracker stands when a job starts: the cell's ``world``
+HOME_TRACKER = "home"
+
+
+@dataclass(frozen=True)
+class TrackerStation:
+    """Where a plan has the tracker moved to, roughly (the reference nests locate it)."""
+
+    name: str
+    position_mm: tuple[float, float, float]  # world, mm
+    yaw_deg: float = 0.0  # about world z
+
+    def T_world_from_tracker(self) -> Any:
+        """The rough pose as a 4x4 (numpy)."""
+        import numpy as np
+
+        c, s_ = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s_], [s_, c]]
+        T[:3, 3] = self.position_mm
+        return T
 
 
 @dataclass(frozen=True)
@@ -76,6 +108,8 @@ class Plan:
     nominal: str | None = None
     #: the ECS method of stations that do not name one (ECS_METHODS)
     ecs: str = "j6"
+    #: the tracker stations the stations name, besides HOME_TRACKER
+    trackers: dict[str, TrackerStation] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         head: dict[str, Any] = {"name": self.name, "speed": self.speed,
@@ -100,8 +134,14 @@ class Plan:
                 d["ecs"] = s.ecs
             if s.axis_mm is not None:
                 d["axis_mm"] = s.axis_mm
+            if s.tracker != HOME_TRACKER:
+                d["tracker"] = s.tracker
             stations.append(d)
-        return {"plan": head, "station": stations}
+        out: dict[str, Any] = {"plan": head, "station": stations}
+        if self.trackers:
+            out["tracker"] = {t.name: {"position_mm": list(t.position_mm), "yaw_deg": t.yaw_deg}
+                              for t in self.trackers.values()}
+        return out
 
     def to_toml(self) -> str:
         d = self.to_json()
@@ -111,6 +151,8 @@ class Plan:
             lines.append(f"# {k}: {v}")
         for s in d["station"]:
             lines += ["", "[[station]]"] + [f"{k} = {_toml(v)}" for k, v in s.items()]
+        for name, t in d.get("tracker", {}).items():
+            lines += ["", f"[tracker.{name}]"] + [f"{k} = {_toml(v)}" for k, v in t.items()]
         return "\n".join(lines) + "\n"
 
 
@@ -174,6 +216,7 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
         raise PlanError(f"{where}: [plan] nominal must be the path of the part's CAD (STEP or "
                         f"mesh), got {nominal!r}")
     ecs = _ecs_method(head.get("ecs", "j6"), f"{where}: [plan] ecs")
+    trackers = _tracker_stations(obj.get("tracker", {}), where)
     out: list[PlanStation] = []
     seen: set[str] = set()
     for i, s in enumerate(stations):
@@ -208,12 +251,40 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
             raise PlanError(f"{at} ({name}): j6_sign must be 1 or -1, got {sign!r}")
         station_ecs = (None if s.get("ecs") is None
                        else _ecs_method(s["ecs"], f"{at} ({name}) ecs"))
+        tracker = s.get("tracker", HOME_TRACKER)
+        if tracker != HOME_TRACKER and tracker not in trackers:
+            raise PlanError(f"{at} ({name}): tracker {tracker!r} is not a [tracker.<name>] of "
+                            f"the plan ({', '.join([HOME_TRACKER, *trackers])})")
         out.append(PlanStation(name, joints, None if axis is None
                                else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign,
-                               station_ecs))
+                               station_ecs, str(tracker)))
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
                 dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {},
-                nominal, ecs)
+                nominal, ecs, trackers)
+
+
+def _tracker_stations(table: Any, where: str) -> dict[str, TrackerStation]:
+    if not isinstance(table, dict):
+        raise PlanError(f"{where}: [tracker.<name>] must be tables of tracker stations")
+    out = {}
+    for name, t in table.items():
+        at = f"{where}: [tracker.{name}]"
+        if name == HOME_TRACKER:
+            raise PlanError(f"{at}: {HOME_TRACKER!r} is where the tracker stands at the job's "
+                            f"start; name the other stations otherwise")
+        try:
+            check_name("tracker station", name)
+        except ValueError as exc:
+            raise PlanError(f"{at}: {exc}") from None
+        if not isinstance(t, dict):
+            raise PlanError(f"{at}: must be a table with position_mm and yaw_deg")
+        pos = t.get("position_mm")
+        if not isinstance(pos, list) or len(pos) != 3:
+            raise PlanError(f"{at}: position_mm must be x, y, z (mm, world)")
+        xyz = tuple(_number(v, f"{at} position_mm") for v in pos)
+        out[name] = TrackerStation(name, (xyz[0], xyz[1], xyz[2]),
+                                   _number(t.get("yaw_deg", 0.0), f"{at} yaw_deg"))
+    return out
 
 
 def _ecs_method(v: Any, where: str) -> str:

@@ -331,7 +331,7 @@ class SimCell:
                 "T_flange_from_mcs": T_fm.tolist(), "rig_mid_in_flange_mm": rig_mid.tolist(),
                 "smr_in_mcs_mm": self.cfg.smr_in_mcs_mm.tolist(),
                 "smr_opening_in_mcs": self.smr_opening_in_mcs.tolist(),
-                "tracker_world_mm": self.tracker.position.tolist(),
+                "tracker_world_mm": self.tracker.home.tolist(),
                 "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
                 "rail_axis": self.cfg.rail_axis.tolist(),
                 "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0],
@@ -419,6 +419,24 @@ class SimCell:
         half = parts.BALLBAR_LENGTH_MM / 2
         return np.array([T[:3, 3] + s * half * T[:3, 1] for s in (-1.0, 1.0)])
 
+    def move_tracker(self, T_world_from_base: np.ndarray, duration_s: float = 0.0) -> None:
+        """Set the tracker up at ``T_world_from_base`` (its head at the translation), taking
+        ``duration_s`` of sim time; the nests' SMRs are turned to face it there, as a person
+        turns an SMR in its nest (its centre stays)."""
+        self.tracker.move_to(T_world_from_base)
+        for name in self.cfg.nests_world_mm:
+            nest = self.scene.get(f"nest_{name}")
+            nest.T_world_from_object = self._facing_tracker(nest.T_world_from_object[:3, 3])
+        self._scene_version += 1
+        self.clock.advance(duration_s)
+
+    def true_T_world_from_tracker(self) -> np.ndarray:
+        """The frame the tracker reports in, in ``world`` now, without its stand's drift:
+        ``world`` itself where it stood first."""
+        T = self.tracker.T_world_from_base.copy()
+        T[:3, 3] -= T[:3, :3] @ self.tracker.home
+        return T
+
     def _facing_tracker(self, center_world: np.ndarray) -> np.ndarray:
         """The frame of an SMR at ``center_world`` whose opening (z) faces the tracker."""
         c = np.asarray(center_world, float)
@@ -486,6 +504,10 @@ class SimCell:
         except KeyError:
             raise BeamBreak("no calibration ball in the cell") from None
         return T[:3, 3], T[:3, :3], T[:3, 2], (name,)  # an SMR does not occlude its own beam
+
+    def find_reflector(self, approx_mm: np.ndarray) -> str | None:
+        """The target FindReflector locks on for ``approx_mm`` (the tracker's frame), or None."""
+        return self.tracker.find(approx_mm, self.reflectors_world(), self.clock.now())
 
     def beam_check(self, target: str = "scanner") -> None:
         """Raise BeamBreak unless the tracker can lock on ``target``; draws no noise."""

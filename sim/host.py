@@ -37,6 +37,7 @@ from scancell.sim.optics_profile import (
     optics_profile,
 )
 from scancell.sim.parts import HOUSING_SMR_CLUSTER, PARTS
+from scancell.sim.tracker_mover import SimTrackerMover
 from scancell.sim.world import SimWorld, register, unregister
 
 log = logging.getLogger(__name__)
@@ -209,6 +210,11 @@ class SimHost:
         if self.world is None:
             raise RuntimeError("simulated cell not running")
         return SimArtefactPlacer(self.world, int(self.options.get("seed", 0)))
+
+    def tracker_mover(self) -> SimTrackerMover:
+        if self.world is None:
+            raise RuntimeError("simulated cell not running")
+        return SimTrackerMover(self.world, int(self.options.get("seed", 0)))
 
     def stop(self) -> None:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():

@@ -57,6 +57,12 @@ class TrackerReading:
     true_point_mm: np.ndarray
 
 
+#: FindReflector locks on the reflector nearest the given position within 100 mm, or else on
+#: the one nearest in direction within this cone (deg): the camera-aided search of current
+#: trackers (docs/simulation.md, "Tracker station moves")
+FIND_SEARCH_DEG = 5.0
+
+
 class TrackerModel:
     """The tracker at ``position_mm`` (world; its frame's axes are the world's until its stand
     drifts). Besides noise it has the systematic errors, refraction, stand drift and SMR
@@ -69,6 +75,12 @@ class TrackerModel:
         self.spec = spec or TrackerSpec()
         self.rng = rng or np.random.default_rng(0)
         self.position = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
+        #: where the tracker stood first: its readings keep this origin after a move (the
+        #: instrument reports in its own frame; the cell's ``world`` was its frame there)
+        self.home = self.position.copy()
+        #: the tracker's base in world (its head at the translation): moved by :meth:`move_to`
+        self.T_world_from_base = np.eye(4)
+        self.T_world_from_base[:3, 3] = self.position
         self.mech = mechanics or mech.IDEAL
         self.seed = seed
         self.face = 1
@@ -93,11 +105,42 @@ class TrackerModel:
             return 1.0
         return mech.air_index(*mech.true_air(t_s, self.mech)) / mech.air_index(*self.air_set)
 
+    def move_to(self, T_world_from_base: np.ndarray) -> None:
+        """Set the tracker up elsewhere: its base (head at the translation) at
+        ``T_world_from_base``. It measures in its own frame there, so its readings of the same
+        points change by the move: the job locates it on the reference nests."""
+        self.T_world_from_base = np.asarray(T_world_from_base, float).copy()
+        self.position = self.T_world_from_base[:3, 3].copy()
+
+    def to_world(self, point_mm: np.ndarray, t_s: float) -> np.ndarray:
+        """A point given in the tracker's readings' frame (mm) in ``world``, by its true pose."""
+        T = self.T_world_from_tracker(t_s)
+        return T[:3, :3] @ (np.asarray(point_mm, float) - self.home) + T[:3, 3]
+
+    def find(self, approx_mm: np.ndarray, reflectors_world: dict[str, np.ndarray], t_s: float
+             ) -> str | None:
+        """The reflector FindReflector locks on for ``approx_mm`` (its readings' frame): the
+        nearest within 100 mm, else the nearest in direction within FIND_SEARCH_DEG; None."""
+        if not reflectors_world:
+            return None
+        p = self.to_world(approx_mm, t_s)
+        best = min(reflectors_world, key=lambda k: np.linalg.norm(reflectors_world[k] - p))
+        if np.linalg.norm(reflectors_world[best] - p) <= 100.0:
+            return best
+        head = self.position
+        u = (p - head) / np.linalg.norm(p - head)
+
+        def angle(k: str) -> float:
+            v = reflectors_world[k] - head
+            return float(np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(v), -1.0, 1.0))))
+
+        best = min(reflectors_world, key=angle)
+        return best if angle(best) <= FIND_SEARCH_DEG else None
+
     def T_world_from_tracker(self, t_s: float) -> np.ndarray:
-        """The tracker's frame in ``world`` at sim time ``t_s`` (its stand drifts)."""
-        T = mech.stand_drift(t_s, self._drift_dir, self._tilt_axis, self.mech)
-        T[:3, 3] += self.position
-        return T
+        """The tracker head's frame in ``world`` at sim time ``t_s`` (its stand drifts)."""
+        return self.T_world_from_base @ mech.stand_drift(t_s, self._drift_dir, self._tilt_axis,
+                                                          self.mech)
 
     def centring_offset(self, target: str) -> np.ndarray:
         """The optical centre of ``target``'s SMR off its ball's centre, in the SMR's frame."""
@@ -138,7 +181,7 @@ class TrackerModel:
         b = np.cross(u, a)
         s_r, s_t = self.spec.sigmas_mm(dist)
         e = self.rng.normal(size=3)
-        point = self.position + reported + u * s_r * e[0] + a * s_t * e[1] + b * s_t * e[2]
+        point = self.home + reported + u * s_r * e[0] + a * s_t * e[1] + b * s_t * e[2]
         B = np.stack([u, a, b], axis=1)
         cov = B @ np.diag([s_r**2, s_t**2, s_t**2]) @ B.T
         return TrackerReading(point, np.sqrt(np.diag(cov)), np.asarray(center, float).copy())

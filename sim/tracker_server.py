@@ -17,7 +17,7 @@ import tty
 import numpy as np
 from scancell.protocols import tracker_line as tl
 from scancell.sim.cell import SimCell
-from scancell.sim.tracker_model import BeamBreak
+from scancell.sim.tracker_model import FIND_SEARCH_DEG, BeamBreak
 
 
 class TrackerProtocolHandler:
@@ -113,11 +113,10 @@ class TrackerProtocolHandler:
             if self.fault == "reflector_lost":
                 return [tl.error_response(tag, 1002, "no reflector within 100 mm (injected)")]
             self.fault = None  # a broken beam is found again
-            p = np.asarray(args, float)
-            candidates = self.cell.reflectors_world()
-            best = min(candidates, key=lambda k: np.linalg.norm(candidates[k] - p))
-            if np.linalg.norm(candidates[best] - p) > 100.0:
-                return [tl.error_response(tag, 1002, "no reflector within 100 mm")]
+            best = self.cell.find_reflector(np.asarray(args, float))
+            if best is None:
+                return [tl.error_response(tag, 1002, "no reflector within 100 mm or "
+                                                     f"{FIND_SEARCH_DEG:g} deg")]
             self.target = best
             return [ack, tl.format_response(tag, "data", "Locked", ("SMR1.5",)), done]
         return [ack, done]  # Abort: measurements here are instantaneous

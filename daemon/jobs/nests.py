@@ -1,6 +1,10 @@
 """Drift control with the reference nests (``[metrology] nests``): measure them, report how far
 they drifted, re-locate the tracker by best fit when the drift passes the tolerance, and stop
-when they disagree beyond what a rigid re-location explains."""
+when they disagree beyond what a rigid re-location explains.
+
+After the tracker is moved to another station of the plan, :meth:`DriftControl.locate` measures
+the nests from there and solves every tracker set-up of the job together in one weighted bundle
+(``analysis/tracker_network.py``, after SpatialAnalyzer's USMN): no chained best fits."""
 
 from __future__ import annotations
 
@@ -9,6 +13,7 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.nest_fit import NestGeometryError, fit_nests, nest_drift
+from scancell.analysis.tracker_network import NetworkError, TrackerSigma, solve_network
 from scancell.daemon.jobs.ecs_measure import averaged
 from scancell.daemon.jobs.metrology import MetrologySettings
 from scancell.devices.base import Tracker
@@ -34,6 +39,14 @@ class DriftControl:
         self.survey = {n: np.asarray(p, float) for n, p in settings.nests.items()}
         self.T_world_from_tracker = np.eye(4)
         self.checks: list[dict[str, Any]] = []
+        #: the tracker's set-ups in this job, in order (the first is where it stood at the
+        #: start: the bundle's datum), each with the nests last measured from it (its frame)
+        self.setups: dict[str, dict[str, np.ndarray]] = {}
+        self.setup = "home"
+        #: the first set-up's location in force (``T_world_from_tracker`` while it stood there)
+        self._T_world_from_home = np.eye(4)
+        #: 1-sigma (mm) of a moved set-up's location from the bundle, at the nests' range
+        self._moved_sigma_mm: float | None = None
 
     @property
     def location_sigma_mm(self) -> float:
@@ -42,6 +55,8 @@ class DriftControl:
         if not self.checks:
             return self.settings.unchecked_location_mm
         last = self.checks[-1]
+        if last.get("moved"):
+            return float(self._moved_sigma_mm or 0.0)
         if last["relocated"]:
             return float(last["fit_rms_mm"])
         return float(max(last["fit_rms_mm"], last["drift_max_mm"]))
@@ -69,10 +84,10 @@ class DriftControl:
                 why = exc.message if isinstance(exc, CommandError) else str(exc)
         return None, why
 
-    async def check(self, label: str, return_to_mm: np.ndarray) -> dict[str, Any]:
-        """Measure every nest (a nest out of sight is tried twice, then left out), then lock
-        the tracker on ``return_to_mm`` (tracker frame) again. Returns the check's record;
-        NestCheckFailed if fewer than ``min_nests`` answered or they disagree."""
+    async def _measure_all(self, label: str, return_to_mm: np.ndarray | None
+                           ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+        """Every nest (one out of sight is tried twice, then left out), then the beam back on
+        ``return_to_mm`` (tracker frame); NestCheckFailed if fewer than ``min_nests``."""
         measured: dict[str, np.ndarray] = {}
         missing: dict[str, str] = {}
         try:
@@ -83,14 +98,27 @@ class DriftControl:
                 else:
                     measured[name] = p
         finally:
-            with contextlib.suppress(Exception):
-                await self.tracker.find_reflector(return_to_mm)
+            if return_to_mm is not None:
+                with contextlib.suppress(Exception):
+                    await self.tracker.find_reflector(return_to_mm)
         s = self.settings
         if len(measured) < s.min_nests:
             raise NestCheckFailed(
                 f"nest check {label}: {len(measured)} of {len(self.survey)} nests measured, "
                 f"{s.min_nests} needed; out of sight: "
                 + "; ".join(f"{n} ({w})" for n, w in missing.items()))
+        self.setups[self.setup] = measured
+        return measured, missing
+
+    async def check(self, label: str, return_to_mm: np.ndarray) -> dict[str, Any]:
+        """Measure every nest (a nest out of sight is tried twice, then left out), then lock
+        the tracker on ``return_to_mm`` (tracker frame) again. Returns the check's record;
+        NestCheckFailed if fewer than ``min_nests`` answered or they disagree. On a set-up the
+        tracker was moved to, the check solves the network again (:meth:`locate`)."""
+        if self.setup != next(iter(self.setups), self.setup):
+            return await self.locate(self.setup, self.T_world_from_tracker, label, return_to_mm)
+        measured, missing = await self._measure_all(label, return_to_mm)
+        s = self.settings
         try:
             fit = fit_nests(self.survey, measured)
         except NestGeometryError as exc:
@@ -105,10 +133,58 @@ class DriftControl:
         relocated = max(drift.values()) > s.drift_tolerance_mm
         if relocated:
             self.T_world_from_tracker = fit.T_world_from_tracker
+            self._T_world_from_home = fit.T_world_from_tracker
         record = {"check": label, "nests": sorted(measured), "missing": missing,
                   "drift_mm": {n: round(v, 5) for n, v in drift.items()},
                   "drift_max_mm": round(max(drift.values()), 5),
                   "fit_rms_mm": round(fit.rms_mm, 5), "relocated": relocated,
+                  "T_world_from_tracker": self.T_world_from_tracker.tolist()}
+        self.checks.append(record)
+        return record
+
+    async def locate(self, setup: str, T_rough: np.ndarray, label: str,
+                     return_to_mm: np.ndarray | None = None) -> dict[str, Any]:
+        """The tracker stands at a new set-up ``setup``, roughly at ``T_rough``
+        (``T_world_from_tracker`` of its readings, from the plan): measure the nests from there
+        (found at their predicted positions) and solve every set-up of the job in one weighted
+        bundle, the first set-up the datum. The set-up's location becomes the one in force.
+        NestCheckFailed names a nest that fits the network worse than ``nest_fit_tolerance_mm``
+        (knocked?), or too few nests in common with the set-ups before."""
+        if not self.setups:
+            raise NestCheckFailed(f"nest check {label}: the nests were not measured where the "
+                                  f"tracker stood first; a move cannot be tied to the cell")
+        self.setup = setup
+        self.T_world_from_tracker = np.asarray(T_rough, float)
+        measured, missing = await self._measure_all(label, return_to_mm)
+        s = self.settings
+        order = list(self.setups)
+        try:
+            net = solve_network(self.setups, TrackerSigma(), order)
+        except NetworkError as exc:
+            raise NestCheckFailed(f"nest check {label}: {exc}") from None
+        (worst_setup, worst_nest), _ = net.worst()
+        off = net.residual_mm[(worst_setup, worst_nest)]
+        if off > s.nest_fit_tolerance_mm:
+            raise NestCheckFailed(
+                f"nest check {label}: nest {worst_nest} does not fit the tracker network: "
+                f"{off:.3f} mm off from set-up {worst_setup} (tolerance "
+                f"{s.nest_fit_tolerance_mm:g} mm); was it knocked?")
+        self.T_world_from_tracker = self._T_world_from_home @ net.stations[setup]
+        sig = net.station_sigma(setup)
+        lever = float(np.mean([np.linalg.norm(p) for p in measured.values()]))
+        self._moved_sigma_mm = float(np.hypot(
+            sig["translation_mm"], np.radians(sig["rotation_arcsec"] / 3600.0) * lever))
+        rms = float(np.sqrt(np.mean([net.residual_mm[(setup, n)] ** 2 for n in measured])))
+        record = {"check": label, "tracker_station": setup, "moved": True,
+                  "nests": sorted(measured), "missing": missing,
+                  "drift_mm": {}, "drift_max_mm": 0.0,
+                  "fit_rms_mm": round(rms, 5), "relocated": True,
+                  "network": {"setups": order, "variance_factor": round(net.variance_factor, 3),
+                              "sigma_translation_mm": round(sig["translation_mm"], 5),
+                              "sigma_rotation_arcsec": round(sig["rotation_arcsec"], 3),
+                              "sigma_at_nests_mm": round(self._moved_sigma_mm, 5),
+                              "worst": {"setup": worst_setup, "nest": worst_nest,
+                                        "residual_mm": round(off, 5)}},
                   "T_world_from_tracker": self.T_world_from_tracker.tolist()}
         self.checks.append(record)
         return record

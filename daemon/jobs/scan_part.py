@@ -29,6 +29,7 @@ from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scanner_check import due, scanner_check
 from scancell.daemon.jobs.station import Station
+from scancell.daemon.jobs.tracker_move import OperatorTrackerMover, TrackerMoves
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import REAR_SMR, CellGeometry
@@ -313,7 +314,8 @@ def cluster_problem(shots: ClusterShots, geometry: CellGeometry) -> str | None:
 async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     geometry: CellGeometry | None = None,
                     setup: ScannerSetup | None = None,
-                    metrology: MetrologySettings | None = None) -> dict[str, Any]:
+                    metrology: MetrologySettings | None = None,
+                    simulator: Any = None) -> dict[str, Any]:
     req = ctx.request
     plan = plan_from_request(req, geometry)
     speed = float(req.get("speed", plan.speed))
@@ -339,6 +341,12 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     metrology = metrology or MetrologySettings()
     drift = DriftControl(tracker, metrology, {"job_id": ctx.job_id})
     ctx.kept.update(drift_checks=drift.checks)
+    moves = TrackerMoves(plan, drift, None, geometry)
+    moves.check_possible()
+    if moves.needed():
+        moves.mover = (simulator.tracker_mover() if simulator is not None
+                       else OperatorTrackerMover(ctx))
+        ctx.kept.update(tracker_moves=moves.moves)
     result: dict[str, Any] = {"plan": plan.name, "stations": done}
 
     async def nest_check(label: str, scanner_at: np.ndarray) -> None:
@@ -350,6 +358,21 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             raise StepFailed(label, "nests", exc.message) from exc
         ctx.event("running", "nests", f"nest check {label}: drift {rec['drift_max_mm']:.4f} mm"
                   f"{', tracker re-located' if rec['relocated'] else ''}", drift=rec)
+
+    async def move_tracker(name: str, before: str) -> None:
+        ctx.event("running", "tracker_move", f"tracker to station {name} (before {before})")
+        try:
+            q = await robot.joints()
+            rail = await axis.position() if axis is not None else None
+            rec = await moves.move(name, q, rail)
+        except CommandError as exc:
+            raise StepFailed(f"tracker {name}", "tracker_move", exc.message) from exc
+        net = rec["network"]
+        ctx.event("running", "tracker_move",
+                  f"tracker at station {name}: located on {len(rec['nests'])} nests, "
+                  f"1-sigma {net['sigma_translation_mm']:.4f} mm / "
+                  f"{net['sigma_rotation_arcsec']:.1f}\" ({net['sigma_at_nests_mm']:.4f} mm at "
+                  f"the nests)", drift=rec)
 
     checks: list[dict[str, Any]] = []
     ctx.kept.update(scanner_checks=checks)
@@ -386,7 +409,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           bool(result["weather"].get("source")), geometry, ecs_method,
                           compare)
             for i, st in enumerate(plan.stations):
-                if drift.enabled and i and i % metrology.nest_check_every == 0:
+                if st.tracker != moves.station:
+                    await move_tracker(st.tracker, st.name)
+                    scanner_at = None
+                elif drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)
                 if i and due(metrology.scanner_check, i):
                     await check_scanner(f"before {st.name}")
@@ -394,11 +420,12 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 record = await measure_station(ctx, supervisors, st, how, i, n, eta, plan.name)
                 scanner_at = tracker_point(record)
                 done.append({"station": st.name, "scan_id": record["scan_id"],
+                             "tracker_station": st.tracker,
                              "settle_s": record["settle_s"], "ecs_method": record["ecs_method"],
                              "timing_s": record["timing_s"],
                              **({"cluster_fallback": record["cluster_fallback"]}
                                 if "cluster_fallback" in record else {})})
-            if drift.enabled:
+            if drift.enabled and scanner_at is not None:
                 await nest_check("end", scanner_at)
         except BaseException:
             await stop_motion([robot, axis])
@@ -406,6 +433,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     result["seconds"] = round(time.monotonic() - t_start, 1)
     if drift.enabled:
         result["drift_checks"] = drift.checks
+    if moves.moves:
+        result["tracker_moves"] = moves.moves
     if checks:
         result["scanner_checks"] = checks
     if plan.nominal:
