@@ -129,7 +129,8 @@ def test_on_a_real_cell_a_person_sets_the_tracker_up_and_confirms():
     from scancell.daemon.jobs.tracker_move import OperatorTrackerMover
 
     class Ctx:
-        prompts: list[str] = []
+        def __init__(self) -> None:
+            self.prompts: list[str] = []
 
         async def wait_confirm(self, prompt: str) -> dict:
             self.prompts.append(prompt)
