@@ -13,6 +13,12 @@ three J6 positions.
    hidden by the part (ray cast).
 5. Stations are chosen greedily by new coverage until ``coverage`` is reached, and ordered by
    a nearest-neighbour tour in joint space from the first.
+6. With ``tracker_moves`` and the cell's reference nests, views where the tracker at home cannot
+   see the scanner's SMR(s) may be measured from another tracker station: candidate stations on
+   a ring around the part (at home's distance and height) that see >= 4 nests past the part.
+   When the home stations stop adding coverage, the tracker station whose views add the most
+   is taken, and so on up to ``tracker_moves``; stations are grouped by tracker station (home
+   first: one move per extra station).
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from scancell.analysis.smr_cluster import ClusterGeometryError, check_cluster_ge
 from scancell.model.cell_geometry import CellGeometry, GeometryError
 from scancell.model.robot_model import IKError
 from scancell.model.transforms import T_rot_z, look_at_flange
-from scancell.protocols.plan import ECS_METHODS, Plan, PlanStation
+from scancell.protocols.plan import ECS_METHODS, HOME_TRACKER, Plan, PlanStation, TrackerStation
 
 
 class PlanningError(GeometryError):
@@ -44,6 +50,8 @@ class Candidate:
     rail_mm: float | None = None
     #: the SMRs the tracker sees at the view (``ecs = "cluster"``)
     smrs: tuple[str, ...] = ()
+    #: the tracker station it is measured from
+    tracker: str = HOME_TRACKER
 
 
 @dataclass
@@ -59,6 +67,8 @@ class PlanReport:
     #: Shares of all the part's surface samples the plan leaves unmeasured, by reason (see
     #: :data:`UNMEASURED_REASONS`).
     unmeasured: dict[str, float] = field(default_factory=dict)
+    #: the tracker stations the plan uses, home first: name -> head in world (mm)
+    tracker_stations: dict[str, list[float]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         ov = [o for _, _, o in self.neighbours]
@@ -69,7 +79,8 @@ class PlanReport:
                 "neighbour_overlap_min": round(min(ov), 3) if ov else None,
                 "neighbour_overlap_median": round(float(np.median(ov)), 3) if ov else None,
                 "neighbour_overlap_max": round(max(ov), 3) if ov else None,
-                "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40)}
+                "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40),
+                "tracker_stations": self.tracker_stations}
 
 
 #: Why a surface sample is left unmeasured, first reason that applies:
@@ -94,6 +105,9 @@ def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
 #: the least first
 CLUSTER_ROLLS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0, 150.0, -150.0,
                      180.0)
+#: a view from a tracker station the plan does not use yet scores this share of its new
+#: coverage: a move is taken when it adds more than twice what the stations without it would
+MOVE_DISCOUNT = 0.5
 #: the job measures the SMRs facing the tracker within the acceptance less this (deg)
 FACING_MARGIN_DEG = 3.0
 
@@ -105,7 +119,9 @@ class Planner:
     face round; no J6 turns."""
 
     def __init__(self, mesh: o3d.geometry.TriangleMesh, geometry: CellGeometry,
-                 samples: int = 12000, seed: int = 0, ecs: str = "j6") -> None:
+                 samples: int = 12000, seed: int = 0, ecs: str = "j6",
+                 nests_world: dict[str, np.ndarray] | None = None,
+                 tracker_moves: int = 0) -> None:
         if len(mesh.triangles) == 0:
             raise PlanningError("the part mesh has no triangles")
         if ecs not in ECS_METHODS:
@@ -126,6 +142,38 @@ class Planner:
         self.normals = n
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        self.nests = {n: np.asarray(p, float) for n, p in (nests_world or {}).items()}
+        #: tracker station -> its head in world (mm); home first
+        self.trackers: dict[str, np.ndarray] = {HOME_TRACKER: np.asarray(geometry.tracker_world_mm,
+                                                                          float)}
+        if tracker_moves > 0 and len(self.nests) >= 4:
+            self.trackers.update(self._tracker_candidates())
+        self.tracker_moves = tracker_moves
+        self.head = self.trackers[HOME_TRACKER]
+
+    def _tracker_candidates(self, n: int = 8, min_nests: int = 4) -> dict[str, np.ndarray]:
+        """Tracker stations on a ring around the part at home's horizontal distance and height,
+        each at least 1 m from every nest and 1.5 m from the robot's base, seeing ``min_nests``
+        nests with no part in the beam."""
+        home = self.trackers[HOME_TRACKER]
+        centre = 0.5 * (self.points.min(axis=0) + self.points.max(axis=0))
+        radius = float(np.linalg.norm((home - centre)[:2]))
+        a0 = np.arctan2(*(home - centre)[1::-1])
+        bases = [self.g.base_at(r)[:3, 3] for r in (list(self.g.rail_positions_mm) or [None])]
+        out = {}
+        for k in range(1, n):
+            a = a0 + 2 * np.pi * k / n
+            p = np.array([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a),
+                          home[2]])
+            if min(np.linalg.norm(p - q) for q in self.nests.values()) < 1000.0:
+                continue
+            if min(np.linalg.norm((p - b)[:2]) for b in bases) < 1500.0:
+                continue
+            nests = np.array(list(self.nests.values()))
+            if int(self._clear(nests, np.repeat(p[None], len(nests), 0)).sum()) < min_nests:
+                continue
+            out[f"t{len(out) + 1}"] = p
+        return out
 
     # ------------------------------------------------------------------ checks
     def _clear(self, origins: np.ndarray, ends: np.ndarray) -> np.ndarray:
@@ -140,29 +188,32 @@ class Planner:
         return self._smr_in_sight(base @ self.g.robot.fk(q))
 
     def _smr_in_sight(self, T_world_from_flange: np.ndarray) -> bool:
+        """The rear SMR faces the tracker head :attr:`head` with no part in the beam."""
         g = self.g
         T = T_world_from_flange @ g.T_flange_from_mcs
         smr = T[:3, :3] @ g.smr_in_mcs_mm + T[:3, 3]
-        to_tracker = g.tracker_world_mm - smr
+        to_tracker = self.head - smr
         opening = T[:3, :3] @ g.smr_opening_in_mcs
         cos = opening @ to_tracker / np.linalg.norm(to_tracker)
         if cos < np.cos(np.radians(g.smr_acceptance_deg)):
             return False
         return bool(self._clear(smr[None] + 25.0 * to_tracker[None] / np.linalg.norm(to_tracker),
-                                g.tracker_world_mm[None])[0])
+                                self.head[None])[0])
 
     def smrs_in_sight(self, T_world_from_flange: np.ndarray) -> list[str]:
         """The scanner's SMRs (rear and cluster) facing the tracker within the acceptance less
         FACING_MARGIN_DEG, with no part in the beam."""
         g = self.g
-        pos = g.smr_positions_at(T_world_from_flange @ g.T_flange_from_mcs)
+        T_wt = np.eye(4)  # the head at :attr:`head`: readings' frame shifted from home's
+        T_wt[:3, 3] = self.head - np.asarray(g.tracker_world_mm, float)
+        pos = g.smr_positions_at(T_world_from_flange @ g.T_flange_from_mcs, T_wt)
         names = [n for n, (_, a) in pos.items() if a <= g.smr_acceptance_deg - FACING_MARGIN_DEG]
         if not names:
             return []
-        pts = np.array([pos[n][0] for n in names])
-        to = g.tracker_world_mm - pts
+        pts = np.array([pos[n][0] for n in names]) + T_wt[:3, 3]
+        to = self.head - pts
         to /= np.linalg.norm(to, axis=1)[:, None]
-        clear = self._clear(pts + 25.0 * to, np.repeat(g.tracker_world_mm[None], len(pts), 0))
+        clear = self._clear(pts + 25.0 * to, np.repeat(self.head[None], len(pts), 0))
         return [n for n, ok in zip(names, clear, strict=True) if ok]
 
     def _cluster_roll(self, T_world_from_flange: np.ndarray
@@ -240,7 +291,7 @@ class Planner:
         see the SMR (the unmeasured surface's reasons)."""
         g = self.g
         self.seen_by_view = np.zeros(len(self.points), bool)
-        self.seen_in_beam = np.zeros(len(self.points), bool)
+        self.seen_in_beam_by: dict[str, np.ndarray] = {}
         step = (1.0 - overlap) * min(g.field_mm)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
         pcd.normals = o3d.utility.Vector3dVector(self.normals)
@@ -259,28 +310,44 @@ class Planner:
                 # the rail position nearest the target first: the arm works best mid-reach
                 along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis or (0, 0, 0))
                 self.seen_by_view |= sees
-                smrs: tuple[str, ...] = ()
-                if self.ecs == "cluster":
-                    rolled = self._cluster_roll(T)
-                    if rolled is None:
-                        tried += 1
-                        continue
-                    T, names = rolled
-                    smrs = tuple(names)
-                    sees = self.seen(T)  # the roll turns the field about the view
-                elif self._j6_sign(T) is None:
+                found = self._in_sight(T)  # from home, else the first tracker station
+                if found is None:
                     tried += 1
                     continue
-                self.seen_in_beam |= sees
+                tracker, T, smrs = found
+                if smrs:
+                    sees = self.seen(T)  # the roll turns the field about the view
+                self.seen_in_beam_by.setdefault(tracker, np.zeros(len(self.points), bool))
+                self.seen_in_beam_by[tracker] |= sees
+                self.head = self.trackers[tracker]
                 for rail in sorted(rails, key=lambda r: abs((r or 0.0) - along)):
                     tried += 1
                     r = self.reachable(T, seed, rail)
                     if r is not None:
                         seed = r[0]
                         out.append(Candidate(f"c{tried}", r[0], c, view, sees, r[1], rail,
-                                             smrs))
+                                             smrs, tracker))
                         break
+                self.head = self.trackers[HOME_TRACKER]
+        self.seen_in_beam = np.any([np.zeros(len(self.points), bool),
+                                    *self.seen_in_beam_by.values()], axis=0)
         return out, tried
+
+    def _in_sight(self, T: np.ndarray) -> tuple[str, np.ndarray, tuple[str, ...]] | None:
+        """The first tracker station (home first) that sees the scanner's SMR(s) at view ``T``:
+        its name, the view (rolled for the cluster) and the SMRs in sight (cluster)."""
+        try:
+            for name, head in self.trackers.items():
+                self.head = head
+                if self.ecs == "cluster":
+                    rolled = self._cluster_roll(T)
+                    if rolled is not None:
+                        return name, rolled[0], tuple(rolled[1])
+                elif self._j6_sign(T) is not None:
+                    return name, T, ()
+            return None
+        finally:
+            self.head = self.trackers[HOME_TRACKER]
 
     def plan(self, coverage: float = 0.90, overlap: float = 0.25, name: str = "plan",
              max_stations: int = 60) -> tuple[Plan, PlanReport]:
@@ -289,22 +356,30 @@ class Planner:
             raise PlanningError(f"none of {tried} candidate views is reachable with the tracker "
                                 f"seeing {'3 SMRs' if self.ecs == 'cluster' else 'the SMR'}: is "
                                 f"the part in reach of the robot (world frame, mm)?")
+        min_gain = max(5, len(self.points) // 1000)
+        all_cands = list(cands)
+        used = [HOME_TRACKER]
+        # views from a tracker station not (yet) used count once the used ones add too little
         possible = np.any([c.sees for c in cands], axis=0)
         covered = np.zeros(len(self.points), bool)
         chosen: list[Candidate] = []
         while covered[possible].mean() < coverage and len(chosen) < max_stations and cands:
-            min_gain = max(5, len(self.points) // 1000)
-            score = [self._score(c, chosen, covered) if (c.sees & ~covered).sum() >= min_gain
-                     else -1.0 for c in cands]
+            moves_left = len(used) <= self.tracker_moves
+            score = [self._score(c, chosen, covered,
+                                 1.0 if c.tracker in used else MOVE_DISCOUNT)
+                     if (c.tracker in used or moves_left)
+                     and (c.sees & ~covered).sum() >= min_gain else -1.0
+                     for c in cands]
             best = int(np.argmax(score))
             if score[best] < 0:
                 break
             chosen.append(cands.pop(best))
             covered |= chosen[-1].sees
-        order = _tour([c.q for c in chosen])
-        chosen = [chosen[i] for i in order]
+            if chosen[-1].tracker not in used:
+                used.append(chosen[-1].tracker)
+        chosen = [c for t in used for c in self._toured([c for c in chosen if c.tracker == t])]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
-                                     c.rail_mm, None, int(c.j6_sign))
+                                     c.rail_mm, None, int(c.j6_sign), tracker=c.tracker)
                          for i, c in enumerate(chosen))
         overlaps = []
         for i in range(len(chosen)):
@@ -315,8 +390,12 @@ class Planner:
                 share, j = max(shares)
                 overlaps.append((stations[i].name, stations[j].name, float(share)))
         missed = ~covered
-        reasons = {"beam": missed & self.seen_by_view & ~self.seen_in_beam,
-                   "reach": missed & self.seen_in_beam & ~possible,
+        # by the tracker stations the plan uses: what another station would see is "beam"
+        zero = np.zeros(len(self.points), bool)
+        in_beam = np.any([zero, *(self.seen_in_beam_by.get(t, zero) for t in used)], axis=0)
+        possible = np.any([zero, *(c.sees for c in all_cands if c.tracker in used)], axis=0)
+        reasons = {"beam": missed & self.seen_by_view & ~in_beam,
+                   "reach": missed & in_beam & ~possible,
                    "view": missed & ~self.seen_by_view,
                    "overlap": missed & possible}
         report = PlanReport(len(stations), float(covered[possible].mean()),
@@ -327,16 +406,29 @@ class Planner:
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)
                                       for st, c in zip(stations, chosen, strict=True)}
-        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=extra, ecs=self.ecs)
+        trackers = {t: TrackerStation(t, tuple(float(v) for v in self.trackers[t]))
+                    for t in used[1:] if any(c.tracker == t for c in chosen)}
+        if trackers:
+            extra["tracker_stations"] = {t: sum(c.tracker == t for c in chosen)
+                                         for t in [HOME_TRACKER, *trackers]}
+        report.tracker_stations = {t: [float(v) for v in self.trackers[t]]
+                                   for t in [HOME_TRACKER, *trackers]}
+        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=extra, ecs=self.ecs,
+                    trackers=trackers)
         return plan, report
+
+    @staticmethod
+    def _toured(cands: list[Candidate]) -> list[Candidate]:
+        return [cands[i] for i in _tour([c.q for c in cands])]
 
 
     @staticmethod
-    def _score(c: Candidate, chosen: list[Candidate], covered: np.ndarray) -> float:
-        """New coverage, ranked first by how the view overlaps the stations chosen so far (its
-        largest overlap with one of them): the paper's 10-40 % first, then near it (5-60 %),
-        then anything."""
-        gain = float((c.sees & ~covered).sum())
+    def _score(c: Candidate, chosen: list[Candidate], covered: np.ndarray,
+               weight: float = 1.0) -> float:
+        """New coverage (times ``weight``), ranked first by how the view overlaps the stations
+        chosen so far (its largest overlap with one of them): the paper's 10-40 % first, then
+        near it (5-60 %), then anything."""
+        gain = weight * float((c.sees & ~covered).sum())
         if not chosen:
             return gain
         n = max(1, int(c.sees.sum()))

@@ -128,7 +128,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ecs", choices=("j6", "cluster"), default="j6",
                    help="how the stations' scanner pose is measured: j6 (the paper's J6 turns, "
                         "default) or cluster (the scanner carries the SMR cluster; the plan uses "
-                        "it, with J6 rolls instead of turns, and aims at 98 %% coverage)")
+                        "it, with J6 rolls instead of turns and up to 2 tracker moves, and aims "
+                        "at 98 %% coverage)")
     p.add_argument("--compare-ecs", action="store_true",
                    help="the scanner carries the SMR cluster; every station measures its pose "
                         "by the cluster and by the paper's J6 turns, and the summary compares "
@@ -247,7 +248,8 @@ def main(args: argparse.Namespace) -> int:
         part = run_dir / "car_rear.ply"
         run(["sim", "part", "--out", str(part)], env, "exporting the part")
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.98"] if args.ecs == "cluster" else [])
+                       "--coverage", "0.98", "--tracker-moves", "2"]
+                      if args.ecs == "cluster" else [])
         print("   " + run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"),
                             "--cell", str(config), "--json", str(run_dir / "plan.json"),
                             *by_cluster], env, "planning").strip().replace("\n", "\n   "))
@@ -262,7 +264,7 @@ def main(args: argparse.Namespace) -> int:
             plan["plan"]["ecs"] = "cluster"
             request["compare_ecs"] = True
         if quick:
-            request["stations"] = [s["name"] for s in plan["station"][:3]]
+            request["stations"] = quick_stations(plan)
         reports: list[dict] = []
         client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
         inspections: list[dict] = []
@@ -466,6 +468,18 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 
+def quick_stations(plan: dict[str, Any], n: int = 3) -> list[str]:
+    """A quick run's stations: the plan's first ``n``, and the first of each other tracker
+    station (so its moves are made too)."""
+    names = [s["name"] for s in plan["station"][:n]]
+    seen = {s.get("tracker", "home") for s in plan["station"][:n]}
+    for s in plan["station"][n:]:
+        if s.get("tracker", "home") not in seen:
+            seen.add(s.get("tracker", "home"))
+            names.append(s["name"])
+    return names
+
+
 def part_coverage(part: Path, report: dict[str, Any]) -> float | None:
     """The share of the part's surface (``car_rear.ply``, kept in the run folder) within 2 mm
     of a point of the fused model (``fused.ply``)."""
@@ -590,4 +604,6 @@ def metrology_summary(result: dict) -> dict:
             "settle_s": {s["station"]: s.get("settle_s") for s in result.get("stations", [])},
             "drift_mm": {c["check"]: c["drift_max_mm"] for c in result.get("drift_checks", [])},
             "relocations": [c["check"] for c in result.get("drift_checks", [])
-                            if c["relocated"]]}
+                            if c["relocated"]],
+            # the tracker's moves to other stations: set-up, its 1-sigma from the network
+            **({"tracker_moves": result["tracker_moves"]} if result.get("tracker_moves") else {})}

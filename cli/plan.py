@@ -31,19 +31,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a key of the cell config, as for the daemon, e.g. "
                         "--set simulator.smr_cluster=housing (repeatable)")
+    p.add_argument("--tracker-moves", type=int, default=0, metavar="N",
+                   help="up to N tracker stations besides home, for views whose SMR the tracker "
+                        "cannot see from home (needs the cell's [metrology] nests; default 0)")
     p.add_argument("--json", default=None, help="also write the planning report as JSON")
 
 
 def geometry_for(config: str | None, sets: list[str] | None = None):
     """The cell's ``CellGeometry`` (its ``[planner]``, or its simulator's) with the ``--set``
-    overrides ``sets``; raises ConfigError."""
+    overrides ``sets``, and its reference nests (``[metrology.nests]``, world mm); raises
+    ConfigError."""
     from scancell.config import ConfigError, load_cell_config, merge_overrides
 
     cfg = load_cell_config(config or default_cell_config(), merge_overrides(sets or []))
     if cfg.geometry is None:
         raise ConfigError(f"{cfg.path}: no [planner] table (robot base, scanner mount, SMR, "
                           f"tracker position): see docs/commissioning.md")
-    return cfg.geometry
+    return cfg.geometry, dict(cfg.metrology.get("nests") or {})
 
 
 def main(args: argparse.Namespace) -> int:
@@ -59,8 +63,12 @@ def main(args: argparse.Namespace) -> int:
     mesh = o3d.io.read_triangle_mesh(str(part))
     t0 = time.perf_counter()
     try:
-        planner = Planner(mesh, geometry_for(args.cell, args.set), samples=args.samples,
-                          ecs=args.ecs)
+        geometry, nests = geometry_for(args.cell, args.set)
+        if args.tracker_moves and len(nests) < 4:
+            return fail("plan", "--tracker-moves needs the cell's reference nests ([metrology] "
+                                "nests, at least 4): a moved tracker is located on them")
+        planner = Planner(mesh, geometry, samples=args.samples, ecs=args.ecs, nests_world=nests,
+                          tracker_moves=max(0, args.tracker_moves))
         plan, report = planner.plan(args.coverage, args.overlap, name=part.stem)
     except (PlanningError, ConfigError) as exc:
         return fail("plan", str(exc))
@@ -77,6 +85,11 @@ def main(args: argparse.Namespace) -> int:
               f"cannot see the SMR from the views that see it), reach {u['reach']:.1%} (the "
               f"robot cannot take those views), view {u['view']:.1%} (no view sees it), "
               f"overlap {u['overlap']:.1%} (left at the coverage target)")
+    if len(r["tracker_stations"]) > 1:
+        print("tracker stations: " + "; ".join(
+            f"{t} at ({', '.join(f'{v:.0f}' for v in p)}) mm: "
+            f"{sum(1 for s in plan.stations if s.tracker == t)} stations"
+            for t, p in r["tracker_stations"].items()))
     print(f"nearest-neighbour overlap: min {r['neighbour_overlap_min']}, median "
           f"{r['neighbour_overlap_median']}, max {r['neighbour_overlap_max']}; "
           f"{r['stations_with_overlap_10_40']}/{r['stations']} stations within 10-40 %")

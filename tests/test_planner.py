@@ -76,6 +76,41 @@ def test_a_cluster_plan_sees_three_smrs_at_every_station_and_covers_the_flanks(p
 
 
 @pytest.mark.unit
+def test_tracker_moves_recover_what_the_beam_loses_from_home(planned):
+    """With 2 tracker moves allowed the J6 plan measures views the home tracker cannot see the
+    SMR from; the simulator, its tracker moved to each planned station, agrees: the SMR through
+    the J6 turns, and the nests."""
+    from scancell.sim.cell import DEFAULT_NESTS
+
+    cell, g, _, _, home_report = planned
+    planner = Planner(cell.part_mesh_world(), g, samples=2000, nests_world=DEFAULT_NESTS,
+                      tracker_moves=2)
+    plan, report = planner.plan(coverage=0.9, overlap=0.25)
+    assert plan.trackers and len(plan.trackers) <= 2, report.to_json()
+    assert report.unmeasured["beam"] < home_report.unmeasured["beam"] - 0.05, (
+        report.to_json(), home_report.to_json())
+    assert report.reachable > home_report.reachable + 0.05
+    assert plan_from_text(plan.to_toml(), "plan.toml")["tracker"].keys() == plan.trackers.keys()
+    trackers = [s.tracker for s in plan.stations]
+    assert trackers == sorted(trackers, key=lambda t: (t != "home", trackers.index(t)))
+    try:
+        for name, station in plan.trackers.items():
+            T = np.eye(4)
+            T[:3, 3] = station.position_mm
+            cell.move_tracker(T)
+            for nest in DEFAULT_NESTS:
+                cell.beam_check(f"nest:{nest}")
+            for st in (s for s in plan.stations if s.tracker == name):
+                q = np.radians(st.joints_deg)
+                cell.rail_mm = st.axis_mm or 0.0
+                for a in (0.0, *g.j6_angles_deg):
+                    cell.move_joints(q + np.radians([0, 0, 0, 0, 0, st.j6_sign * a]))
+                    cell.beam_check("scanner")
+    finally:
+        cell.move_tracker(np.eye(4))
+
+
+@pytest.mark.unit
 def test_the_surface_left_unmeasured_is_counted_by_reason(planned):
     """Every sample the plan leaves is counted once, under the first reason that applies;
     on the car rear with the one rear SMR the beam is what leaves the flanks out."""
