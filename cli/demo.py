@@ -114,7 +114,7 @@ def print_progress(e: dict[str, Any]) -> None:
     """A job's progress line (station i/N, step, time left), for the steps worth a line."""
     if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
                                                  "ballbar", "plane", "nests", "scanner_check",
-                                                 "weather"):
+                                                 "weather", "tracker_move"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
         print(f"   {where}{e['message']}{eta}", flush=True)
