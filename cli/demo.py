@@ -270,7 +270,10 @@ def main(args: argparse.Namespace) -> int:
         inspections: list[dict] = []
         client.bus.subscribe(client.bus.keys.inspect_report,
                              lambda s: inspections.append(s.decode()))
-        final = client.run_job("scan_part", request, on_event=print_progress, timeout_s=1800)
+        # a full-size station takes 1.5-2.5 min on 2 cores (the scan stage): 5 min each at most
+        n_stations = len(request.get("stations") or plan["station"])
+        final = client.run_job("scan_part", request, on_event=print_progress,
+                               timeout_s=max(1800.0, 300.0 * n_stations))
         job = final["job_id"]
         if final.get("state") != "done":
             raise RuntimeError(f"scan job {final.get('state')}: {final.get('error')}")
