@@ -149,7 +149,6 @@ class Planner:
         if tracker_moves > 0 and len(self.nests) >= 4:
             self.trackers.update(self._tracker_candidates())
         self.tracker_moves = tracker_moves
-        self.head = self.trackers[HOME_TRACKER]
 
     def _tracker_candidates(self, n: int = 8, min_nests: int = 4) -> dict[str, np.ndarray]:
         """Tracker stations on a ring around the part at home's horizontal distance and height,
@@ -160,6 +159,7 @@ class Planner:
         radius = float(np.linalg.norm((home - centre)[:2]))
         a0 = np.arctan2(*(home - centre)[1::-1])
         bases = [self.g.base_at(r)[:3, 3] for r in (list(self.g.rail_positions_mm) or [None])]
+        nests = np.array(list(self.nests.values()))
         out = {}
         for k in range(1, n):
             a = a0 + 2 * np.pi * k / n
@@ -169,7 +169,6 @@ class Planner:
                 continue
             if min(np.linalg.norm((p - b)[:2]) for b in bases) < 1500.0:
                 continue
-            nests = np.array(list(self.nests.values()))
             if int(self._clear(nests, np.repeat(p[None], len(nests), 0)).sum()) < min_nests:
                 continue
             out[f"t{len(out) + 1}"] = p
@@ -184,46 +183,48 @@ class Planner:
         return hit >= dist - 1.0
 
     def tracker_sees_smr(self, q: np.ndarray, base: np.ndarray) -> bool:
-        """At joints ``q`` on a robot base at ``base``."""
-        return self._smr_in_sight(base @ self.g.robot.fk(q))
+        """At joints ``q`` on a robot base at ``base``, from home."""
+        return self._smr_in_sight(base @ self.g.robot.fk(q), self.trackers[HOME_TRACKER])
 
-    def _smr_in_sight(self, T_world_from_flange: np.ndarray) -> bool:
-        """The rear SMR faces the tracker head :attr:`head` with no part in the beam."""
+    def _smr_in_sight(self, T_world_from_flange: np.ndarray, head: np.ndarray) -> bool:
+        """The rear SMR faces the tracker head at ``head`` (world, mm), no part in the beam."""
         g = self.g
         T = T_world_from_flange @ g.T_flange_from_mcs
         smr = T[:3, :3] @ g.smr_in_mcs_mm + T[:3, 3]
-        to_tracker = self.head - smr
+        to_tracker = head - smr
         opening = T[:3, :3] @ g.smr_opening_in_mcs
         cos = opening @ to_tracker / np.linalg.norm(to_tracker)
         if cos < np.cos(np.radians(g.smr_acceptance_deg)):
             return False
         return bool(self._clear(smr[None] + 25.0 * to_tracker[None] / np.linalg.norm(to_tracker),
-                                self.head[None])[0])
+                                head[None])[0])
 
-    def smrs_in_sight(self, T_world_from_flange: np.ndarray) -> list[str]:
-        """The scanner's SMRs (rear and cluster) facing the tracker within the acceptance less
-        FACING_MARGIN_DEG, with no part in the beam."""
+    def smrs_in_sight(self, T_world_from_flange: np.ndarray,
+                      head: np.ndarray | None = None) -> list[str]:
+        """The scanner's SMRs (rear and cluster) facing the tracker head at ``head`` (world, mm;
+        default home) within the acceptance less FACING_MARGIN_DEG, with no part in the beam."""
         g = self.g
-        T_wt = np.eye(4)  # the head at :attr:`head`: readings' frame shifted from home's
-        T_wt[:3, 3] = self.head - np.asarray(g.tracker_world_mm, float)
+        head = self.trackers[HOME_TRACKER] if head is None else head
+        T_wt = np.eye(4)  # the head at ``head``: readings' frame shifted from home's
+        T_wt[:3, 3] = head - np.asarray(g.tracker_world_mm, float)
         pos = g.smr_positions_at(T_world_from_flange @ g.T_flange_from_mcs, T_wt)
         names = [n for n, (_, a) in pos.items() if a <= g.smr_acceptance_deg - FACING_MARGIN_DEG]
         if not names:
             return []
         pts = np.array([pos[n][0] for n in names]) + T_wt[:3, 3]
-        to = self.head - pts
+        to = head - pts
         to /= np.linalg.norm(to, axis=1)[:, None]
-        clear = self._clear(pts + 25.0 * to, np.repeat(self.head[None], len(pts), 0))
+        clear = self._clear(pts + 25.0 * to, np.repeat(head[None], len(pts), 0))
         return [n for n, ok in zip(names, clear, strict=True) if ok]
 
-    def _cluster_roll(self, T_world_from_flange: np.ndarray
+    def _cluster_roll(self, T_world_from_flange: np.ndarray, head: np.ndarray
                       ) -> tuple[np.ndarray, list[str]] | None:
         """The view rolled about J6 (the least of CLUSTER_ROLLS_DEG) at which >= 3 SMRs not on
         a line are in sight, and those SMRs; None if no roll gives them."""
         nominal = self.g.cluster_nominal()
         for roll in CLUSTER_ROLLS_DEG:
             T = T_world_from_flange @ T_rot_z(roll)
-            names = self.smrs_in_sight(T)
+            names = self.smrs_in_sight(T, head)
             if len(names) < 3:
                 continue
             try:
@@ -233,23 +234,20 @@ class Planner:
             return T, names
         return None
 
-    def _j6_sign(self, T_world_from_flange: np.ndarray) -> float | None:
-        """The J6 turn direction with the SMR in the tracker's sight at all three positions (J6
-        turns the flange about its z axis, so no joint solution is needed to know)."""
+    def _j6_sign(self, T_world_from_flange: np.ndarray, head: np.ndarray) -> float | None:
+        """The J6 turn direction with the SMR in sight of the head at ``head`` at all three
+        positions (J6 turns the flange about its z axis, so no joint solution is needed)."""
         for sign in (1.0, -1.0):
-            if all(self._smr_in_sight(T_world_from_flange @ T_rot_z(sign * a))
+            if all(self._smr_in_sight(T_world_from_flange @ T_rot_z(sign * a), head)
                    for a in (0.0, *self.g.j6_angles_deg)):
                 return sign
         return None
 
     def reachable(self, T_world_from_flange: np.ndarray, seed: np.ndarray | None,
-                  rail_mm: float | None = None) -> tuple[np.ndarray, float] | None:
-        """Joints and J6 turn sign, or None if the pose cannot be used (the J6 turns are
-        checked for ``ecs = "j6"`` only)."""
+                  rail_mm: float | None = None, sign: float = 1.0) -> np.ndarray | None:
+        """Joints, or None if the robot cannot take the pose inside its reach and limits (with
+        ``ecs = "j6"`` the J6 turns in direction ``sign`` too)."""
         g = self.g
-        sign = self._j6_sign(T_world_from_flange) if self.ecs == "j6" else 1.0
-        if sign is None:
-            return None
         base = g.base_at(rail_mm)
         T_base_from_flange = np.linalg.inv(base) @ T_world_from_flange
         if not g.robot.within_reach(T_base_from_flange):
@@ -261,7 +259,7 @@ class Planner:
         qs = [q] + ([q + np.radians([0, 0, 0, 0, 0, sign * a]) for a in g.j6_angles_deg]
                     if self.ecs == "j6" else [])
         if all(g.robot.within_limits(x) for x in qs):
-            return q, sign
+            return q
         return None
 
     def seen(self, T_world_from_flange: np.ndarray) -> np.ndarray:
@@ -287,8 +285,8 @@ class Planner:
     # ------------------------------------------------------------------ planning
     def candidates(self, overlap: float) -> tuple[list[Candidate], int]:
         """The usable views and how many were tried; :attr:`seen_by_view` and
-        :attr:`seen_in_beam` record what the views see at all and where the tracker would
-        see the SMR (the unmeasured surface's reasons)."""
+        :attr:`seen_in_beam_by` record what the views see at all and, per tracker station,
+        where it would see the SMR (the unmeasured surface's reasons)."""
         g = self.g
         self.seen_by_view = np.zeros(len(self.points), bool)
         self.seen_in_beam_by: dict[str, np.ndarray] = {}
@@ -314,40 +312,36 @@ class Planner:
                 if found is None:
                     tried += 1
                     continue
-                tracker, T, smrs = found
+                tracker, T, smrs, sign = found
                 if smrs:
                     sees = self.seen(T)  # the roll turns the field about the view
                 self.seen_in_beam_by.setdefault(tracker, np.zeros(len(self.points), bool))
                 self.seen_in_beam_by[tracker] |= sees
-                self.head = self.trackers[tracker]
                 for rail in sorted(rails, key=lambda r: abs((r or 0.0) - along)):
                     tried += 1
-                    r = self.reachable(T, seed, rail)
-                    if r is not None:
-                        seed = r[0]
-                        out.append(Candidate(f"c{tried}", r[0], c, view, sees, r[1], rail,
+                    q = self.reachable(T, seed, rail, sign)
+                    if q is not None:
+                        seed = q
+                        out.append(Candidate(f"c{tried}", q, c, view, sees, sign, rail,
                                              smrs, tracker))
                         break
-                self.head = self.trackers[HOME_TRACKER]
-        self.seen_in_beam = np.any([np.zeros(len(self.points), bool),
-                                    *self.seen_in_beam_by.values()], axis=0)
         return out, tried
 
-    def _in_sight(self, T: np.ndarray) -> tuple[str, np.ndarray, tuple[str, ...]] | None:
+    def _in_sight(self, T: np.ndarray
+                  ) -> tuple[str, np.ndarray, tuple[str, ...], float] | None:
         """The first tracker station (home first) that sees the scanner's SMR(s) at view ``T``:
-        its name, the view (rolled for the cluster) and the SMRs in sight (cluster)."""
-        try:
-            for name, head in self.trackers.items():
-                self.head = head
-                if self.ecs == "cluster":
-                    rolled = self._cluster_roll(T)
-                    if rolled is not None:
-                        return name, rolled[0], tuple(rolled[1])
-                elif self._j6_sign(T) is not None:
-                    return name, T, ()
-            return None
-        finally:
-            self.head = self.trackers[HOME_TRACKER]
+        its name, the view (rolled for the cluster), the SMRs in sight (cluster) and the J6
+        turn direction (j6; 1 for the cluster)."""
+        for name, head in self.trackers.items():
+            if self.ecs == "cluster":
+                rolled = self._cluster_roll(T, head)
+                if rolled is not None:
+                    return name, rolled[0], tuple(rolled[1]), 1.0
+            else:
+                sign = self._j6_sign(T, head)
+                if sign is not None:
+                    return name, T, (), sign
+        return None
 
     def plan(self, coverage: float = 0.90, overlap: float = 0.25, name: str = "plan",
              max_stations: int = 60) -> tuple[Plan, PlanReport]:
@@ -359,7 +353,7 @@ class Planner:
         min_gain = max(5, len(self.points) // 1000)
         all_cands = list(cands)
         used = [HOME_TRACKER]
-        # views from a tracker station not (yet) used count once the used ones add too little
+        # a view from a tracker station not used yet scores MOVE_DISCOUNT of its gain
         possible = np.any([c.sees for c in cands], axis=0)
         covered = np.zeros(len(self.points), bool)
         chosen: list[Candidate] = []
@@ -398,21 +392,18 @@ class Planner:
                    "reach": missed & in_beam & ~possible,
                    "view": missed & ~self.seen_by_view,
                    "overlap": missed & possible}
+        trackers = {t: TrackerStation(t, tuple(float(v) for v in self.trackers[t]))
+                    for t in used[1:]}
         report = PlanReport(len(stations), float(covered[possible].mean()),
                             float(possible.mean()), overlaps, tried, len(cands) + len(chosen),
                             {"share": float(missed.mean()),
-                             **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}})
+                             **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}},
+                            {t: [float(v) for v in self.trackers[t]]
+                             for t in [HOME_TRACKER, *trackers]})
         extra = report.to_json()
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)
                                       for st, c in zip(stations, chosen, strict=True)}
-        trackers = {t: TrackerStation(t, tuple(float(v) for v in self.trackers[t]))
-                    for t in used[1:] if any(c.tracker == t for c in chosen)}
-        if trackers:
-            extra["tracker_stations"] = {t: sum(c.tracker == t for c in chosen)
-                                         for t in [HOME_TRACKER, *trackers]}
-        report.tracker_stations = {t: [float(v) for v in self.trackers[t]]
-                                   for t in [HOME_TRACKER, *trackers]}
         plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=extra, ecs=self.ecs,
                     trackers=trackers)
         return plan, report

@@ -53,6 +53,10 @@ DEFAULT_J6_ANGLES_DEG: tuple[float, float] = (120.0, -120.0)
 ECS_METHODS = ("j6", "cluster")
 
 
+#: the tracker station where the tracker stands when a job starts: the cell's ``world``
+HOME_TRACKER = "home"
+
+
 class PlanError(ValueError):
     """A plan that cannot be run; the message names the station and the key."""
 
@@ -70,11 +74,7 @@ class PlanStation:
     ecs: str | None = None
     #: the tracker station it is measured from (HOME_TRACKER: where the tracker stands at the
     #: job's start)
-    tracker: str = "home"
-
-
-#: the tracker station where the tracker stands when a job starts: the cell's ``world``
-HOME_TRACKER = "home"
+    tracker: str = HOME_TRACKER
 
 
 @dataclass(frozen=True)
@@ -85,8 +85,8 @@ class TrackerStation:
     position_mm: tuple[float, float, float]  # world, mm
     yaw_deg: float = 0.0  # about world z
 
-    def T_world_from_tracker(self) -> Any:
-        """The rough pose as a 4x4 (numpy)."""
+    def T_world_from_base(self) -> Any:
+        """The rough pose of its base (head at the translation) as a 4x4 (numpy)."""
         import numpy as np
 
         c, s_ = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))

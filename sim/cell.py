@@ -433,9 +433,7 @@ class SimCell:
     def true_T_world_from_tracker(self) -> np.ndarray:
         """The frame the tracker reports in, in ``world`` now, without its stand's drift:
         ``world`` itself where it stood first."""
-        T = self.tracker.T_world_from_base.copy()
-        T[:3, 3] -= T[:3, :3] @ self.tracker.home
-        return T
+        return self.tracker.T_world_from_readings()
 
     def _facing_tracker(self, center_world: np.ndarray) -> np.ndarray:
         """The frame of an SMR at ``center_world`` whose opening (z) faces the tracker."""

@@ -74,13 +74,12 @@ class TrackerModel:
                  mechanics: mech.MechanicsProfile | None = None, seed: int = 0) -> None:
         self.spec = spec or TrackerSpec()
         self.rng = rng or np.random.default_rng(0)
-        self.position = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
         #: where the tracker stood first: its readings keep this origin after a move (the
         #: instrument reports in its own frame; the cell's ``world`` was its frame there)
-        self.home = self.position.copy()
+        self.home = np.zeros(3) if position_mm is None else np.asarray(position_mm, float)
         #: the tracker's base in world (its head at the translation): moved by :meth:`move_to`
         self.T_world_from_base = np.eye(4)
-        self.T_world_from_base[:3, 3] = self.position
+        self.T_world_from_base[:3, 3] = self.home
         self.mech = mechanics or mech.IDEAL
         self.seed = seed
         self.face = 1
@@ -110,12 +109,24 @@ class TrackerModel:
         ``T_world_from_base``. It measures in its own frame there, so its readings of the same
         points change by the move: the job locates it on the reference nests."""
         self.T_world_from_base = np.asarray(T_world_from_base, float).copy()
-        self.position = self.T_world_from_base[:3, 3].copy()
+
+    @property
+    def position(self) -> np.ndarray:
+        """The tracker head in world (mm), where it stands now (its stand's drift aside)."""
+        return self.T_world_from_base[:3, 3]
+
+    def T_world_from_readings(self, t_s: float | None = None) -> np.ndarray:
+        """The frame its readings are in, in ``world``: the head's frame with home's origin
+        (``world`` itself where it stood first), at sim time ``t_s`` (None: without the
+        stand's drift)."""
+        T = self.T_world_from_base.copy() if t_s is None else self.T_world_from_tracker(t_s)
+        T[:3, 3] -= T[:3, :3] @ self.home
+        return T
 
     def to_world(self, point_mm: np.ndarray, t_s: float) -> np.ndarray:
         """A point given in the tracker's readings' frame (mm) in ``world``, by its true pose."""
-        T = self.T_world_from_tracker(t_s)
-        return T[:3, :3] @ (np.asarray(point_mm, float) - self.home) + T[:3, 3]
+        T = self.T_world_from_readings(t_s)
+        return T[:3, :3] @ np.asarray(point_mm, float) + T[:3, 3]
 
     def find(self, approx_mm: np.ndarray, reflectors_world: dict[str, np.ndarray], t_s: float
              ) -> str | None:

@@ -5,6 +5,7 @@ tripod goes roughly where the plan says, levelled, turned by eye (docs/simulatio
 from __future__ import annotations
 
 import asyncio
+import zlib
 from typing import Any
 
 import numpy as np
@@ -31,8 +32,6 @@ class SimTrackerMover:
     def set_up_pose(self, name: str, T_world_from_base: np.ndarray) -> np.ndarray:
         """Where the tracker really stands when asked to stand at ``T_world_from_base``
         (seeded per station name)."""
-        import zlib
-
         rng = np.random.default_rng([self.seed, 31, zlib.crc32(name.encode())])
         tilt = np.radians(rng.normal(0.0, LEVEL_SIGMA_DEG, 2))
         yaw = np.radians(rng.normal(0.0, YAW_SIGMA_DEG))

@@ -112,7 +112,7 @@ def test_plan_tracker_stations_round_trip_and_bad_ones_are_named():
            "tracker": {"t1": T1}}
     plan = parse_plan(obj)
     assert [s.tracker for s in plan.stations] == ["home", "t1"]
-    assert np.allclose(plan.trackers["t1"].T_world_from_tracker(), _rough(T1))
+    assert np.allclose(plan.trackers["t1"].T_world_from_base(), _rough(T1))
     assert parse_plan(tomllib.loads(plan.to_toml())) == plan
     with pytest.raises(PlanError, match=r"station 2 \(b\): tracker 't1' is not .* \(home, t2\)"):
         parse_plan({**obj, "tracker": {"t2": T1}})

@@ -62,6 +62,11 @@ class DriftControl:
         return float(max(last["fit_rms_mm"], last["drift_max_mm"]))
 
     @property
+    def moved(self) -> bool:
+        """The tracker stands elsewhere than at the job's first set-up."""
+        return bool(self.setups) and self.setup != next(iter(self.setups))
+
+    @property
     def enabled(self) -> bool:
         return bool(self.survey)
 
@@ -115,7 +120,7 @@ class DriftControl:
         the tracker on ``return_to_mm`` (tracker frame) again. Returns the check's record;
         NestCheckFailed if fewer than ``min_nests`` answered or they disagree. On a set-up the
         tracker was moved to, the check solves the network again (:meth:`locate`)."""
-        if self.setup != next(iter(self.setups), self.setup):
+        if self.moved:
             return await self.locate(self.setup, self.T_world_from_tracker, label, return_to_mm)
         measured, missing = await self._measure_all(label, return_to_mm)
         s = self.settings

@@ -65,7 +65,7 @@ class TrackerMoves:
             T = np.eye(4)
             T[:3, 3] = self.geometry.tracker_world_mm
             return T
-        return self.plan.trackers[name].T_world_from_tracker()
+        return self.plan.trackers[name].T_world_from_base()
 
     async def move(self, name: str, q_rad: np.ndarray, rail_mm: float | None
                    ) -> dict[str, Any]:
