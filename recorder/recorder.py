@@ -2,10 +2,12 @@
 
 A session is a job (``<job_id>.mcap``, from its ``running`` event until ``job_linger_s`` after
 its end, or after the last sample naming the job if that came later, and not before every scan
-whose frames it holds has its ``scan/<station>/result`` (at most ``job_max_linger_s``), so the
-workers' outputs of the last stations land in it however far a loaded worker lags), or, between
-jobs, an
-``idle-<time>.mcap`` file split every ``split_s`` seconds or ``split_bytes`` bytes.
+whose frames it holds has its ``scan/<station>/result``, nor before the answer a live worker owes
+the job (:data:`ANSWERS`: a ``scan_part`` job's ``fusion/report``, a ``calibrate_hand_eye`` job's
+``calib/hand_eye``, awaited while a worker of that kind holds its liveliness token), at most
+``job_max_linger_s`` after the end; so the workers' outputs land in it however far a loaded
+worker lags), or, between jobs, an ``idle-<time>.mcap`` file split every ``split_s`` seconds or
+``split_bytes`` bytes.
 
 The linger holds across jobs: when the next job starts while the last one's file lingers, both
 are open. A sample that names its job (the job's events, frames and clouds through their
@@ -49,6 +51,22 @@ log = logging.getLogger(__name__)
 #: file), so a session alone holds the calibrations in force.
 LATCHED = ("calib/stereo", "calib/hand_eye")
 TERMINAL_STATES = ("done", "failed", "aborted")
+
+
+@dataclass(frozen=True)
+class OwedAnswer:
+    """The answer a kind of worker publishes for a job of some kind once it has ended."""
+
+    worker_kind: str  # its liveliness tokens: ``workers/<worker_kind>/*``
+    key: str  # relative to ``scancell/<cell>/``; the answer's JSON names the job (``job_id``)
+    states: tuple[str, ...]  # the job's end states the worker answers
+
+
+#: job kind -> the answer its file waits for (workers/fuse.py, workers/calibrate.py)
+ANSWERS = {
+    "scan_part": OwedAnswer("fuse", "fusion/report", TERMINAL_STATES),
+    "calibrate_hand_eye": OwedAnswer("calibrate", "calib/hand_eye", ("done",)),
+}
 
 
 @dataclass(frozen=True)
@@ -106,11 +124,14 @@ class _Session:
     first_ended: float | None = None
     #: scans whose frames are in the file and whose result is not (yet)
     open_scans: set[str] = field(default_factory=set)
+    #: answers a live worker owes the ended job, not (yet) in the file
+    awaited: set[OwedAnswer] = field(default_factory=set)
 
     def may_close(self, now: float, linger_s: float, max_linger_s: float) -> bool:
         if self.ended is None or now - self.ended < linger_s:
             return False
-        return not self.open_scans or now - (self.first_ended or self.ended) >= max_linger_s
+        return ((not self.open_scans and not self.awaited)
+                or now - (self.first_ended or self.ended) >= max_linger_s)
 
 
 class Recorder:
@@ -138,6 +159,8 @@ class Recorder:
         #: scan answers recorded (key and scan id), and second answers refused, per key
         self._answers = RecentIds(65536)
         self.duplicates: dict[str, int] = {}
+        #: live workers' tokens per worker kind of :data:`ANSWERS`
+        self._workers: dict[str, set[str]] = {a.worker_kind: set() for a in ANSWERS.values()}
         self.files: list[Path] = []
         self.total_messages = 0
         self.total_bytes = 0
@@ -156,6 +179,10 @@ class Recorder:
             rel = self.bus.keys.relative(s.key)
             if rel in LATCHED:
                 self.latched[rel] = s
+        for kind in self._workers:
+            self._subs.append(self.bus.watch_members(
+                self.bus.keys.worker(kind, "*"),
+                lambda key, present, kind=kind: self._on_worker(kind, key, present)))
         for pattern in self.settings.topics:
             self._subs.append(self.bus.subscribe(f"{prefix}/{pattern}", self._on_sample,
                                                  self._on_bad_sample))
@@ -214,6 +241,14 @@ class Recorder:
         if first:
             log.error("recorder %r: queue full (%d MB), dropping messages on %s",
                       self.settings.name, self.settings.queue_bytes >> 20, sample.key)
+
+    def _on_worker(self, kind: str, key: str, present: bool) -> None:
+        with self._cond:
+            (self._workers[kind].add if present else self._workers[kind].discard)(key)
+
+    def _workers_live(self, kind: str) -> bool:
+        with self._cond:
+            return bool(self._workers[kind])
 
     def _on_bad_sample(self, key: str, exc: Exception) -> None:
         if key not in self.unrecordable:
@@ -274,8 +309,14 @@ class Recorder:
                 self._write(recv_ns, sample, s)
         if rel.startswith("scan/") and rel.endswith("/result"):
             self._scan_result(sample)
+        if owner is not None and owner.awaited:
+            owner.awaited = {a for a in owner.awaited if a.key != rel}
         if event is not None and event.get("state") in TERMINAL_STATES and owner is not None:
             owner.ended = owner.first_ended = time.monotonic()
+            owed = ANSWERS.get(str(event.get("kind")))
+            if (owed is not None and event["state"] in owed.states
+                    and self._workers_live(owed.worker_kind)):
+                owner.awaited.add(owed)
 
     def _second_answer(self, rel: str, sample: BusSample) -> bool:
         """A scan's cloud or result seen before (the same scan id on the same key): a worker
@@ -369,6 +410,9 @@ class Recorder:
                 self._fail(exc)
             s = self.session
         st = self.settings
+        for ls in (s, *self.lingering):  # no live worker of a kind left: its answer will not come
+            if ls is not None and ls.awaited:
+                ls.awaited = {a for a in ls.awaited if self._workers_live(a.worker_kind)}
         for ls in list(self.lingering):
             if ls.may_close(now, st.job_linger_s, st.job_max_linger_s):
                 self._close_lingering(ls, f"job {ls.job_id} ended")

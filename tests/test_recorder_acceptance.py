@@ -81,7 +81,7 @@ def test_record_kill_recover_replay_reprocess(make_daemon, client, cell, endpoin
     rec_dir = tmp_path / "rec"
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
     recorder = subprocess.Popen(
-        [sys.executable, "-m", "scancell", "record", "--dir", str(rec_dir), "--job-linger-s", "15"],
+        [sys.executable, "-m", "scancell", "record", "--dir", str(rec_dir), "--job-linger-s", "3"],
         env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert "recording cell" in recorder.stdout.readline()

@@ -144,6 +144,64 @@ def test_a_jobs_file_waits_for_the_results_of_its_scans(bus_pair, tmp_path):
     assert "scan/s01/cloud" in keys and "scan/s01/result" in keys
 
 
+def _job(bus, job_id: str, kind: str, state: str) -> None:
+    bus.publish_json(bus.keys.job_event(job_id), {
+        "job_id": job_id, "kind": kind, "state": state, "step": "x", "message": "",
+        "index": None, "total": None, "stamp_ns": messages.now_ns()}, "scancell.JobEvent")
+
+
+def _open_jobs(rec) -> set:
+    return {s.job_id for s in (rec.session, *rec.lingering) if s is not None}
+
+
+@pytest.mark.process
+def test_a_jobs_file_waits_for_the_answer_a_live_worker_owes(bus_pair, tmp_path):
+    """A fuse worker is up: a scan_part job's file waits past its linger for the fusion report
+    (the fused model comes before it), and a calibrate_hand_eye job's file for calib/hand_eye.
+    When the last worker of a kind goes, nothing more is awaited from it."""
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=0.3,
+                                       status_period_s=0.2))
+    fuse = b.declare_member(b.keys.worker("fuse", "w1"))
+    calib = b.declare_member(b.keys.worker("calibrate", "w2"))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _job(b, "job-1", "scan_part", "running")
+        _job(b, "job-1", "scan_part", "done")
+        time.sleep(1.5)  # five lingers: the fuse worker is still fusing
+        assert "job-1" in _open_jobs(rec)
+        b.publish_json(b.keys.fusion_report, {"job_id": "job-1", "stations": 3},
+                       "scancell.FusionReport")
+        wait_until(lambda: "job-1" not in _open_jobs(rec), 10, what="job-1's file closed")
+
+        _job(b, "job-2", "calibrate_hand_eye", "running")
+        _job(b, "job-2", "calibrate_hand_eye", "done")
+        time.sleep(1.5)
+        assert "job-2" in _open_jobs(rec)
+        b.publish_json(b.keys.hand_eye, {"job_id": "job-2", "T_ecs_from_mcs": None,
+                                         "error": "degenerate"}, "scancell.HandEye")
+        wait_until(lambda: "job-2" not in _open_jobs(rec), 10, what="job-2's file closed")
+
+        _job(b, "job-3", "calibrate_hand_eye", "running")
+        _job(b, "job-3", "calibrate_hand_eye", "failed")  # no answer to a failed calibration
+        wait_until(lambda: "job-3" not in _open_jobs(rec), 10, what="job-3's file closed")
+
+        _job(b, "job-4", "scan_part", "running")
+        _job(b, "job-4", "scan_part", "aborted")
+        time.sleep(1.0)
+        assert "job-4" in _open_jobs(rec)
+        fuse.undeclare()  # the only fuse worker is gone: its report will not come
+        wait_until(lambda: "job-4" not in _open_jobs(rec), 10, what="job-4's file closed")
+    finally:
+        rec.stop()
+        calib.undeclare()
+    keys = [a.keys.relative(s.key) for s in samples(tmp_path / "job-1.mcap")]
+    assert "fusion/report" in keys
+    keys = [a.keys.relative(s.key) for s in samples(tmp_path / "job-2.mcap")]
+    assert "calib/hand_eye" in keys
+
+
 @pytest.mark.process
 def test_one_file_per_job_and_idle_sessions_between(bus_pair, tmp_path):
     a, b = bus_pair
