@@ -94,6 +94,21 @@ class FusedCloud:
     uncertainty: np.ndarray | None = None
     #: the stations' per-point uncertainty (same order as per_station), where known
     per_station_uncertainty: dict[str, np.ndarray] | None = None
+    #: each station's camera centre (the MCS origin) in world, mm
+    viewpoints: dict[str, np.ndarray] | None = None
+
+    def viewpoint_of(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3): for each world point the camera centre of the station whose point lies
+        nearest to it (the camera that saw it), mm. Needs :attr:`viewpoints`."""
+        from scipy.spatial import cKDTree
+
+        if not self.viewpoints:
+            raise FusionError("no station viewpoints: fused without the stations' poses")
+        names = list(self.per_station)
+        clouds = [self.per_station[n] for n in names]
+        owner = np.repeat(np.arange(len(names)), [len(c) for c in clouds])
+        _, nearest = cKDTree(np.concatenate(clouds)).query(np.asarray(points, float), workers=-1)
+        return np.array([self.viewpoints[n] for n in names])[owner[nearest]]
 
 
 def weighted_voxel_mean(points: np.ndarray, sigma: np.ndarray, voxel_mm: float
@@ -135,4 +150,5 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
     else:
         pts = merged
         sigma = np.concatenate(list(per_unc.values())) if per_unc else None
-    return FusedCloud(pts, world, len(merged), sigma, per_unc)
+    viewpoints = {s.name: (s.T_world_from_ecs @ T_ecs_from_mcs)[:3, 3].copy() for s in stations}
+    return FusedCloud(pts, world, len(merged), sigma, per_unc, viewpoints)

@@ -76,7 +76,7 @@ def main(args: argparse.Namespace) -> int:
         if args.e57:
             write_e57(args.e57, fused.points)
         if args.mesh:
-            write_mesh(args.mesh, poisson_mesh(fused.points))
+            write_mesh(args.mesh, poisson_mesh(fused.points, fused.viewpoint_of))
         extra = {}
         if args.refine:
             extra["Multi-view ICP refinement (an extra: not the tracker-based result)"] = \

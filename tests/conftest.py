@@ -28,6 +28,9 @@ from scancell.deploy import cell_config_path
 os.environ.setdefault("PYLON_CAMEMU", "2")
 
 REPO = Path(__file__).resolve().parent.parent
+# One tessellation cache for the run's processes (xdist workers, daemons, CLIs), kept out of the
+# home directory: the car rear's STEP is tessellated once (analysis/tessellation_cache.py).
+os.environ.setdefault("SCANCELL_CACHE_DIR", str(REPO / ".pytest_cache" / "scancell-cache"))
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

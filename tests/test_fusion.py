@@ -92,6 +92,12 @@ def test_fuse_cli_folder_and_bad_input(stations, tmp_path):
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "out" / "mesh.ply"))
     assert len(mesh.triangles) > 1000
     assert np.median(cell.surface_distance(np.asarray(mesh.vertices))) < 0.5
+    # the surface faces the cameras that saw it (normals turned towards each point's station)
+    mesh.compute_vertex_normals()
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    cams = np.array([(s.T_world_from_ecs @ cell.true_T_ecs_from_mcs())[:3, 3] for s in st])
+    nearest = cams[np.argmin(np.linalg.norm(v[:, None] - cams[None], axis=2), axis=1)]
+    assert np.mean(np.einsum("ij,ij->i", n, nearest - v) > 0) > 0.98
     report = (tmp_path / "rep" / "report.md").read_text()
     assert "Table 2" in report and "| s1 |" in report and "translation_error.png" in report
     assert "Multi-view ICP refinement (an extra" in report

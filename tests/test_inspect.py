@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import csv
 import json
+import re
+
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -243,6 +246,47 @@ def test_wrong_unit_no_overlap_no_convergence_and_bad_step_are_clear_errors(cad,
         load_nominal(tmp_path / "missing.stl")
     with pytest.raises(NominalError, match="given unit 'm' contradicts"):
         load_nominal(cad["step"], unit="m", chordal_tolerance_mm=1.0)
+
+
+def test_a_steps_tessellation_is_kept_for_the_next_load_of_the_same_geometry(
+        cad, tmp_path, monkeypatch, caplog):
+    """The second load of the same geometry (another export: another header) reads the cache;
+    a corrupt entry is tessellated again and replaced; ``off`` writes nothing."""
+    import scancell.analysis.nominal as nominal_module
+    from scancell.analysis import tessellation_cache
+
+    monkeypatch.setenv("SCANCELL_CACHE_DIR", str(tmp_path / "cache"))
+    first = load_nominal(cad["step"], chordal_tolerance_mm=1.0)
+    (entry,) = (tmp_path / "cache" / "nominal").glob("*.npz")
+    again = tmp_path / "again.step"  # the same geometry exported later: only the header differs
+    text = Path(cad["step"]).read_text()
+    again.write_text(re.sub(r"'\d{4}-\d\d-\d\dT[\d:]+'", "'2031-01-01T00:00:00'", text, count=1))
+    assert again.read_text() != text
+
+    def no_tessellation(*a):
+        raise AssertionError("tessellated although the cache holds it")
+
+    with monkeypatch.context() as m:
+        m.setattr(nominal_module, "_tessellate_step", no_tessellation)
+        hit = load_nominal(again, chordal_tolerance_mm=1.0)
+    np.testing.assert_array_equal(hit.vertices, first.vertices)
+    np.testing.assert_array_equal(hit.triangles, first.triangles)
+    np.testing.assert_array_equal(hit.face_of_triangle, first.face_of_triangle)
+    assert hit.face_names == first.face_names and hit.unit == first.unit == "mm"
+    assert hit.source == str(again) and hit.chordal_tolerance_mm == 1.0
+    # another tolerance is another entry
+    load_nominal(cad["step"], chordal_tolerance_mm=2.0)
+    assert len(list((tmp_path / "cache" / "nominal").glob("*.npz"))) == 2
+    entry.write_bytes(b"not an npz")
+    with caplog.at_level("WARNING"):
+        redone = load_nominal(cad["step"], chordal_tolerance_mm=1.0)
+    assert "unreadable" in caplog.text and entry.stat().st_size > 1000
+    np.testing.assert_array_equal(redone.vertices, first.vertices)
+    monkeypatch.setenv("SCANCELL_CACHE_DIR", "off")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert tessellation_cache.cache_dir() is None
+    load_nominal(cad["step"], chordal_tolerance_mm=1.0)
+    assert not (tmp_path / "xdg").exists()
 
 
 def test_cli_bad_input_exits_2_and_writes_nothing(cad, tmp_path, capsys):

@@ -465,7 +465,7 @@ def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | No
     write_e57(files["e57"], fused.points)
     if mesh:
         files["mesh"] = str(folder / "mesh.ply")
-        write_mesh(files["mesh"], poisson_mesh(fused.points))
+        write_mesh(files["mesh"], poisson_mesh(fused.points, fused.viewpoint_of))
     if metrics is not None:
         files["report"] = str(write_report(folder / "report", fused, metrics,
                                            f"scancell fusion report: {body['job_id']}",
