@@ -36,6 +36,28 @@ def _move_rays(rays: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
+def rays_near_sphere(rays: np.ndarray, tfar: np.ndarray, centre: np.ndarray,
+                     radius: float) -> np.ndarray:
+    """True for each ray (N, 6) float32 whose segment from its origin to ``tfar`` (per ray)
+    passes within ``radius`` of ``centre``: the only rays that can hit an object inside that
+    sphere."""
+    n = rays.shape[0]
+    out = np.zeros(n, np.bool_)
+    r2 = radius * radius
+    for i in numba.prange(n):
+        vx = centre[0] - rays[i, 0]
+        vy = centre[1] - rays[i, 1]
+        vz = centre[2] - rays[i, 2]
+        t = vx * rays[i, 3] + vy * rays[i, 4] + vz * rays[i, 5]
+        t = min(max(t, 0.0), tfar[i])
+        dx = vx - t * rays[i, 3]
+        dy = vy - t * rays[i, 4]
+        dz = vz - t * rays[i, 5]
+        out[i] = dx * dx + dy * dy + dz * dz <= r2
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
 def rays_from_point(dirs: np.ndarray, R: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Rays (N, 6) float32 from one ``origin`` along ``R @ dirs[i]`` (dirs (N, 3) float32)."""
     n = dirs.shape[0]

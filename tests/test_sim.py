@@ -21,6 +21,7 @@ from scancell.sim.optics_profile import optics_profile
 from scancell.sim.scene import SceneObject
 from scancell.sim.target import Chessboard, render_calibration_set
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerSpec
+from scipy.spatial.transform import Rotation
 
 
 @pytest.fixture(scope="module")
@@ -272,3 +273,45 @@ def test_sim_render_cli_writes_the_decode_layout(tmp_path):
                           "1,2,3", "--out", str(tmp_path / "x")], capture_output=True, text=True,
                          timeout=60)
     assert bad.returncode != 0 and "needs 6 values" in bad.stderr
+
+
+@pytest.mark.unit
+def test_rays_culled_by_bounding_spheres_hit_what_every_ray_against_every_object_hits():
+    """The scene casts a ray against an object only if it passes within the object's bounding
+    sphere; the hits, normals and occlusions equal those of casting every ray everywhere."""
+    from scancell.sim.scene import Scene
+
+    rng = np.random.default_rng(5)
+    scene = Scene()
+    for k in range(5):
+        mesh = o3d.geometry.TriangleMesh.create_box(150.0, 200.0, 60.0 + 30 * k)
+        T = make_T(Rotation.random(random_state=k).as_matrix(), rng.uniform(-300, 300, 3))
+        scene.add(SceneObject(f"box{k}", mesh, T))
+    origin = np.array([0.0, 0.0, -900.0])
+    dirs = rng.normal([0, 0, 1], 0.25, (20_000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = rng.uniform(-400, 400, (20_000, 3))
+
+    def brute(origs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        best = np.full(len(dirs), np.inf)
+        which = np.full(len(dirs), -1)
+        for i, obj in enumerate(scene.objects):
+            T = np.linalg.inv(obj.T_world_from_object)
+            o = np.broadcast_to(origs, dirs.shape) @ T[:3, :3].T + T[:3, 3]
+            rays = np.hstack([o, dirs @ T[:3, :3].T]).astype(np.float32)
+            t = obj.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+            which[t < best] = i
+            best = np.minimum(best, t)
+        return best, which
+
+    for origs in (origin, origins):
+        hits = scene.cast(origs, dirs)
+        best, which = brute(origs)
+        assert np.isfinite(best).sum() > 1000  # the test casts rays that hit
+        np.testing.assert_allclose(hits.t, best, rtol=1e-5, atol=1e-3)
+        np.testing.assert_array_equal(hits.object_index, which)
+    tfar = rng.uniform(0, 1500, len(dirs)).astype(np.float32)
+    occluded = scene.occluded(origins, dirs, tfar)
+    best, _ = brute(origins)
+    assert 500 < occluded.sum() < len(dirs) - 500
+    np.testing.assert_array_equal(occluded, best < tfar)
