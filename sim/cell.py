@@ -539,11 +539,12 @@ class SimCell:
         now = self.clock.now()
         T_wc = self.T_world_from_camera(camera)
         key = T_wc.round(9).tobytes()
-        rest = self.T_world_from_camera(camera, self.q).round(9).tobytes()
+        rest = self.q.tobytes()  # the arm's joints: the same until its next move
         versions = (self._scene_version, self._rig_version)
         cached = self._geom_cache.get(camera)
         # the frames of one burst (a scan's patterns) share the pose of its first frame: the
-        # arm's vibration during one scan is not rendered (docs/simulation.md)
+        # arm's vibration and thermal growth during one scan are not rendered
+        # (docs/simulation.md)
         if cached and cached[1] == versions and (
                 cached[0] == key or (cached[2] == rest
                                      and now - cached[3] <= self.mech.render_burst_s)):
