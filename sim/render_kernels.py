@@ -35,12 +35,21 @@ def _move_rays(rays: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(parallel=True, cache=True)
 def rays_near_sphere(rays: np.ndarray, tfar: np.ndarray, centre: np.ndarray,
                      radius: float) -> np.ndarray:
     """True for each ray (N, 6) float32 whose segment from its origin to ``tfar`` (per ray)
     passes within ``radius`` of ``centre``: the only rays that can hit an object inside that
     sphere."""
+    if len(rays) < 4096:  # the tracker's beam checks, from its server's thread: see move_rays
+        v = np.asarray(centre, np.float64) - rays[:, :3]
+        t = np.clip(np.einsum("ij,ij->i", v, rays[:, 3:]), 0.0, tfar)
+        return np.einsum("ij,ij->i", d := v - t[:, None] * rays[:, 3:], d) <= radius * radius
+    return _rays_near_sphere(rays, tfar, np.asarray(centre, np.float64), float(radius))
+
+
+@numba.njit(parallel=True, cache=True)
+def _rays_near_sphere(rays: np.ndarray, tfar: np.ndarray, centre: np.ndarray,
+                      radius: float) -> np.ndarray:
     n = rays.shape[0]
     out = np.zeros(n, np.bool_)
     r2 = radius * radius

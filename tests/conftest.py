@@ -33,6 +33,18 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("SCANCELL_CACHE_DIR", str(REPO / ".pytest_cache" / "scancell-cache"))
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Under xdist (``make test``), the controller compiles the numba kernels once before the
+    workers start (tests/warm_kernels.py): on a fresh clone every process would compile them
+    again, about 50 s of CPU each, side by side."""
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, str(REPO / "tests" / "warm_kernels.py")], check=True,
+                   timeout=600)
+    print(f"numba kernels compiled or found cached in {time.monotonic() - t0:.0f} s")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Files with whole-job (``e2e``) tests run first: they are the longest, and started last
     they would keep ``make test``'s xdist workers (``--dist loadfile``) waiting at the end."""

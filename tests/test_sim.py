@@ -315,3 +315,8 @@ def test_rays_culled_by_bounding_spheres_hit_what_every_ray_against_every_object
     best, _ = brute(origins)
     assert 500 < occluded.sum() < len(dirs) - 500
     np.testing.assert_array_equal(occluded, best < tfar)
+    few = slice(0, 300)  # a few rays (the tracker's beam) take the numpy path
+    np.testing.assert_array_equal(scene.occluded(origins[few], dirs[few], tfar[few]),
+                                  (best < tfar)[few])
+    np.testing.assert_allclose(scene.cast(origins[few], dirs[few]).t, best[few], rtol=1e-5,
+                               atol=1e-3)
