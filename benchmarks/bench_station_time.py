@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from scancell.bus import BusConfig
+from scancell.cli.demo import free_port
 from scancell.client import CellClient
 from scancell.deploy import cell_config_path
 from scancell.model.patterns import FringeSequence
@@ -40,14 +41,6 @@ from scancell.sim.host import flatten_overrides, relocated_ports, sim_cell
 #: the part's rear face, one station per target (world, mm; the car rear sits at x ~ 3300)
 TARGETS = [(-150.0, -250.0, 0.0), (-150.0, 0.0, 0.0), (-150.0, 250.0, 0.0), (-150.0, 0.0, 150.0)]
 TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cpu_s(pid: int) -> float:

@@ -81,22 +81,25 @@ class Scene:
         idx = np.full(n, -1, np.int32)
         prim = np.full(n, -1, np.int64)
         one_origin = np.ndim(origins) == 1
-        world = None if one_origin else _world_rays(origins, dirs32)
+        if one_origin:
+            origin = np.asarray(origins, float)
+        else:
+            world = _world_rays(origins, dirs32)
+            unbounded = np.full(n, np.inf, np.float32)
         for i, obj in enumerate(self.objects):
             if cameras_only and not obj.visible_to_cameras:
                 continue
             centre, radius = obj.bounding_sphere()
             if one_origin:
-                sel = _in_cone(dirs32, np.asarray(origins, float), centre, radius)
+                sel = _in_cone(dirs32, origin, centre, radius)
             else:
-                sel = np.flatnonzero(rays_near_sphere(world, np.full(n, np.inf, np.float32),
-                                                      centre, radius))
+                sel = np.flatnonzero(rays_near_sphere(world, unbounded, centre, radius))
             if sel is not None and not sel.size:
                 continue
             T = np.linalg.inv(obj.T_world_from_object)
             if one_origin:
                 rays = rays_from_point(dirs32 if sel is None else dirs32[sel], T[:3, :3],
-                                       T[:3, :3] @ origins + T[:3, 3])
+                                       T[:3, :3] @ origin + T[:3, 3])
             else:
                 rays = move_rays(world[sel], T[:3, :3], T[:3, 3])
             r = obj.scene.cast_rays(o3d.core.Tensor(rays))
