@@ -28,8 +28,6 @@ log = logging.getLogger(__name__)
 
 Handler = Callable[[dict[str, Any]], Awaitable[Any]]
 
-#: Operations after whose timeout or abort the device is told to stop.
-
 
 @dataclass(frozen=True)
 class CellVerb:
@@ -108,7 +106,8 @@ class CommandRouter:
         if sup.job is not None:
             raise CommandError("busy", f"{verb}: {name} is in use by job {sup.job}")
         try:
-            await asyncio.wait_for(sup.lock.acquire(), timeout)
+            async with asyncio.timeout(timeout):
+                await sup.lock.acquire()
         except TimeoutError:
             raise CommandError("busy", f"{verb}: {name} stayed busy for {timeout} s") from None
         try:
@@ -142,7 +141,8 @@ class CommandRouter:
     @staticmethod
     async def _with_timeout(verb: str, coro: Awaitable[Any], timeout: float) -> Any:
         try:
-            return await asyncio.wait_for(coro, timeout)
+            async with asyncio.timeout(timeout):
+                return await coro
         except TimeoutError:
             raise CommandError("timeout", f"{verb}: no result within {timeout:g} s") from None
 

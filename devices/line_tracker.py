@@ -142,7 +142,8 @@ class LineTracker(Tracker):
         except (serial.SerialException, OSError) as exc:
             raise ConnectionLost(f"{self.name}: write failed: {exc}") from None
         try:
-            final, data = await asyncio.wait_for(fut, self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):
+                final, data = await fut
         except TimeoutError:
             with self._lock:
                 self._pending.pop(tag, None)

@@ -124,7 +124,8 @@ class OpenCVCamera(Camera):
     async def _read_async(self, timeout_s: float) -> Frame:
         async with self._lock:
             try:
-                return await asyncio.wait_for(asyncio.to_thread(self._read), timeout_s)
+                async with asyncio.timeout(timeout_s):
+                    return await asyncio.to_thread(self._read)
             except TimeoutError:
                 raise Timeout(f"{self.name}: {self._source!r} gave no frame in {timeout_s} s") from None
 

@@ -156,7 +156,8 @@ class SimCamera(SimLink, Camera):
                               f"({self.settings.trigger} trigger: was it triggered?)")
             await asyncio.sleep(0.005)
         try:
-            return await asyncio.wait_for(asyncio.wrap_future(fut), RENDER_ALLOWANCE_S)
+            async with asyncio.timeout(RENDER_ALLOWANCE_S):
+                return await asyncio.wrap_future(fut)
         except TimeoutError:
             raise Timeout(f"{self.name}: simulator did not render the frame in time") from None
 

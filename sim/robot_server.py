@@ -66,7 +66,8 @@ class KarelRobotServer:
             w.close()
         for s in self._servers:
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(s.wait_closed(), 1.0)
+                async with asyncio.timeout(1.0):
+                    await s.wait_closed()
         if self._executor:
             self._executor.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -163,7 +163,8 @@ class TcpTrackerServer:
             w.close()
         if self._server:
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+                async with asyncio.timeout(1.0):
+                    await self._server.wait_closed()
 
     def inject(self, raw: bytes) -> None:
         """Tests: write raw bytes to every client."""

@@ -234,3 +234,36 @@ def test_a_job_whose_final_event_is_late_or_lost_still_ends_with_a_final_event()
     assert lost["state"] == "aborted" and lost["step"] == "end"
     assert lost["result"] == {"stations_done": []} and "not received" in lost["message"]
     assert CellClient._final_event(events, "j2", last, grace_s=0.1)["state"] == "gone"
+
+
+def test_an_abort_that_arrives_with_a_device_reply_is_not_swallowed():
+    """Python 3.11's ``asyncio.wait_for`` returns the result and drops a cancellation that
+    arrives in the loop turn the awaited reply does (cpython gh-86296): a job then carried on
+    past ``job/abort``. Here the reply and the abort come together; the job must end aborted."""
+    import asyncio
+
+    from scancell.bus.local import LocalBus
+    from scancell.daemon.jobs.runner import JobRunner
+    from scancell.daemon.router import CommandRouter
+
+    async def main() -> tuple[list[int], dict]:
+        pending: list[asyncio.Future] = []
+        answers: list[int] = []
+
+        async def job(ctx) -> dict:
+            while True:
+                pending.append(asyncio.get_running_loop().create_future())
+                answers.append(await CommandRouter._with_timeout("device/tracker/measure",
+                                                                 pending[-1], 5.0))
+
+        runner = JobRunner(LocalBus("t-abort"), {"loop": job})
+        await runner.start("loop", {})
+        await asyncio.sleep(0.05)
+        pending[-1].set_result(1)  # the device answers ...
+        async with asyncio.timeout(2.0):  # ... and the abort comes in the same turn
+            reply = await runner.abort({})
+        return answers, {**reply, **runner.last}
+
+    answers, last = asyncio.run(main())
+    assert last["state"] == "aborted" and last["aborted"] == last["job_id"]
+    assert answers == []  # the reply is dropped with the job, which asks for nothing more

@@ -63,8 +63,12 @@ async def stop_motion(devices: Iterable[Device | None], timeout_s: float = 2.0) 
     movers = [d for d in devices if isinstance(d, Robot | Axis)]
     if not movers:
         return {}
-    results = await asyncio.shield(asyncio.gather(
-        *(asyncio.wait_for(d.stop(), timeout_s) for d in movers), return_exceptions=True))
+    async def stop(d: Robot | Axis) -> None:
+        async with asyncio.timeout(timeout_s):
+            await d.stop()
+
+    results = await asyncio.shield(asyncio.gather(*(stop(d) for d in movers),
+                                                  return_exceptions=True))
     failed = {d.name: f"{type(r).__name__}: {r}" for d, r in zip(movers, results, strict=True)
               if isinstance(r, BaseException)}
     for name, why in failed.items():

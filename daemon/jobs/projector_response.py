@@ -124,7 +124,8 @@ async def calibrate_projector(ctx: JobContext, supervisors: dict[str, DeviceSupe
         ctx.event("running", "fit", f"levels taken in {time.monotonic() - t0:.1f} s; waiting "
                                     f"for the scan worker's fit", len(levels), len(levels))
         try:
-            body = await asyncio.wait_for(answer, wait_s)
+            async with asyncio.timeout(wait_s):
+                body = await answer
         except TimeoutError:
             raise CommandError("timeout", f"{verb}: no answer on calib/projector_response/result "
                                           f"within {wait_s:g} s: is `scancell worker scan` "

@@ -105,7 +105,8 @@ class DeviceSupervisor:
     async def _sleep(self, seconds: float) -> bool:
         """Sleep unless stopping; True if the daemon is stopping."""
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._stopping.wait(), seconds)
+            async with asyncio.timeout(seconds):
+                await self._stopping.wait()
         return self._stopping.is_set()
 
     async def run(self) -> None:
@@ -117,7 +118,8 @@ class DeviceSupervisor:
             if first:
                 self._set(CONNECTING, "connecting")
             try:
-                await asyncio.wait_for(self.device.connect(), cfg.connect_timeout_s)
+                async with asyncio.timeout(cfg.connect_timeout_s):
+                    await self.device.connect()
             except (DeviceError, OSError, TimeoutError) as exc:
                 reason = getattr(exc, "code", "connect_failed")
                 msg = str(exc) or type(exc).__name__
@@ -153,7 +155,8 @@ class DeviceSupervisor:
                     await telemetry
                 self._set_alive(self.name, False)
                 with contextlib.suppress(Exception):
-                    await asyncio.wait_for(self.device.close(), 2.0)
+                    async with asyncio.timeout(2.0):
+                        await self.device.close()
         self._set(CLOSED, "shutdown", "")
 
     async def _watch(self) -> None:
@@ -161,7 +164,8 @@ class DeviceSupervisor:
         period = self.daemon_cfg.status_period_s
         while not self._stopping.is_set():
             try:
-                h = await asyncio.wait_for(self.device.health(), max(2.0, period))
+                async with asyncio.timeout(max(2.0, period)):
+                    h = await self.device.health()
                 state = {HealthState.OK: CONNECTED, HealthState.DEGRADED: DEGRADED,
                          HealthState.FAULT: FAULT}[h.state]
                 self._set(state, h.reason, h.message)
