@@ -414,8 +414,10 @@ class Bus:
             except Exception:  # a callback's bug must not kill zenoh's thread
                 log.exception("liveliness callback on %s", s.key_expr)
 
-        sub = self.session.liveliness().declare_subscriber(key_expr, handler)
-        for key in self.members(key_expr):  # those present now
+        # history: the tokens present now come through the subscriber too, whatever a loaded
+        # machine does to the get below (its 1 s timeout can pass before a reply is handled)
+        sub = self.session.liveliness().declare_subscriber(key_expr, handler, history=True)
+        for key in self.members(key_expr):  # those present now, known on return
             on_change(key, True)
         return sub
 

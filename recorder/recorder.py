@@ -314,9 +314,16 @@ class Recorder:
         if event is not None and event.get("state") in TERMINAL_STATES and owner is not None:
             owner.ended = owner.first_ended = time.monotonic()
             owed = ANSWERS.get(str(event.get("kind")))
-            if (owed is not None and event["state"] in owed.states
-                    and self._workers_live(owed.worker_kind)):
-                owner.awaited.add(owed)
+            if owed is not None and event["state"] in owed.states:
+                if self._workers_live(owed.worker_kind):
+                    owner.awaited.add(owed)
+                    log.info("recorder %r: job %s ended; its file waits for %s (at most %g s)",
+                             self.settings.name, owner.job_id, owed.key,
+                             self.settings.job_max_linger_s)
+                else:
+                    log.info("recorder %r: job %s ended; no %s worker is live: its file closes "
+                             "%g s after its last sample", self.settings.name, owner.job_id,
+                             owed.worker_kind, self.settings.job_linger_s)
 
     def _second_answer(self, rel: str, sample: BusSample) -> bool:
         """A scan's cloud or result seen before (the same scan id on the same key): a worker
