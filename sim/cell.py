@@ -29,7 +29,7 @@ from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 from scancell.sim import mechanics as mech
 from scancell.sim import parts
 from scancell.sim.clock import SimClock
-from scancell.sim.optics import PinholeModel, StereoRig, default_rig
+from scancell.sim.optics import FocalGrowthRays, PinholeModel, StereoRig, default_rig
 from scancell.sim.optics_profile import (
     DEFAULT_PROFILE,
     OpticsProfile,
@@ -219,7 +219,8 @@ class SimCell:
         if self.cfg.check_bar_world is not None:
             self.scene.add(SceneObject(CHECK_BAR, parts.ARTEFACTS["ballbar"](),
                                        self.check_bar_pose(*self.cfg.check_bar_world), 0.6))
-        self._rays: dict[str, np.ndarray] = {}
+        self._ray_grids: dict[str, FocalGrowthRays] = {}  # cold cameras, built on first use
+        self._rays: dict[str, np.ndarray] = {}  # at the rig's current warm-up
         self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
         self._serial = 0  # geometries and loaded sequences, for the image cache
@@ -529,7 +530,10 @@ class SimCell:
 
     def _pixel_rays(self, camera: str) -> np.ndarray:
         if camera not in self._rays:
-            self._rays[camera] = self.camera_model(camera).pixel_rays().astype(np.float32)
+            if camera not in self._ray_grids:
+                cold = {"left": self.rig_cold.left, "right": self.rig_cold.right}[camera]
+                self._ray_grids[camera] = FocalGrowthRays(cold)
+            self._rays[camera] = self._ray_grids[camera].rays(self._rig_scales[1])
         return self._rays[camera]
 
     def geometry(self, camera: str) -> CameraGeometry:

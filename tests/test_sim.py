@@ -66,6 +66,31 @@ def test_projection_matches_opencv_and_rays_invert_it():
 
 
 @pytest.mark.unit
+def test_warm_camera_rays_from_the_cold_grid_are_the_warm_cameras_own():
+    from dataclasses import replace
+
+    from scancell.sim.optics import FocalGrowthRays
+
+    cold = default_rig().left.scaled(4)
+    grid = FocalGrowthRays(cold)
+    for growth in (1.0, 1 + 40e-6, 1 + 500e-6):
+        K = cold.K.copy()
+        K[0, 0] *= growth
+        K[1, 1] *= growth
+        own = replace(cold, K=K).pixel_rays()
+        got = grid.rays(growth)
+        assert got.dtype == np.float32
+        # float32 rounding of a unit vector is 3e-8: the step adds nothing visible beside it
+        assert np.linalg.norm(own - got, axis=-1).max() < 1e-7
+    # the test is not blind: the cold rays are 500 ppm of the field away from the warm ones
+    assert np.linalg.norm(own - grid.rays(1.0), axis=-1).max() > 1e-4
+    skewed = cold.K.copy()
+    skewed[0, 1] = 0.5
+    with pytest.raises(ValueError, match="skewed"):
+        FocalGrowthRays(replace(cold, K=skewed))
+
+
+@pytest.mark.unit
 def test_car_rear_part_has_paper_dimensions():
     ext = parts.car_rear().get_axis_aligned_bounding_box().get_extent()
     np.testing.assert_allclose(ext, [400, 1400, 500], atol=0.5)
