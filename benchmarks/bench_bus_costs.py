@@ -21,20 +21,15 @@ import argparse
 import json
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 
+from scancell.bus.ports import free_port
+
 CELL = "costs"
 FRAME = 2448 * 2048
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _cpu() -> float:
@@ -100,7 +95,7 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 
 def run(size: int, seconds: float, hop: bool) -> dict[str, float]:
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     nodes = []
     if hop:
         nodes.append(_spawn("--role", "node", "--ep", ep, "--listen"))

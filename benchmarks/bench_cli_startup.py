@@ -12,13 +12,14 @@ Run: .venv/bin/python benchmarks/bench_cli_startup.py  (or `make bench`)
 from __future__ import annotations
 
 import os
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from scancell.bus.ports import free_port
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -35,12 +36,6 @@ def timed(cmd: list[str], env: dict[str, str] | None = None, runs: int = RUNS) -
                        stderr=subprocess.DEVNULL)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def render_scene(out: Path) -> None:

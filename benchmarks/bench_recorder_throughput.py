@@ -21,7 +21,6 @@ import os
 import resource
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -29,15 +28,11 @@ import threading
 import time
 from pathlib import Path
 
+from scancell.bus.ports import free_port
+
 W, H = 2448, 2048
 CELL = "bench"
 DEFAULT_SHM_MB = 64  # scancell.bus.zenoh_bus.DEFAULT_SHM_MB, without importing zenoh here
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ---------------------------------------------------------------- roles (subprocesses)
@@ -137,7 +132,7 @@ def _spawn(*args: str) -> subprocess.Popen:
 
 
 def run(mode: str, fps: float, seconds: float, out_dir: str, shm_mb: int) -> dict:
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     sub = _spawn("--role", "sub", "--ep", ep, "--mode", mode, "--out", out_dir,
                  "--shm", str(shm_mb))
     assert sub.stdout.readline().strip() == "ready"

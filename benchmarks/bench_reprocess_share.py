@@ -17,7 +17,6 @@ Run: .venv/bin/python benchmarks/bench_reprocess_share.py  (or `make bench`)
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -27,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from scancell.analysis.stereo_calibration import StereoCalibration
+from scancell.bus.ports import free_port
 from scancell.bus.zenoh_bus import Bus, BusConfig
 from scancell.model.patterns import FringeSequence
 from scancell.sim.cell import SimCell, SimCellConfig
@@ -61,9 +61,7 @@ def recordings(folder: Path, scale: float, n: int, name: str) -> list[Path]:
 def run(n_workers: int, files: list[Path], warm: list[Path], out: Path) -> float:
     """Recordings per minute with ``n_workers`` reprocess worker processes."""
     cell = f"bench{uuid.uuid4().hex[:8]}"
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = Bus.open(BusConfig(listen=(endpoint,)), cell)
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
     procs = [subprocess.Popen([sys.executable, "-m", "scancell", "worker", "reprocess"],

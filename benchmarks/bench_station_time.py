@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from scancell.bus import BusConfig
-from scancell.cli.demo import free_port
+from scancell.bus.ports import free_port
 from scancell.client import CellClient
 from scancell.deploy import cell_config_path
 from scancell.model.patterns import FringeSequence

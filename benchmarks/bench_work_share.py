@@ -24,6 +24,7 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+from scancell.bus.ports import free_port
 from scancell.bus.zenoh_bus import Bus, BusConfig
 from scancell.cli.ctl import live_workers
 from scancell.model.patterns import FringeSequence
@@ -51,9 +52,7 @@ def publish_scan(bus: Bus, scan_id: str, frames: dict[str, list[np.ndarray]]) ->
 def run(n_workers: int, frames: dict[str, list[np.ndarray]], calib: Path) -> float:
     """Stations per minute with ``n_workers`` scan worker processes."""
     cell = f"bench{uuid.uuid4().hex[:8]}"
-    with __import__("socket").socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     bus = Bus.open(BusConfig(listen=(endpoint,)), cell)
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
     procs = [subprocess.Popen([sys.executable, "-m", "scancell", "worker", "scan", "--calib",

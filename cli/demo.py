@@ -29,29 +29,15 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+from scancell.bus.ports import free_port
 from scancell.cli._common import default_cell_config, fail
 from scancell.client import CellClient, CommandError
-
-_GIVEN: set[int] = set()
-
-
-def free_port() -> int:
-    """A free loopback port not handed out before in this process: the kernel may offer a
-    released port again, and the bus and a simulator then collide (seen: errno 98)."""
-    while True:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        if port not in _GIVEN:
-            _GIVEN.add(port)
-            return port
 
 
 class Stage:

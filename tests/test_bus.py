@@ -171,3 +171,28 @@ def test_large_samples_travel_through_shared_memory_on_one_host(endpoint, cell, 
     monkeypatch.setenv("SCANCELL_SHM_MB", "x")
     with pytest.raises(ValueError, match=r"\$SCANCELL_SHM_MB must be"):
         BusConfig.for_client(endpoint)
+
+
+@pytest.mark.unit
+def test_free_ports_lie_below_the_kernels_ephemeral_range_and_skip_ports_in_use(monkeypatch):
+    """A port handed to a server must not be one the kernel may give an outgoing connection
+    meanwhile (a daemon lost to errno 98 that way); a port in use is passed over; none twice."""
+    import socket
+
+    from scancell.bus import ports
+
+    low = ports.ephemeral_range()[0]
+    got = [ports.free_port() for _ in range(200)]
+    assert len(set(got)) == len(got)
+    assert all(ports.LOWEST <= p < low for p in got)
+    for p in got[:20]:  # each one free to listen on
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", p))
+    busy, free = ports.free_port(), ports.free_port()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", busy))
+        taken.listen()
+        picks = iter([busy, free])
+        monkeypatch.setattr(ports._rng, "randrange", lambda lo, hi: next(picks))
+        monkeypatch.setattr(ports, "_GIVEN", set())
+        assert ports.free_port() == free
