@@ -15,8 +15,11 @@ of calls give identical images and measurements.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -38,13 +41,23 @@ from scancell.sim.optics_profile import (
     optics_profile,
     response_harmonics,
 )
-from scancell.sim.render_kernels import blend_levels, pattern_dn, projector_terms, quantise, sensor_dn
+from scancell.sim.render_kernels import (
+    blend_levels,
+    pattern_dn,
+    projector_terms,
+    quantise,
+    sensor_dn,
+    shadowed,
+)
 from scancell.sim.scene import Scene, SceneObject
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
 
 #: pattern indices below this show a uniform level: ``UNIFORM_BASE - v`` for the 8-bit value v
 #: (what a projector-response calibration projects); -1 dark and -2 full white are v = 0, 255
 UNIFORM_BASE = -3
+#: a point lit by the projector may lie this far (mm) behind its shadow map's samples: the
+#: clearance the per-pixel shadow rays left at the surface and at the projector (2 x 0.05 mm)
+SHADOW_TOLERANCE_MM = 0.1
 
 
 def uniform_level(k: int) -> float:
@@ -221,7 +234,9 @@ class SimCell:
                                        self.check_bar_pose(*self.cfg.check_bar_world), 0.6))
         self._ray_grids: dict[str, FocalGrowthRays] = {}  # cold cameras, built on first use
         self._rays: dict[str, np.ndarray] = {}  # at the rig's current warm-up
-        self._geom_cache: dict[str, tuple[bytes, int, CameraGeometry]] = {}
+        #: per camera (and the projector's shadow map): pose key, versions, joints, time, value
+        self._geom_cache: dict[str, tuple[bytes, tuple[int, int], bytes, float, Any]] = {}
+        self._projector_rays: tuple[int, np.ndarray] | None = None  # (step, rays)
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
         self._serial = 0  # geometries and loaded sequences, for the image cache
         self.load_sequence(FringeSequence())
@@ -540,24 +555,57 @@ class SimCell:
         """Ray cast, projector mapping, shadowing and shading of one camera at the current pose
         (cached: the patterns of one pose reuse it)."""
         self._warm_rig()
+
+        def compute(T_wc: np.ndarray) -> CameraGeometry:
+            geom = self._compute_geometry(camera, T_wc)
+            self._serial += 1
+            geom.serial = self._serial
+            return geom
+
+        return self._at_pose(camera, compute)
+
+    def _at_pose(self, device: str, compute: Callable[[np.ndarray], Any]) -> Any:
+        """``compute(T_world_from_device)`` at the current pose, cached per device. The frames
+        of one burst (a scan's patterns) share the pose of its first frame: the arm's vibration
+        and thermal growth during one scan are not rendered (docs/simulation.md)."""
         now = self.clock.now()
-        T_wc = self.T_world_from_camera(camera)
-        key = T_wc.round(9).tobytes()
+        T = self.T_world_from_camera(device)
+        key = T.round(9).tobytes()
         rest = self.q.tobytes()  # the arm's joints: the same until its next move
         versions = (self._scene_version, self._rig_version)
-        cached = self._geom_cache.get(camera)
-        # the frames of one burst (a scan's patterns) share the pose of its first frame: the
-        # arm's vibration and thermal growth during one scan are not rendered
-        # (docs/simulation.md)
+        cached = self._geom_cache.get(device)
         if cached and cached[1] == versions and (
                 cached[0] == key or (cached[2] == rest
                                      and now - cached[3] <= self.mech.render_burst_s)):
             return cached[4]
-        geom = self._compute_geometry(camera, T_wc)
-        self._serial += 1
-        geom.serial = self._serial
-        self._geom_cache[camera] = (key, versions, rest, now, geom)
-        return geom
+        value = compute(T)
+        self._geom_cache[device] = (key, versions, rest, now, value)
+        return value
+
+    def _projector_depth(self) -> tuple[np.ndarray, int]:
+        """The projector's shadow map at the current pose: the distance (mm, float32, inf
+        where nothing) from its centre to the first surface along every ``step``-th projector
+        pixel's ray, from one sample before the first pixel (-step) on, and ``step``. Both
+        cameras' shadows come from it: one ray per projector
+        sample instead of one per lit camera pixel and camera. Small test images sample the
+        projector as coarsely as they sample the part (``step`` = camera_scale // 2)."""
+        step = max(1, int(self.cfg.camera_scale) // 2)
+
+        def compute(T_wp: np.ndarray) -> np.ndarray:
+            if self._projector_rays is None or self._projector_rays[0] != step:
+                proj = self.rig.projector
+                # one sample beyond each edge: a point lit at the image's border (-0.5 px or
+                # width - 0.5) lies between two samples, never beyond the last
+                cols = np.arange(-1, math.ceil((proj.width - 0.5) / step) + 1) * float(step)
+                rows = np.arange(-1, math.ceil((proj.height - 0.5) / step) + 1) * float(step)
+                self._projector_rays = (step, np.ascontiguousarray(
+                    proj.pixel_rays(cols, rows), np.float32))
+            rays = self._projector_rays[1]
+            hits = self.scene.cast(T_wp[:3, 3], rays.reshape(-1, 3) @ T_wp[:3, :3].T.astype(
+                np.float32), cameras_only=False)
+            return hits.t.reshape(rays.shape[:2])
+
+        return self._at_pose("projector", compute), step
 
     def _warm_rig(self) -> None:
         """Move the rig to the scanner's warm-up state at the current sim time (baseline and
@@ -594,15 +642,12 @@ class SimCell:
         t2 = clock()
         T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
         proj = self.rig.projector
-        eps = 0.05
-        proj_x, cos_p, dist, shadow_rays, tfar, cos_h = projector_terms(
-            dirs, hits.t, hits.normal, T_wc[:3, :3], T_wc[:3, 3], T_pc[:3, :3], T_pc[:3, 3],
-            proj.K, proj.brown_conrady5, proj.width, proj.height, eps)
+        proj_x, proj_y, cos_p, dist, cos_h = projector_terms(
+            dirs, hits.t, hits.normal, T_wc[:3, :3], T_pc[:3, :3], T_pc[:3, 3],
+            proj.K, proj.brown_conrady5, proj.width, proj.height)
         t3 = clock()
-        cand = np.flatnonzero(np.isfinite(proj_x))
-        if cand.size:
-            shadow = self.scene.occluded_rays(shadow_rays[cand], tfar[cand])
-            proj_x[cand[shadow]] = np.nan
+        depth, step = self._projector_depth()
+        proj_x[shadowed(proj_x, proj_y, dist, depth, step, SHADOW_TOLERANCE_MM)] = np.nan
         t4 = clock()
         lit = np.isfinite(proj_x)
         kd, lobe = self._paint(hits, cos_h)

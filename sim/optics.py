@@ -37,18 +37,22 @@ class PinholeModel:
         return replace(self, width=round(self.width / factor), height=round(self.height / factor),
                        K=K)
 
-    def normalized_grid(self) -> np.ndarray:
-        """The undistorted normalized image coordinates (H, W, 2) of every pixel centre."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64),
-                           np.arange(self.height, dtype=np.float64))
+    def normalized_grid(self, cols: np.ndarray | None = None, rows: np.ndarray | None = None
+                        ) -> np.ndarray:
+        """The undistorted normalized image coordinates (len(rows), len(cols), 2) of the pixel
+        coordinates ``cols`` x ``rows`` (default: every pixel centre)."""
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64) if cols is None else cols,
+                           np.arange(self.height, dtype=np.float64) if rows is None else rows)
         pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
         norm = cv2.undistortPoints(pix, self.K, self.dist, R=None, P=None, criteria=(
             cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12))
-        return norm.reshape(self.height, self.width, 2)
+        return norm.reshape(*u.shape, 2)
 
-    def pixel_rays(self) -> np.ndarray:
-        """Unit ray directions (H, W, 3) in the camera frame for every pixel centre."""
-        return unit_rays(self.normalized_grid())
+    def pixel_rays(self, cols: np.ndarray | None = None, rows: np.ndarray | None = None
+                   ) -> np.ndarray:
+        """Unit ray directions (H, W, 3) in the device's frame through the pixel coordinates
+        ``cols`` x ``rows`` (default: every pixel centre)."""
+        return unit_rays(self.normalized_grid(cols, rows))
 
 
     @property

@@ -80,26 +80,23 @@ def rays_from_point(dirs: np.ndarray, R: np.ndarray, origin: np.ndarray) -> np.n
 
 @numba.njit(parallel=True, cache=True)
 def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.ndarray,
-                    R_wc: np.ndarray, t_wc: np.ndarray, R_pc: np.ndarray, t_pc: np.ndarray,
-                    K: np.ndarray, dist: np.ndarray, width: int, height: int,
-                    eps_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                            np.ndarray, np.ndarray]:
-    """For every camera pixel with a hit (``t_hit`` finite): the projector column (NaN where the
-    point is behind the projector, outside its image or turned away from it), the cosine of
-    the projector's incidence, the distance to the projector (mm), the shadow ray towards it
-    in world (origin ``eps_mm`` off the surface, float32) with its length, and the cosine
+                    R_wc: np.ndarray, R_pc: np.ndarray, t_pc: np.ndarray,
+                    K: np.ndarray, dist: np.ndarray, width: int, height: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For every camera pixel with a hit (``t_hit`` finite): the projector column and row
+    (NaN where the point is behind the projector, outside its image or turned away from it),
+    the cosine of the projector's incidence, the distance to the projector (mm), and the cosine
     between the normal and the half vector of the projector and camera directions (for a
-    specular lobe).
+    specular lobe). Shadows are :func:`shadowed`'s.
 
-    ``R_wc, t_wc``: camera to world; ``R_pc, t_pc``: camera to projector; ``K, dist``: the
+    ``R_wc``: camera to world (rotation); ``R_pc, t_pc``: camera to projector; ``K, dist``: the
     projector's intrinsics and Brown–Conrady (k1, k2, p1, p2, k3) coefficients.
     """
     n = dirs_cam.shape[0]
     proj_x = np.full(n, np.nan)
+    proj_y = np.full(n, np.nan)
     cos_p = np.zeros(n, np.float32)
     d_p = np.zeros(n, np.float32)
-    shadow = np.zeros((n, 6), np.float32)
-    tfar = np.zeros(n, np.float32)
     cos_h = np.zeros(n, np.float32)
     # the projector's centre in the camera frame: -R_pc^T t_pc
     pc = np.empty(3)
@@ -149,17 +146,39 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
         if u < -0.5 or u > width - 0.5 or v < -0.5 or v > height - 0.5:
             continue
         proj_x[i] = u
-        X0 = R_wc[0, 0] * x0 + R_wc[0, 1] * x1 + R_wc[0, 2] * x2 + t_wc[0]
-        X1 = R_wc[1, 0] * x0 + R_wc[1, 1] * x1 + R_wc[1, 2] * x2 + t_wc[1]
-        X2 = R_wc[2, 0] * x0 + R_wc[2, 1] * x1 + R_wc[2, 2] * x2 + t_wc[2]
-        shadow[i, 0] = X0 + w0 * eps_mm
-        shadow[i, 1] = X1 + w1 * eps_mm
-        shadow[i, 2] = X2 + w2 * eps_mm
-        shadow[i, 3] = w0
-        shadow[i, 4] = w1
-        shadow[i, 5] = w2
-        tfar[i] = dd - 2.0 * eps_mm
-    return proj_x, cos_p, d_p, shadow, tfar, cos_h
+        proj_y[i] = v
+    return proj_x, proj_y, cos_p, d_p, cos_h
+
+
+@numba.njit(parallel=True, cache=True)
+def shadowed(proj_x: np.ndarray, proj_y: np.ndarray, dist_mm: np.ndarray, depth: np.ndarray,
+             step: int, tol_mm: float) -> np.ndarray:
+    """True where a point the projector would light at pixel (``proj_x``, ``proj_y``), at
+    ``dist_mm`` from its centre, lies behind the first surface the projector lights there.
+
+    ``depth`` (H', W'): the distance (mm, inf where nothing) to the first surface along the
+    ray of every ``step``-th projector pixel (a shadow map), from pixel ``-step`` on. A point
+    counts as lit when it is no farther than the farthest of the four samples around it plus
+    ``tol_mm``. So a surface does not shadow itself (a plane's depth along the projector's rays
+    is the reciprocal of an affine function of the image coordinates, convex: inside a cell of
+    samples it stays below the corners' largest; a curved panel's sagitta over a 0.3 mm cell is
+    well under a µm), and a shadow's edge moves by less than one sample towards its occluder."""
+    n = proj_x.shape[0]
+    h, w = depth.shape
+    out = np.zeros(n, np.bool_)
+    for i in numba.prange(n):
+        u = proj_x[i]
+        if not math.isfinite(u):
+            continue
+        a = u / step + 1.0  # the map's first sample lies one step before pixel 0
+        b = proj_y[i] / step + 1.0
+        c0 = min(max(math.floor(a), 0), w - 1)
+        r0 = min(max(math.floor(b), 0), h - 1)
+        c1 = min(c0 + 1, w - 1)
+        r1 = min(r0 + 1, h - 1)
+        far = max(max(depth[r0, c0], depth[r0, c1]), max(depth[r1, c0], depth[r1, c1]))
+        out[i] = dist_mm[i] > far + tol_mm
+    return out
 
 
 # no "nnan": NaN marks pixels the projector does not light

@@ -230,6 +230,60 @@ def test_shadows_where_the_projector_cannot_see():
 
 
 @pytest.mark.unit
+@pytest.mark.parametrize("scale", [8, 2])
+def test_the_shadow_map_shadows_what_shadow_rays_do_but_at_its_edges(scale):
+    """Both cameras' shadows come from one cast of the projector's pixels (a shadow map). Against
+    a shadow ray from every lit camera pixel towards the projector (what the renderer did
+    before): it never shadows a point such a ray reaches, and it lights a shadowed one only
+    within a sample of the occluder's edge (a band that is 5 % of this shadow at 1/8 size,
+    where a sample is 4 projector pixels, and 1-2 % at full size)."""
+    from scancell.sim.cell import SHADOW_TOLERANCE_MM
+    from scancell.sim.render_kernels import projector_terms, shadowed
+
+    cell = SimCell(SimCellConfig(camera_scale=scale, seed=0))
+    centre = cell.cfg.T_world_from_part[:3, 3]
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(centre + np.array([-150.0, -250, 0]),
+                                                              600.0)))
+    post = o3d.geometry.TriangleMesh.create_box(20.0, 25.0, 200.0)  # shadows on the rear face
+    post.translate([-300.0, -250.0, -100.0])
+    cell.add_object(SceneObject("post", post, cell.cfg.T_world_from_part, 0.6))
+    P = cell.T_world_from_camera("projector")[:3, 3]
+    for cam in ("left", "right"):
+        T_wc = cell.T_world_from_camera(cam)
+        dirs = cell._pixel_rays(cam).reshape(-1, 3)
+        hits = cell.scene.cast(T_wc[:3, 3], dirs @ T_wc[:3, :3].T.astype(np.float32))
+        T_pc = np.linalg.inv(cell.T_world_from_camera("projector")) @ T_wc
+        proj = cell.rig.projector
+        u, v, _, dist, _ = projector_terms(dirs, hits.t, hits.normal, T_wc[:3, :3],
+                                           T_pc[:3, :3], T_pc[:3, 3], proj.K,
+                                           proj.brown_conrady5, proj.width, proj.height)
+        depth, step = cell._projector_depth()
+        by_map = shadowed(u, v, dist, depth, step, SHADOW_TOLERANCE_MM)
+        lit_by_map = np.isfinite(cell.geometry(cam).proj_x.ravel())
+        cand = np.flatnonzero(np.isfinite(u))
+        np.testing.assert_array_equal(lit_by_map[cand], ~by_map[cand])  # what geometry() uses
+        X = (dirs[cand] * hits.t[cand, None]) @ T_wc[:3, :3].T + T_wc[:3, 3]
+        to_p = P - X
+        d = np.linalg.norm(to_p, axis=1)
+        to_p /= d[:, None]
+        by_rays = cell.scene.occluded(X + 0.05 * to_p, to_p, d - 0.1)
+        assert by_rays.sum() > 200, "the post should cast a shadow"
+        assert not (by_map[cand] & ~by_rays).any(), "the map shadows a point its ray reaches"
+        missed = cand[by_rays & ~by_map[cand]]
+        assert missed.size < (0.06 if scale >= 8 else 0.03) * by_rays.sum()
+        # each one next to a step of the map (the occluder's edge seen from the projector)
+        h, w = depth.shape
+        c0 = np.floor(u[missed] / step + 1).astype(int)
+        r0 = np.floor(v[missed] / step + 1).astype(int)
+        near_edge = np.zeros(missed.size, bool)
+        for dr in (-1, 0, 1, 2):
+            for dc in (-1, 0, 1, 2):
+                near = depth[np.clip(r0 + dr, 0, h - 1), np.clip(c0 + dc, 0, w - 1)]
+                near_edge |= ~(np.abs(near - dist[missed]) <= 1.0)
+        assert near_edge.all()
+
+
+@pytest.mark.unit
 def test_same_seed_same_everything_and_seed_matters():
     def run(seed):
         c = SimCell(SimCellConfig(camera_scale=16, seed=seed))
