@@ -77,8 +77,8 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({**r, "neighbours": report.neighbours}, indent=2))
     print(f"{r['stations']} stations -> {args.out} ({time.perf_counter() - t0:.0f} s)")
-    print(f"coverage {r['coverage']:.1%} of the surface the cell can measure; that is "
-          f"{r['reachable']:.1%} of the part")
+    print(f"covers {r['coverage'] * r['reachable']:.1%} of the part: {r['coverage']:.1%} of the "
+          f"{r['reachable']:.1%} the cell can measure")
     u = r["unmeasured"]
     if u["share"] > 0:
         print(f"left unmeasured: {u['share']:.1%} of the part; beam {u['beam']:.1%} (the tracker "
