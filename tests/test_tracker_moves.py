@@ -63,11 +63,17 @@ def test_a_job_moves_the_tracker_locates_it_and_stops_on_a_knocked_nest(make_dae
                what="sim devices connected")
     world = get_world(d.cfg.simulator["world"])
     plan = _plan(world.cell)
-    final = client.run_job("scan_part", {"plan": plan}, timeout_s=240)
+    events: list[dict] = []
+    final = client.run_job("scan_part", {"plan": plan}, on_event=events.append, timeout_s=240)
     assert final["state"] == "done", final
-    (move,) = final["result"]["tracker_moves"]
+    # to t1 for s02, then back home at the end: the cell as the job found it
+    move, back = final["result"]["tracker_moves"]
     assert move["setup"] == "t1" and move["setups"] == ["home", "t1"]
-    located = next(c for c in final["result"]["drift_checks"] if c["check"] == "tracker t1")
+    assert back["setup"] == "home-2" and back["setups"] == ["home", "t1", "home-2"]
+    assert "tracker back to station home at the job's end" in " ".join(
+        e.get("message", "") for e in events)
+    # the tracker stands where it was last located: that set-up against the simulator's truth
+    located = next(c for c in final["result"]["drift_checks"] if c["check"] == "tracker home-2")
     T_loc = np.array(located["T_world_from_tracker"])
     with world.lock:
         T_true = world.cell.true_T_world_from_tracker()
@@ -75,11 +81,13 @@ def test_a_job_moves_the_tracker_locates_it_and_stops_on_a_knocked_nest(make_dae
     # the located set-up against the simulator's truth, over the nests' range (mm)
     err = [np.linalg.norm((T_loc - T_true) @ np.linalg.inv(T_true) @ np.r_[p, 1.0])
            for p in nests]
-    assert max(err) < max(0.05, 3 * move["sigma_at_nests_mm"]), (err, move)
-    assert 0.0 < move["sigma_at_nests_mm"] < 0.05
+    assert max(err) < max(0.05, 3 * back["sigma_at_nests_mm"]), (err, back)
+    assert 0.0 < move["sigma_at_nests_mm"] < 0.05 and 0.0 < back["sigma_at_nests_mm"] < 0.05
     stations = {s["station"]: s for s in final["result"]["stations"]}
     assert stations["s02"]["tracker_station"] == "t1"
-    assert final["result"]["drift_checks"][-1]["check"] == "end"  # from t1, the network again
+    assert final["result"]["drift_checks"][-1]["check"] == "tracker home-2"
+    # locked on the scanner's SMR again, as a job leaves the tracker
+    assert d.daemon.simulator.server("tracker").handler.target == "scanner"
 
     # someone knocks nest N3 while carrying the tracker back to t1: the move names it, stops,
     # and keeps the station measured before it
@@ -92,8 +100,6 @@ def test_a_job_moves_the_tracker_locates_it_and_stops_on_a_knocked_nest(make_dae
         return with_knock
 
     monkeypatch.setattr(SimTrackerMover, "set_up_pose", knock)
-    with world.lock:
-        world.cell.move_tracker(np.eye(4))  # back home for the next job
     final = client.run_job("scan_part", {"plan": plan}, timeout_s=240)
     assert final["state"] == "failed" and final["failed_step"] == "tracker_move", final
     assert "N3" in final["error"] and "knocked" in final["error"], final["error"]

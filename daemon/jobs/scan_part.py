@@ -35,7 +35,14 @@ from scancell.devices.base import Axis, Robot, Tracker
 from scancell.model.cell_geometry import REAR_SMR, CellGeometry
 from scancell.protocols import messages
 from scancell.protocols.commands import CommandError
-from scancell.protocols.plan import ECS_METHODS, Plan, PlanError, PlanStation, parse_plan
+from scancell.protocols.plan import (
+    ECS_METHODS,
+    HOME_TRACKER,
+    Plan,
+    PlanError,
+    PlanStation,
+    parse_plan,
+)
 
 VERB = "scan_part"
 
@@ -359,14 +366,23 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         ctx.event("running", "nests", f"nest check {label}: drift {rec['drift_max_mm']:.4f} mm"
                   f"{', tracker re-located' if rec['relocated'] else ''}", drift=rec)
 
-    async def move_tracker(name: str, before: str) -> None:
-        ctx.event("running", "tracker_move", f"tracker to station {name} (before {before})")
+    async def move_tracker(name: str, before: str | None) -> None:
+        """Set the tracker up at ``name`` before station ``before``; None: back at the job's
+        end, locked on the scanner if it can see it."""
+        ctx.event("running", "tracker_move", f"tracker to station {name} (before {before})"
+                  if before else f"tracker back to station {name} at the job's end")
         try:
             q = await robot.joints()
             rail = await axis.position() if axis is not None else None
-            rec = await moves.move(name, q, rail)
+            rec = await moves.move(name, q, rail, lock=before is not None)
         except CommandError as exc:
             raise StepFailed(f"tracker {name}", "tracker_move", exc.message) from exc
+        if before is None:
+            try:
+                await moves.lock_on_scanner(q, rail)
+            except CommandError as exc:
+                ctx.event("running", "tracker_move", f"tracker at station {name}: not locked on "
+                                                     f"the scanner's SMR ({exc.message})")
         net = rec["network"]
         ctx.event("running", "tracker_move",
                   f"tracker at station {name}: located on {len(rec['nests'])} nests, "
@@ -425,7 +441,11 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              "timing_s": record["timing_s"],
                              **({"cluster_fallback": record["cluster_fallback"]}
                                 if "cluster_fallback" in record else {})})
-            if drift.enabled and scanner_at is not None:
+            if moves.station != HOME_TRACKER:
+                # the cell as the job found it: the tracker back home, located with every
+                # set-up of the job in one bundle (the network's closing check)
+                await move_tracker(HOME_TRACKER, None)
+            elif drift.enabled and scanner_at is not None:
                 await nest_check("end", scanner_at)
         except BaseException:
             await stop_motion([robot, axis])

@@ -67,10 +67,11 @@ class TrackerMoves:
             return T
         return self.plan.trackers[name].T_world_from_base()
 
-    async def move(self, name: str, q_rad: np.ndarray, rail_mm: float | None
-                   ) -> dict[str, Any]:
-        """Set the tracker up at ``name``, locate it on the nests, and lock it on the scanner's
-        rear SMR where the robot model puts it at ``q_rad`` (the robot's pose now)."""
+    async def move(self, name: str, q_rad: np.ndarray, rail_mm: float | None,
+                   lock: bool = True) -> dict[str, Any]:
+        """Set the tracker up at ``name``, locate it on the nests, and (``lock``) lock it on the
+        scanner's rear SMR where the robot model puts it at ``q_rad`` (the robot's pose
+        now)."""
         T_base = self.T_world_from_base(name)
         await self.mover.move(name, T_base)
         self.visits[name] = self.visits.get(name, 0) + 1
@@ -80,8 +81,14 @@ class TrackerMoves:
         T_rough[:3, 3] -= T_base[:3, :3] @ np.asarray(self.geometry.tracker_world_mm, float)
         record = await self.drift.locate(setup, T_rough, f"tracker {setup}")
         self.station = name
+        self.moves.append({"setup": setup, "station": name, **record["network"]})
+        if lock:
+            await self.lock_on_scanner(q_rad, rail_mm)
+        return record
+
+    async def lock_on_scanner(self, q_rad: np.ndarray, rail_mm: float | None) -> None:
+        """Point the tracker at the scanner's rear SMR where the robot model puts it at
+        ``q_rad`` (through the located set-up) and lock on it."""
         scanner = self.geometry.smr_positions(q_rad, rail_mm,
                                               self.drift.T_world_from_tracker)[REAR_SMR][0]
         await self.drift.tracker.find_reflector(scanner)
-        self.moves.append({"setup": setup, "station": name, **record["network"]})
-        return record
