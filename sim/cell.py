@@ -236,7 +236,7 @@ class SimCell:
         self._rays: dict[str, np.ndarray] = {}  # at the rig's current warm-up
         #: per camera (and the projector's shadow map): pose key, versions, joints, time, value
         self._geom_cache: dict[str, tuple[bytes, tuple[int, int], bytes, float, Any]] = {}
-        self._projector_rays: tuple[int, np.ndarray] | None = None  # (step, rays)
+        self._projector_rays: np.ndarray | None = None  # the shadow map's, projector frame
         self._dn_cache: dict[str, dict[tuple[int, int, int], np.ndarray]] = {}
         self._serial = 0  # geometries and loaded sequences, for the image cache
         self.load_sequence(FringeSequence())
@@ -586,21 +586,21 @@ class SimCell:
         """The projector's shadow map at the current pose: the distance (mm, float32, inf
         where nothing) from its centre to the first surface along every ``step``-th projector
         pixel's ray, from one sample before the first pixel (-step) on, and ``step``. Both
-        cameras' shadows come from it: one ray per projector
-        sample instead of one per lit camera pixel and camera. Small test images sample the
-        projector as coarsely as they sample the part (``step`` = camera_scale // 2)."""
+        cameras' shadows come from it: one ray per projector sample instead of one per lit
+        camera pixel and camera. Small test images sample the projector as coarsely as they
+        sample the part (``step`` = camera_scale // 2)."""
         step = max(1, int(self.cfg.camera_scale) // 2)
 
         def compute(T_wp: np.ndarray) -> np.ndarray:
-            if self._projector_rays is None or self._projector_rays[0] != step:
+            if self._projector_rays is None:  # the projector does not warm up: rays kept
                 proj = self.rig.projector
                 # one sample beyond each edge: a point lit at the image's border (-0.5 px or
                 # width - 0.5) lies between two samples, never beyond the last
                 cols = np.arange(-1, math.ceil((proj.width - 0.5) / step) + 1) * float(step)
                 rows = np.arange(-1, math.ceil((proj.height - 0.5) / step) + 1) * float(step)
-                self._projector_rays = (step, np.ascontiguousarray(
-                    proj.pixel_rays(cols, rows), np.float32))
-            rays = self._projector_rays[1]
+                self._projector_rays = np.ascontiguousarray(proj.pixel_rays(cols, rows),
+                                                            np.float32)
+            rays = self._projector_rays
             hits = self.scene.cast(T_wp[:3, 3], rays.reshape(-1, 3) @ T_wp[:3, :3].T.astype(
                 np.float32), cameras_only=False)
             return hits.t.reshape(rays.shape[:2])

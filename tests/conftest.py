@@ -52,8 +52,6 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.path not in e2e_files)
 
 
-
-
 @pytest.fixture
 def cell() -> str:
     return f"t{uuid.uuid4().hex[:12]}"

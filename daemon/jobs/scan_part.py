@@ -372,17 +372,17 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         ctx.event("running", "tracker_move", f"tracker to station {name} (before {before})"
                   if before else f"tracker back to station {name} at the job's end")
         try:
-            q = await robot.joints()
-            rail = await axis.position() if axis is not None else None
-            rec = await moves.move(name, q, rail, lock=before is not None)
+            rec = await moves.move(name)
         except CommandError as exc:
             raise StepFailed(f"tracker {name}", "tracker_move", exc.message) from exc
-        if before is None:
-            try:
-                await moves.lock_on_scanner(q, rail)
-            except CommandError as exc:
-                ctx.event("running", "tracker_move", f"tracker at station {name}: not locked on "
-                                                     f"the scanner's SMR ({exc.message})")
+        try:
+            q = await robot.joints()
+            await moves.lock_on_scanner(q, await axis.position() if axis is not None else None)
+        except CommandError as exc:
+            if before is not None:
+                raise StepFailed(f"tracker {name}", "tracker_move", exc.message) from exc
+            ctx.event("running", "tracker_move", f"tracker at station {name}: not locked on "
+                                                 f"the scanner's SMR ({exc.message})")
         net = rec["network"]
         ctx.event("running", "tracker_move",
                   f"tracker at station {name}: located on {len(rec['nests'])} nests, "

@@ -67,11 +67,9 @@ class TrackerMoves:
             return T
         return self.plan.trackers[name].T_world_from_base()
 
-    async def move(self, name: str, q_rad: np.ndarray, rail_mm: float | None,
-                   lock: bool = True) -> dict[str, Any]:
-        """Set the tracker up at ``name``, locate it on the nests, and (``lock``) lock it on the
-        scanner's rear SMR where the robot model puts it at ``q_rad`` (the robot's pose
-        now)."""
+    async def move(self, name: str) -> dict[str, Any]:
+        """Set the tracker up at ``name`` and locate it on the nests (then
+        :meth:`lock_on_scanner`)."""
         T_base = self.T_world_from_base(name)
         await self.mover.move(name, T_base)
         self.visits[name] = self.visits.get(name, 0) + 1
@@ -82,8 +80,6 @@ class TrackerMoves:
         record = await self.drift.locate(setup, T_rough, f"tracker {setup}")
         self.station = name
         self.moves.append({"setup": setup, "station": name, **record["network"]})
-        if lock:
-            await self.lock_on_scanner(q_rad, rail_mm)
         return record
 
     async def lock_on_scanner(self, q_rad: np.ndarray, rail_mm: float | None) -> None:
