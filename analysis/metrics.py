@@ -91,18 +91,22 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
           nb: np.ndarray, grid_b: CellGrid, ua: np.ndarray | None = None,
           ub: np.ndarray | None = None) -> PairMetrics:
-    dist, j = nearest_within(grid_b, a, radius)
-    overlap = np.isfinite(dist)
-    if not overlap.any():
+    # only A's points within r of B's grid can overlap it: most station pairs share none
+    lo = grid_b.origin + grid_b.cell - radius
+    hi = grid_b.origin + grid_b.cell * (grid_b.dims - 1) + radius
+    near = np.flatnonzero(np.all((a >= lo) & (a <= hi), axis=1))
+    dist, j = nearest_within(grid_b, a[near], radius)
+    hit = np.isfinite(dist)
+    if not hit.any():
         return PairMetrics(*names, 0, np.zeros(0), np.zeros(0))
-    sigma = (np.hypot(ua[overlap], ub[j[overlap]]) if ua is not None and ub is not None
-             else None)
+    overlap, j = near[hit], j[hit]
+    sigma = np.hypot(ua[overlap], ub[j]) if ua is not None and ub is not None else None
     c1, n1 = a[overlap], na[overlap]
-    c2, n2 = b[j[overlap]], nb[j[overlap]]
+    c2, n2 = b[j], nb[j]
     v = c2 - c1
     d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
     cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign is arbitrary
-    return PairMetrics(*names, int(overlap.sum()), d, np.degrees(np.arccos(cos)), sigma)
+    return PairMetrics(*names, len(overlap), d, np.degrees(np.arccos(cos)), sigma)
 
 
 @dataclass
@@ -148,6 +152,63 @@ class MetricsReport:
         }
 
 
+class OverlapComparer:
+    """The metric tool one cloud at a time, as a fuse worker receives stations: each cloud
+    added is compared with every cloud added before it (the ordered pair (earlier, new)), so
+    a job's pairs are done while it measures. The neighbourhood radius is ``radius_factor``
+    x the mean spacing of the first cloud. Only a cloud's points, normals and uncertainty are
+    kept; its grid serves the pairs of its own ``add``."""
+
+    def __init__(self, radius_factor: float = 6.0) -> None:
+        self.radius_factor = radius_factor
+        self.spacing_mm: float | None = None
+        self.radius_mm: float | None = None
+        self.pairs: list[PairMetrics] = []
+        self._clouds: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._boxes: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # name -> (min, max)
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._clouds)
+
+    def add(self, name: str, points: np.ndarray, uncertainty: np.ndarray | None = None) -> None:
+        """Compare cloud ``name`` (N, 3, mm, the others' frame) with every cloud before it.
+        ``uncertainty``: per-point 1-sigma (mm), or None."""
+        if name in self._clouds:
+            raise MetricsError(f"{name}: added twice")
+        p = _check(name, points)
+        if self.radius_mm is None:
+            self.spacing_mm = mean_spacing(p)
+            self.radius_mm = self.radius_factor * self.spacing_mm
+        r = self.radius_mm
+        grid = CellGrid(p, r)
+        nrm = normals(p, r, grid)
+        box = (p.min(axis=0), p.max(axis=0))
+        for a, (pa, na, ua) in self._clouds.items():
+            lo, hi = self._boxes[a]
+            if np.any(lo > box[1] + r) or np.any(hi < box[0] - r):  # too far apart to overlap
+                self.pairs.append(PairMetrics(a, name, 0, np.zeros(0), np.zeros(0)))
+                continue
+            self.pairs.append(_pair(pa, p, r, (a, name), na, nrm, grid, ua, uncertainty))
+        self._clouds[name] = (p, nrm, uncertainty)
+        self._boxes[name] = box
+
+    def report(self) -> MetricsReport:
+        """Every pair so far, in the order the clouds were added; raises MetricsError with
+        fewer than two clouds or none overlapping."""
+        names = self.names
+        if len(names) < 2:
+            raise MetricsError(f"need at least two clouds, got {len(names)}")
+        if not any(p.n for p in self.pairs):
+            raise MetricsError(f"no overlap: no point of one cloud is within r = "
+                               f"{self.radius_mm:.3f} mm ({self.radius_factor:g} x the mean "
+                               f"spacing {self.spacing_mm:.3f} mm) of another cloud "
+                               f"({', '.join(names)}); same frame and units?")
+        order = {n: i for i, n in enumerate(names)}
+        pairs = sorted(self.pairs, key=lambda m: (order[m.a], order[m.b]))
+        return MetricsReport(self.radius_mm, self.spacing_mm, pairs)
+
+
 def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0,
                    uncertainty: dict[str, np.ndarray] | None = None) -> MetricsReport:
     """Every ordered pair (A, B), A before B in the given order, that overlaps. With
@@ -156,24 +217,10 @@ def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0,
     if len(clouds) < 2:
         raise MetricsError(f"need at least two clouds, got {len(clouds)}")
     pts = {name: _check(name, p) for name, p in clouds.items()}
-    first = next(iter(pts))
-    dm = mean_spacing(pts[first])
-    r = radius_factor * dm
-    grids = {name: CellGrid(p, r) for name, p in pts.items()}
-    nrm = {name: normals(p, r, grids[name]) for name, p in pts.items()}
-    names = list(pts)
-    pairs = []
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            ua = uncertainty.get(a) if uncertainty else None
-            ub = uncertainty.get(b) if uncertainty else None
-            m = _pair(pts[a], pts[b], r, (a, b), nrm[a], nrm[b], grids[b], ua, ub)
-            pairs.append(m)
-    if not any(p.n for p in pairs):
-        raise MetricsError(f"no overlap: no point of one cloud is within r = {r:.3f} mm "
-                           f"({radius_factor:g} x the mean spacing {dm:.3f} mm) of another cloud "
-                           f"({', '.join(names)}); same frame and units?")
-    return MetricsReport(r, dm, pairs)
+    comparer = OverlapComparer(radius_factor)
+    for name, p in pts.items():
+        comparer.add(name, p, uncertainty.get(name) if uncertainty else None)
+    return comparer.report()
 
 
 def histograms(report: MetricsReport, folder: str) -> list[str]:

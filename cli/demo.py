@@ -240,7 +240,7 @@ def main(args: argparse.Namespace) -> int:
         part = run_dir / "car_rear.ply"
         run(["sim", "part", "--out", str(part)], env, "exporting the part")
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.99", "--tracker-moves", "2"]
+                       "--coverage", "0.99", "--tracker-moves", "2", "--speed", "0.5"]
                       if ecs == "cluster" else [])
         print("   " + run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"),
                             "--cell", str(config), "--json", str(run_dir / "plan.json"),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from scancell.cli._common import default_cell_config, fail
@@ -34,6 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tracker-moves", type=int, default=0, metavar="N",
                    help="up to N tracker stations besides home, for views whose SMR the tracker "
                         "cannot see from home (needs the cell's [metrology] nests; default 0)")
+    p.add_argument("--speed", type=float, default=0.2,
+                   help="the robot's speed between stations, a fraction of its maximum joint "
+                        "speeds (default 0.2); faster moves ring longer, and every station "
+                        "waits for the arm to settle")
     p.add_argument("--json", default=None, help="also write the planning report as JSON")
 
 
@@ -57,6 +62,9 @@ def main(args: argparse.Namespace) -> int:
 
     if not 0.10 <= args.overlap <= 0.40 or not 0 < args.coverage <= 1:
         return fail("plan", "--overlap must be in [0.10, 0.40] and --coverage in (0, 1]")
+    if not 0 < args.speed <= 1:
+        return fail("plan", f"--speed must be in (0, 1] (a fraction of the robot's maximum "
+                            f"joint speeds), got {args.speed}")
     part = Path(args.part)
     if not part.is_file():
         return fail("plan", f"{part}: no such mesh")
@@ -70,6 +78,7 @@ def main(args: argparse.Namespace) -> int:
         planner = Planner(mesh, geometry, samples=args.samples, ecs=args.ecs, nests_world=nests,
                           tracker_moves=max(0, args.tracker_moves))
         plan, report = planner.plan(args.coverage, args.overlap, name=part.stem)
+        plan = replace(plan, speed=args.speed)
     except (PlanningError, ConfigError) as exc:
         return fail("plan", str(exc))
     Path(args.out).write_text(plan.to_toml())

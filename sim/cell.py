@@ -370,12 +370,14 @@ class SimCell:
         return self.scene.distance(points_world, [self.cfg.part])
 
     # ------------------------------------------------------------------ actuators
-    def move_joints(self, q_rad: np.ndarray, duration_s: float = 0.0) -> None:
+    def move_joints(self, q_rad: np.ndarray, duration_s: float = 0.0,
+                    speed: float | None = None) -> None:
         """Arrive at ``q_rad`` with the configured repeatability, ``duration_s`` of sim time
         after the move started. A joint that does not travel (less than 0.01 deg, e.g.
         commanded to its own reported position) holds where it is (``self.q``): only the joints
         that move land with fresh repeatability noise. A move that travels leaves the arm
-        ringing."""
+        ringing, the more the faster it went (``speed``: its override, a fraction of the joints'
+        maximum speed; None: the reference speed of the ringing's amplitude)."""
         q = np.asarray(q_rad, float).copy()
         if not self.robot.within_limits(q):
             raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
@@ -386,7 +388,7 @@ class SimCell:
         self.q_commanded = q
         self.q = np.where(moved, q + noise, self.q)
         if moved.any():
-            self._start_ringing()
+            self._start_ringing(1.0 if speed is None else speed / self.mech.ring_reference_speed)
         self._update_body()
 
     def move_rail(self, position_mm: float, duration_s: float = 0.0, arrived: bool = True
@@ -403,9 +405,11 @@ class SimCell:
             self._start_ringing()
         self._update_body()
 
-    def _start_ringing(self) -> None:
+    def _start_ringing(self, scale: float = 1.0) -> None:
+        """The arm rings from now along a random direction, ``scale`` x the profile's
+        amplitude."""
         self.move_end_s = self.clock.now()
-        self._ring_dir = _unit(self._vib_rng.normal(size=3))
+        self._ring_dir = scale * _unit(self._vib_rng.normal(size=3))
 
     def _update_body(self) -> None:
         self._body.T_world_from_object = self.T_world_from_mcs()

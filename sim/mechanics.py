@@ -41,6 +41,9 @@ class MechanicsProfile:
     joint_stiffness_nm_per_rad: tuple[float, ...] = (2.0e6, 1.6e6, 1.0e6, 2.4e5, 2.0e5, 1.0e5)
     # ---- robot: damped ringing after every move, and the vibration it holds still with
     ring_amplitude_mm: float = 0.0
+    #: the speed override (fraction of the joints' maximum) a move rings ``ring_amplitude_mm``
+    #: after; the amplitude grows in proportion to a move's speed
+    ring_reference_speed: float = 0.2
     ring_hz: float = 9.0
     ring_damping: float = 0.05
     hold_vibration_rms_mm: float = 0.0

@@ -154,7 +154,7 @@ class KarelRobotServer:
                     self.cell.q = q_start + s_smooth * (q_target - q_start)
                     if s >= 1.0:
                         self.cell.q = q_start  # joints that did not travel hold their position
-                        self.cell.move_joints(q_target, T)  # arrive with repeatability
+                        self.cell.move_joints(q_target, T, velocity)  # arrive with repeatability
                         break
                     await asyncio.sleep(dt)
                 self.cell._update_body()
