@@ -35,6 +35,7 @@ import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -60,10 +61,14 @@ class Processes:
         self.logs = logs
         self.procs: list[tuple[str, subprocess.Popen]] = []
 
-    def start(self, name: str, args: list[str], env: dict[str, str]) -> subprocess.Popen:
+    def start(self, name: str, args: list[str], env: dict[str, str], nice: int = 0
+              ) -> subprocess.Popen:
+        """Start ``scancell ARGS`` as ``name`` (its log in logs/), ``nice`` steps below the
+        demo's priority."""
         log = open(self.logs / f"{name}.log", "w")
         p = subprocess.Popen([sys.executable, "-m", "scancell", *args], env=env, stdout=log,
-                             stderr=subprocess.STDOUT, text=True)
+                             stderr=subprocess.STDOUT, text=True,
+                             preexec_fn=(lambda: os.nice(nice)) if nice else None)
         self.procs.append((name, p))
         return p
 
@@ -99,14 +104,14 @@ def wait_for(pred, timeout_s: float, what: str, period_s: float = 0.3) -> Any:
         time.sleep(period_s)
 
 
-def print_progress(e: dict[str, Any]) -> None:
+def print_progress(e: dict[str, Any], prefix: str = "   ") -> None:
     """A job's progress line (station i/N, step, time left), for the steps worth a line."""
     if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
                                                  "ballbar", "plane", "nests", "scanner_check",
                                                  "weather", "tracker_move"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
-        print(f"   {where}{e['message']}{eta}", flush=True)
+        print(f"{prefix}{where}{e['message']}{eta}", flush=True)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -158,6 +163,7 @@ def main(args: argparse.Namespace) -> int:
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
     stage = Stage(10)
     procs = Processes(run_dir / "logs")
+    background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="demo")
     t_start = time.monotonic()
     summary: dict[str, Any] = {}
     ok = False
@@ -193,8 +199,10 @@ def main(args: argparse.Namespace) -> int:
                                     str(run_dir / "calibration" / "stereo.yaml")], env)
         procs.start("worker-calibrate", ["worker", "calibrate", "--store",
                                          str(run_dir / "calibration")], env)
+        # On one 2-core machine the fuse worker's station-by-station work would slow the
+        # simulator's rendering (the cell's time); on a real cell it runs on another host.
         procs.start("worker-fuse", ["worker", "fuse", "--out", str(run_dir / "fused"),
-                                    "--truth-cell", str(config)], env)
+                                    "--truth-cell", str(config)], env, nice=10)
         procs.start("worker-acceptance", ["worker", "acceptance", "--out",
                                           str(run_dir / "fused")], env)
         procs.start("worker-inspect", ["worker", "inspect", "--nominal", str(step),
@@ -217,7 +225,14 @@ def main(args: argparse.Namespace) -> int:
         print(f"   gamma {fit['gamma']:.3f} (the simulated projector's: "
               f"{summary['projector_response']['true_gamma']}), stored in {fit['file']}")
 
-        stage(f"hand-eye calibration: {balls} ball positions")
+        # the stations are planned while the cell calibrates: planning needs only the part
+        # and the cell's geometry
+        part = run_dir / "car_rear.ply"
+        by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
+                       "--coverage", "0.99", "--tracker-moves", "2", "--speed", "0.5"]
+                      if ecs == "cluster" else [])
+        planned = background.submit(plan_part, part, run_dir, config, by_cluster, env)
+        stage(f"hand-eye calibration: {balls} ball positions (the stations planned beside it)")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
         # the ball is matte white: exposed at half the nominal time it does not saturate
@@ -236,15 +251,8 @@ def main(args: argparse.Namespace) -> int:
               f"{summary['hand_eye']['rotation_error_arcsec']:.1f}\" / "
               f"{summary['hand_eye']['translation_error_mm']:.4f} mm")
 
-        stage("station planning for the car-body rear")
-        part = run_dir / "car_rear.ply"
-        run(["sim", "part", "--out", str(part)], env, "exporting the part")
-        by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.99", "--tracker-moves", "2", "--speed", "0.5"]
-                      if ecs == "cluster" else [])
-        print("   " + run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"),
-                            "--cell", str(config), "--json", str(run_dir / "plan.json"),
-                            *by_cluster], env, "planning").strip().replace("\n", "\n   "))
+        stage("station planning for the car-body rear (done beside the hand-eye)")
+        print("   " + planned.result().strip().replace("\n", "\n   "))
 
         stage("measurement job (scan_part), fused live by the fuse worker")
         from scancell.protocols.plan import plan_from_text
@@ -269,8 +277,11 @@ def main(args: argparse.Namespace) -> int:
         job = final["job_id"]
         if final.get("state") != "done":
             raise RuntimeError(f"scan job {final.get('state')}: {final.get('error')}")
-        print("   measured; the fuse worker now fuses the stations, measures the overlaps and "
-              "writes the model, the mesh and the report", flush=True)
+        print("   measured; the fuse worker now fuses the stations (their overlaps measured as "
+              "they came) and writes the model, the mesh and the report", flush=True)
+        # the cell is free: its acceptance test runs while the workers fuse and inspect
+        accepted = (None if args.no_acceptance
+                    else background.submit(run_acceptance, client, quick, "   [acceptance] "))
         report = wait_for(lambda: [r for r in reports if r.get("job_id") == job], 600,
                           "fusion report")[-1]
         if report.get("error"):
@@ -289,10 +300,10 @@ def main(args: argparse.Namespace) -> int:
               f"{'PASS' if inspection['tolerances']['pass'] else 'FAIL'}; "
               f"{inspection['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
 
-        if not args.no_acceptance:
+        if accepted is not None:
             stage("VDI/VDE 2634 acceptance: Part 2 (sphere, ball bar, plane), Part 3 (two "
-                  "stations)")
-            summary["acceptance"] = run_acceptance(client, quick)
+                  "stations), started as the scan job ended")
+            summary["acceptance"] = accepted.result()
 
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
@@ -312,6 +323,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"\nscancell demo: FAILED (an internal error):\n{traceback.format_exc()}",
               file=sys.stderr)
     finally:
+        background.shutdown(wait=False, cancel_futures=True)
         if client is not None:
             client.close()
         codes = procs.stop()
@@ -345,15 +357,26 @@ ACCEPTANCE_POSITIONS = {"sphere": 3, "ballbar": 7, "plane": 6}
 QUICK_ACCEPTANCE_POSITIONS = {"sphere": 1, "ballbar": 2, "plane": 2}
 
 
-def run_acceptance(client: CellClient, quick: bool) -> dict[str, Any]:
-    """Part 2 then Part 3 on the cell; the acceptance worker's figures for summary.json."""
+def plan_part(part: Path, run_dir: Path, config: Path, options: list[str],
+              env: dict[str, str]) -> str:
+    """The simulated part exported to ``part`` and ``scancell plan`` on it (plan.toml and
+    plan.json in ``run_dir``); what the planner printed."""
+    run(["sim", "part", "--out", str(part)], env, "exporting the part")
+    return run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"), "--cell",
+                str(config), "--json", str(run_dir / "plan.json"), *options], env, "planning")
+
+
+def run_acceptance(client: CellClient, quick: bool, prefix: str = "   ") -> dict[str, Any]:
+    """Part 2 then Part 3 on the cell; the acceptance worker's figures for summary.json.
+    ``prefix`` starts its lines (it may run beside other stages)."""
     reports: list[dict] = []
     client.bus.subscribe(client.bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
     out: dict[str, Any] = {}
     for part, request in ((2, {"positions": QUICK_ACCEPTANCE_POSITIONS if quick
                                else ACCEPTANCE_POSITIONS}), (3, {"part": 3})):
         t0 = time.monotonic()
-        final = client.run_job("acceptance", request, on_event=print_progress, timeout_s=1800)
+        final = client.run_job("acceptance", request, timeout_s=1800,
+                               on_event=lambda e: print_progress(e, prefix))
         if final.get("state") != "done":
             raise RuntimeError(f"acceptance part {part} {final.get('state')}: {final.get('error')}")
         r = wait_for(lambda j=final["job_id"]: [x for x in reports if x.get("job_id") == j], 300,
@@ -365,7 +388,7 @@ def run_acceptance(client: CellClient, quick: bool) -> dict[str, Any]:
         out[f"part{part}"] = {"parameters": figures, "pass": r["pass"], "errors": r["errors"],
                               "seconds": round(time.monotonic() - t0, 1),
                               "report": f"{final['job_id']}/acceptance.html"}
-        print("   part " + str(part) + ": " + ", ".join(
+        print(f"{prefix}part {part}: " + ", ".join(
             f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']})" for p, v in figures.items())
             + f": {'PASS' if r['pass'] else 'FAIL'} ({out[f'part{part}']['seconds']:.0f} s)")
     return out

@@ -118,3 +118,33 @@ def test_grid_neighbourhoods_agree_with_a_kd_tree():
         p = a[i[k][np.isfinite(d[k])]]
         ref[k] = np.linalg.svd(p - p.mean(axis=0))[2][2]
         assert abs(ref[k] @ n[k]) > 0.9999, k
+
+
+@pytest.mark.unit
+def test_clouds_compared_one_at_a_time_find_every_overlap_a_k_d_tree_finds():
+    """The fuse worker compares each station as it comes; the box test that skips far-apart
+    pairs and far points must lose no overlap point (checked against a k-d tree)."""
+    from scancell.analysis.metrics import OverlapComparer
+    from scipy.spatial import cKDTree
+
+    clouds = {"a": plane(seed=1, noise=0.01), "b": plane(shift_xy=40.0, seed=2, noise=0.01),
+              "far": plane(shift_xy=500.0, seed=3), "c": plane(shift_xy=-25.0, offset=0.05,
+                                                                seed=4, noise=0.01)}
+    comparer = OverlapComparer()
+    for name, pts in clouds.items():
+        comparer.add(name, pts, np.full(len(pts), 0.01))
+    report = comparer.report()
+    r = report.radius_mm
+    assert [(p.a, p.b) for p in report.pairs] == [("a", "b"), ("a", "far"), ("a", "c"),
+                                                  ("b", "far"), ("b", "c"), ("far", "c")]
+    for p in report.pairs:
+        d, _ = cKDTree(clouds[p.b]).query(clouds[p.a], distance_upper_bound=r)
+        assert p.n == int(np.isfinite(d).sum()), (p.a, p.b)
+    assert report.pairs[1].n == 0 and report.pairs[2].n > 0
+    assert report.to_json()["translation_mm"]["weighted_mean"] > 0
+    with pytest.raises(MetricsError, match="a: added twice"):
+        comparer.add("a", clouds["a"])
+    lone = OverlapComparer()
+    lone.add("a", clouds["a"])
+    with pytest.raises(MetricsError, match="at least two clouds"):
+        lone.report()

@@ -131,11 +131,15 @@ def test_plan_cli_and_bad_input(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out",
-                        str(tmp_path / "plan.toml"), "--samples", "1500", "--coverage", "0.8"],
-                       capture_output=True, text=True, timeout=240)
+                        str(tmp_path / "plan.toml"), "--samples", "1500", "--coverage", "0.8",
+                        "--speed", "0.5"], capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr
     assert "stations ->" in r.stdout and "overlap" in r.stdout
-    assert len(plan_from_text((tmp_path / "plan.toml").read_text(), "plan.toml")["station"]) >= 3
+    written = plan_from_text((tmp_path / "plan.toml").read_text(), "plan.toml")
+    assert len(written["station"]) >= 3 and written["plan"]["speed"] == 0.5
+    r = subprocess.run([*run, "plan", "--part", str(tmp_path / "part.ply"), "--out", "x.toml",
+                        "--speed", "1.5"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--speed must be in (0, 1]" in r.stderr, r.stderr
     r = subprocess.run([*run, "plan", "--part", str(tmp_path / "nope.ply"), "--out", "x.toml"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no such mesh" in r.stderr

@@ -100,3 +100,35 @@ def test_a_warm_scanner_shows_on_the_cells_ball_bar(tmp_path):
     warm = _check_scan(3000.0, tmp_path)
     assert abs(warm["scale_ppm"] - cold["scale_ppm"]) > 1000, (cold, warm)
     assert any("drifted" in w for w in warm["warnings"])
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(300)
+def test_every_check_of_a_cluster_job_waits_for_the_arm_to_settle(make_daemon, client):
+    """After a cluster station the tracker follows an SMR that may face away from it at the
+    check pose: the check points it at one it can see, settles, then scans (a check scanned
+    while the arm rang read the bar hundreds of ppm off)."""
+    from .conftest import sim_cell_raw, wait_until
+
+    raw = sim_cell_raw(camera_scale=16, drift_control=True)
+    raw["metrology"].pop("nests")
+    raw["metrology"]["scanner_check"]["every"] = 1
+    raw["simulator"]["smr_cluster"] = "housing"
+    make_daemon(raw)
+    wait_until(lambda: all(s["state"] == "connected"
+                           for s in client.status()["devices"].values()), 30, what="devices")
+    # two stations of the demo's plan: from the first the tracker follows an SMR it cannot
+    # see at the check pose
+    plan = {"plan": {"name": "checks", "speed": 0.5, "tracker_repeats": 2, "ecs": "cluster"},
+            "station": [{"name": "s01", "axis_mm": -400.0, "joints_deg": [
+                -36.370003, -18.088832, 36.659875, 95.032509, 63.037974, -18.805868]},
+                        {"name": "s02", "axis_mm": -800.0, "joints_deg": [
+                -24.176468, -2.595256, 15.739347, 90.804922, 60.768923, -11.89614]}]}
+    checks: list = []
+    client.bus.subscribe(client.bus.keys.scanner_check("*"), lambda s: checks.append(s.decode()))
+    final = client.run_job("scan_part", {"plan": plan}, timeout_s=240)
+    assert final["state"] == "done", final
+    wait_until(lambda: len(checks) == 2, 10, what="two scanner checks")
+    assert [c["label"] for c in checks] == ["start", "before s02"], checks
+    for c in checks:
+        assert c["settle_s"] is not None, c

@@ -174,10 +174,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
     ecs: list[EcsPoint] = []
     try:
         event("move", f"station {st.name} ({i + 1}/{n}): moving")
-        if st.axis_mm is not None and how.axis is not None:
-            await how.axis.move_to(st.axis_mm)
         q0 = np.radians(st.joints_deg)
-        await how.robot.move_joints(q0, how.speed)
+        await how.move_to(q0, st.axis_mm)
         clock("move")
         meta = {"job_id": ctx.job_id, "station": st.name}
         T_wt = how.drift.T_world_from_tracker if how.drift is not None else None
@@ -396,8 +394,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     if check_axis and axis_s is None:
         axis_s = serving_device(supervisors, req.get("axis"), Axis, VERB)
         axis = axis_s.device
+    # the geometry and the located tracker: a check aims the tracker at an SMR it can see
     check_devs = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
-                         repeats, turns, setup, metrology)
+                         repeats, turns, setup, metrology, drift if drift.enabled else None,
+                         geometry=geometry)
 
     async def check_scanner(label: str) -> None:
         try:

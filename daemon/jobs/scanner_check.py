@@ -6,6 +6,7 @@ scale) and its spheres' form, and warns when the stereo calibration has drifted.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -14,12 +15,14 @@ from scancell.daemon.jobs.runner import JobContext
 from scancell.daemon.jobs.scan import scan
 from scancell.daemon.jobs.station import Station
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
-from scancell.devices.errors import BeamBroken
+from scancell.devices.errors import DeviceFault
 from scancell.model.metrology_settings import MetrologySettings, ScannerCheck
 from scancell.protocols import messages
 
 #: the meta ``job_kind`` of a check's frames and cloud: no station of the part
 JOB_KIND = "scanner_check"
+
+log = logging.getLogger(__name__)
 
 
 def due(check: ScannerCheck | None, station_index: int) -> bool:
@@ -40,15 +43,18 @@ async def scanner_check(ctx: JobContext, supervisors: dict[str, DeviceSupervisor
     rail_before = None
     if check.axis_mm is not None and devs.axis is not None:
         rail_before = await devs.axis.position()
-        await devs.axis.move_to(check.axis_mm)
-    await devs.robot.move_joints(np.radians(check.joints_deg), devs.speed)
+    q = np.radians(check.joints_deg)
+    await devs.move_to(q, check.axis_mm)
     settle_s = None
     if metrology.settle:
-        try:
+        try:  # the SMR the tracker followed to the last station may face away here
+            await devs.aim_at_scanner(q, check.axis_mm if devs.axis is not None else None)
             settle_s = (await settle(devs.tracker, metrology, {"job_id": ctx.job_id,
                                                                "check": station})).settle_s
-        except BeamBroken:
-            pass  # the tracker cannot see the scanner here: the record says it was not settled
+        except DeviceFault:
+            # the tracker cannot see the scanner here: the record says it was not settled
+            log.warning("scanner check %s: the tracker sees no SMR of the scanner at the check "
+                        "pose: scanned without waiting for the arm to settle", label)
     reply = await scan(supervisors, {"station": station, "scan_id": f"{ctx.job_id}-{station}",
                                      "projector": devs.projector, "cameras": devs.cameras},
                        hold_locks=False, job_id=ctx.job_id, job_kind=JOB_KIND, setup=devs.setup)
