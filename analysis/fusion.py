@@ -148,6 +148,13 @@ def weighted_voxel_mean(points: np.ndarray, sigma: np.ndarray, voxel_mm: float
     return mean / wsum[:, None], 1.0 / np.sqrt(wsum)
 
 
+def thin(points: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """One point per occupied ``voxel_mm`` voxel (the mean of its points, unweighted; Open3D):
+    a cloud to look at, not to measure."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+    return np.asarray(pcd.voxel_down_sample(voxel_mm).points)
+
+
 def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 0.5) -> FusedCloud:
     """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling).
     With per-point uncertainty on every station, each voxel is the inverse-variance weighted
@@ -162,8 +169,7 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
     if voxel_mm > 0 and weighted:
         pts, sigma = weighted_voxel_mean(merged, np.concatenate(list(per_unc.values())), voxel_mm)
     elif voxel_mm > 0:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged))
-        pts = np.asarray(pcd.voxel_down_sample(voxel_mm).points)
+        pts = thin(merged, voxel_mm)
     else:
         pts = merged
         sigma = np.concatenate(list(per_unc.values())) if per_unc else None

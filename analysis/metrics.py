@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scancell.analysis.grid_kernels import CellGrid, grid_nearest, grid_normals
+from scancell.analysis.grid_kernels import CellGrid, grid_nearest, grid_normals, in_box
 from scipy.spatial import cKDTree
 
 
@@ -94,7 +94,7 @@ def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], n
     # only A's points within r of B's grid can overlap it: most station pairs share none
     lo = grid_b.origin + grid_b.cell - radius
     hi = grid_b.origin + grid_b.cell * (grid_b.dims - 1) + radius
-    near = np.flatnonzero(np.all((a >= lo) & (a <= hi), axis=1))
+    near = in_box(a, lo, hi)
     dist, j = nearest_within(grid_b, a[near], radius)
     hit = np.isfinite(dist)
     if not hit.any():

@@ -182,6 +182,9 @@ def main(args: argparse.Namespace) -> int:
                                  "--job-linger-s", "30"], env)
 
         stage("stereo calibration from rendered chessboard views")
+        nominal_dir = run_dir / "nominal"  # the part's CAD for the inspection, exported beside
+        exported = background.submit(run, ["sim", "nominal", "--part", str(cfg.simulator.get(
+            "part", "car_rear")), "--out", str(nominal_dir)], env, "exporting the part's CAD")
         print("   " + run(["sim", "targets", "--out", str(run_dir / "targets"), "--scale",
                             str(scale), "--count", "12" if quick else "18"], env,
                            "rendering targets").strip())
@@ -191,9 +194,7 @@ def main(args: argparse.Namespace) -> int:
         shutil.rmtree(run_dir / "targets", ignore_errors=True)
 
         stage("workers: scan, calibrate, fuse, inspect (the part's CAD: STEP and STL)")
-        nominal_dir = run_dir / "nominal"
-        run(["sim", "nominal", "--part", str(cfg.simulator.get("part", "car_rear")), "--out",
-             str(nominal_dir)], env, "exporting the part's CAD")
+        exported.result()
         step = (nominal_dir / "car_rear.step").resolve()
         procs.start("worker-scan", ["worker", "scan", "--calib",
                                     str(run_dir / "calibration" / "stereo.yaml")], env)
@@ -229,14 +230,16 @@ def main(args: argparse.Namespace) -> int:
         # and the cell's geometry
         part = run_dir / "car_rear.ply"
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.99", "--tracker-moves", "2", "--speed", "0.5"]
+                       "--coverage", "0.992", "--tracker-moves", "2", "--speed", "0.5"]
                       if ecs == "cluster" else [])
         planned = background.submit(plan_part, part, run_dir, config, by_cluster, env)
         stage(f"hand-eye calibration: {balls} ball positions (the stations planned beside it)")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
         # the ball is matte white: exposed at half the nominal time it does not saturate
-        final = client.run_job("calibrate_hand_eye", {"balls": balls, "exposures_us": [5000.0]},
+        # the arm between the balls at the plan's speed: every point waits for it to settle
+        final = client.run_job("calibrate_hand_eye", {"balls": balls, "exposures_us": [5000.0],
+                                                      "speed": 0.5},
                                on_event=print_progress, timeout_s=900)
         job = final["job_id"]
         if final.get("state") != "done":

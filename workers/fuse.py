@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
-from scancell.analysis.fusion import Station, check_rigid, fuse
+from scancell.analysis.fusion import Station, check_rigid, fuse, thin
 from scancell.analysis.metrics import MetricsError, OverlapComparer
 from scancell.analysis.station_pose import StationPoseError, station_pose
 from scancell.analysis.station_uncertainty import (
@@ -278,7 +278,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             with self._lock:
                 job.station_uncertainty[station] = su
         st = Station(station, cloud, T_world_from_ecs, noise, job.uncertainty.get(station))
-        thinned = fuse([st], T_ecs_from_mcs, self.settings.display_voxel_mm).points
+        thinned = thin(st.world(T_ecs_from_mcs), self.settings.display_voxel_mm)
         self._compare(job, st, T_ecs_from_mcs)
         with self._lock:
             job.fused[station] = st
