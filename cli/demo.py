@@ -230,7 +230,7 @@ def main(args: argparse.Namespace) -> int:
         # and the cell's geometry
         part = run_dir / "car_rear.ply"
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.992", "--tracker-moves", "2", "--speed", "0.5"]
+                       "--coverage", "0.995", "--tracker-moves", "2", "--speed", "0.5"]
                       if ecs == "cluster" else [])
         planned = background.submit(plan_part, part, run_dir, config, by_cluster, env)
         stage(f"hand-eye calibration: {balls} ball positions (the stations planned beside it)")

@@ -124,20 +124,31 @@ def target_poses(rig: StereoRig, board: Chessboard, n: int, seed: int = 0,
 def render_calibration_set(rig: StereoRig, n: int = 15, seed: int = 0,
                            board: Chessboard | None = None, noise_dn: float = 1.0,
                            psf_sigma_px: float = 0.6) -> list[TargetView]:
-    """Stereo views of the board at ``n`` poses with the true corners in both images."""
+    """Stereo views of the board at ``n`` poses with the true corners in both images. The
+    images are rendered in two threads (numpy and OpenCV release the GIL), each with its own
+    noise stream, so the set is the same however the threads interleave."""
+    from concurrent.futures import ThreadPoolExecutor
+
     board = board or Chessboard()
-    rays_l, rays_r = rig.left.pixel_rays(), rig.right.pixel_rays()
+    rays = {"left": rig.left.pixel_rays(), "right": rig.right.pixel_rays()}
     T_right_from_left = np.linalg.inv(rig.T_mcs_from_right)
-    rng = np.random.default_rng([seed, 8])
     obj = board.object_points()
+    poses = target_poses(rig, board, n, seed)
+
+    def image(job: tuple[int, str]) -> np.ndarray:
+        i, side = job
+        cam = rig.left if side == "left" else rig.right
+        T = poses[i] if side == "left" else T_right_from_left @ poses[i]
+        rng = np.random.default_rng([seed, 8, i, side == "right"])
+        return render_board(cam, rays[side], T, board, rng, noise_dn, psf_sigma_px)
+
+    jobs = [(i, side) for i in range(len(poses)) for side in ("left", "right")]
+    with ThreadPoolExecutor(2) as pool:
+        images = list(pool.map(image, jobs))
     views = []
-    for T in target_poses(rig, board, n, seed):
+    for i, T in enumerate(poses):
         T_r = T_right_from_left @ T
-        views.append(TargetView(
-            render_board(rig.left, rays_l, T, board, rng, noise_dn, psf_sigma_px),
-            render_board(rig.right, rays_r, T_r, board, rng, noise_dn, psf_sigma_px),
-            T,
-            rig.left.project(obj @ T[:3, :3].T + T[:3, 3]),
-            rig.right.project(obj @ T_r[:3, :3].T + T_r[:3, 3]),
-        ))
+        views.append(TargetView(images[2 * i], images[2 * i + 1], T,
+                                rig.left.project(obj @ T[:3, :3].T + T[:3, 3]),
+                                rig.right.project(obj @ T_r[:3, :3].T + T_r[:3, 3])))
     return views

@@ -165,6 +165,8 @@ async def _serve(args: argparse.Namespace) -> int:
 
 
 def targets(args: argparse.Namespace) -> int:
+    from concurrent.futures import ThreadPoolExecutor
+
     from scancell.sim.optics import default_rig
     from scancell.sim.target import render_calibration_set
 
@@ -175,9 +177,10 @@ def targets(args: argparse.Namespace) -> int:
     views = render_calibration_set(rig, n=args.count, seed=args.seed)
     for side in ("left", "right"):
         (out / side).mkdir(parents=True, exist_ok=True)
-    for i, v in enumerate(views):
-        cv2.imwrite(str(out / "left" / f"{i:02d}.png"), v.left)
-        cv2.imwrite(str(out / "right" / f"{i:02d}.png"), v.right)
+    with ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL
+        list(pool.map(lambda iv: (cv2.imwrite(str(out / "left" / f"{iv[0]:02d}.png"), iv[1].left),
+                                  cv2.imwrite(str(out / "right" / f"{iv[0]:02d}.png"),
+                                              iv[1].right)), enumerate(views)))
     rig.write_opencv_yaml(out / "stereo_true.yaml")
     print(f"rendered {len(views)} chessboard pairs (9x7 inner corners, 20 mm) of "
           f"{rig.left.width} x {rig.left.height} in {time.perf_counter() - t0:.1f} s -> {out}")
