@@ -70,6 +70,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+#: the services that allocate and free frame-sized arrays all day (cli/_allocator.py)
+LONG_RUNNING = frozenset({"daemon", "worker", "record"})
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(argv).parse_args(argv)
@@ -85,6 +89,10 @@ def main(argv: list[str] | None = None) -> int:
             faulthandler.register(signal.SIGUSR1, all_threads=True)
     except (AttributeError, ValueError, OSError, RuntimeError):  # stderr is not a file
         pass
+    if args.command in LONG_RUNNING:
+        from scancell.cli._allocator import keep_freed_memory
+
+        keep_freed_memory()
     try:
         return int(command_module(args.command).main(args) or 0)
     except KeyboardInterrupt:
