@@ -36,6 +36,12 @@ class CellGrid:
         self.cell_keys, self.cell_start = np.unique(sk, return_index=True)
         self.cell_end = np.append(self.cell_start[1:], len(sk)).astype(np.int64)
 
+    def bounds(self, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) corners of the occupied cells' box, widened by ``margin`` (mm): every
+        point lies inside, and every point within ``margin`` of one."""
+        return (self.origin + self.cell - margin,
+                self.origin + self.cell * (self.dims - 1) + margin)
+
 
 @numba.njit(inline="always", cache=True)
 def _lower_bound(keys: np.ndarray, key: int) -> int:

@@ -92,9 +92,7 @@ def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], n
           nb: np.ndarray, grid_b: CellGrid, ua: np.ndarray | None = None,
           ub: np.ndarray | None = None) -> PairMetrics:
     # only A's points within r of B's grid can overlap it: most station pairs share none
-    lo = grid_b.origin + grid_b.cell - radius
-    hi = grid_b.origin + grid_b.cell * (grid_b.dims - 1) + radius
-    near = in_box(a, lo, hi)
+    near = in_box(a, *grid_b.bounds(radius))
     dist, j = nearest_within(grid_b, a[near], radius)
     hit = np.isfinite(dist)
     if not hit.any():
@@ -165,7 +163,7 @@ class OverlapComparer:
         self.radius_mm: float | None = None
         self.pairs: list[PairMetrics] = []
         self._clouds: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
-        self._boxes: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # name -> (min, max)
+        self._boxes: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # name -> its cells' box
 
     @property
     def names(self) -> list[str]:
@@ -183,15 +181,15 @@ class OverlapComparer:
         r = self.radius_mm
         grid = CellGrid(p, r)
         nrm = normals(p, r, grid)
-        box = (p.min(axis=0), p.max(axis=0))
+        box = grid.bounds(r)
         for a, (pa, na, ua) in self._clouds.items():
             lo, hi = self._boxes[a]
-            if np.any(lo > box[1] + r) or np.any(hi < box[0] - r):  # too far apart to overlap
+            if np.any(lo > box[1]) or np.any(hi < box[0]):  # too far apart to overlap
                 self.pairs.append(PairMetrics(a, name, 0, np.zeros(0), np.zeros(0)))
                 continue
             self.pairs.append(_pair(pa, p, r, (a, name), na, nrm, grid, ua, uncertainty))
         self._clouds[name] = (p, nrm, uncertainty)
-        self._boxes[name] = box
+        self._boxes[name] = grid.bounds()
 
     def report(self) -> MetricsReport:
         """Every pair so far, in the order the clouds were added; raises MetricsError with

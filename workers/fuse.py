@@ -39,7 +39,7 @@ import numpy as np
 from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import Station, check_rigid, fuse, thin
-from scancell.analysis.metrics import MetricsError, OverlapComparer
+from scancell.analysis.metrics import MetricsError, MetricsReport, OverlapComparer
 from scancell.analysis.station_pose import StationPoseError, station_pose
 from scancell.analysis.station_uncertainty import (
     StatedSources,
@@ -364,7 +364,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             Attachment(now, len(stations), None, meta))
         for station in sorted(job.checks):
             self.evaluate_check(job_id, station)
-        metrics: Any = None
+        metrics: MetricsReport | MetricsError | None = None
         comparer = job.comparer
         if (comparer is not None and comparer.names == list(fused.per_station)
                 and job.comparer_hand_eye == np.asarray(he["T_ecs_from_mcs"], float).tobytes()):
@@ -438,7 +438,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  uncertainty: dict[str, StationUncertainty] | None = None,
                  checks: list[dict[str, Any]] | None = None,
                  scan_workers: dict[str, Any] | None = None,
-                 metrics: Any = None) -> dict[str, Any]:
+                 metrics: MetricsReport | MetricsError | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
     ``metrics``: the stations' MetricsReport (or the MetricsError) when already compared as
