@@ -50,6 +50,7 @@ from scancell.sim.render_kernels import (
     shadowed,
 )
 from scancell.sim.scene import Scene, SceneObject
+from scancell.sim.sensor_noise import frame_noise
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
 
 #: pattern indices below this show a uniform level: ``UNIFORM_BASE - v`` for the 8-bit value v
@@ -78,9 +79,14 @@ def _blur(dn: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     if hi - lo < 0.05 * hi + 0.02:
         return cv2.GaussianBlur(dn, (0, 0), max(0.5 * (lo + hi), 1e-3))
     levels = np.linspace(lo, hi, 4 if hi - lo > 1.0 else 3)
-    blurred = [dn if s < 0.05 else cv2.GaussianBlur(dn, (0, 0), float(s)) for s in levels]
+    blurred = np.empty((len(levels), *dn.shape), np.float32)
+    for i, s in enumerate(levels):
+        if s < 0.05:
+            blurred[i] = dn
+        else:
+            cv2.GaussianBlur(dn, (0, 0), float(s), dst=blurred[i])
     pos = np.clip((sigma - lo) / np.float32(levels[1] - levels[0]), 0, len(levels) - 1 - 1e-4)
-    return blend_levels(np.stack(blurred), pos.astype(np.float32))
+    return blend_levels(blurred, pos.astype(np.float32))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -172,7 +178,8 @@ class CameraGeometry:
     """Per-pixel result of one ray cast from one camera at one pose; shared by all patterns."""
 
     hit: np.ndarray  # (H, W) bool
-    points_cam: np.ndarray  # (H, W, 3) hit points in the camera frame, NaN where no hit
+    rays: np.ndarray  # (H, W, 3) float32 unit rays of the pixels, camera frame
+    t_hit: np.ndarray  # (H, W) float32 distance (mm) along each ray to its hit, inf where none
     proj_x: np.ndarray  # (H, W) projector column, NaN where not lit
     base_dn: np.ndarray  # (H, W) DN from ambient light
     fringe_dn: np.ndarray  # (H, W) DN per unit projector intensity (0 where shadowed)
@@ -180,6 +187,12 @@ class CameraGeometry:
     sigma_camera: np.ndarray  # (H, W) camera blur (in-focus PSF and depth of field), px
     #: a number no other geometry of this cell has (keys the images rendered from it)
     serial: int = 0
+
+    @property
+    def points_cam(self) -> np.ndarray:
+        """(H, W, 3) float64 hit points in the camera frame (mm), NaN where no hit."""
+        return np.multiply(self.rays, np.where(self.hit, self.t_hit, np.nan)[..., None],
+                           dtype=np.float64)
 
 
 class SimCell:
@@ -524,8 +537,11 @@ class SimCell:
         return T[:3, 3], T[:3, :3], T[:3, 2], (name,)  # an SMR does not occlude its own beam
 
     def find_reflector(self, approx_mm: np.ndarray) -> str | None:
-        """The target FindReflector locks on for ``approx_mm`` (the tracker's frame), or None."""
-        return self.tracker.find(approx_mm, self.reflectors_world(), self.clock.now())
+        """The target FindReflector locks on for ``approx_mm`` (the tracker's frame), or None;
+        the search takes ``tracker_find_s`` of sim time, found or not."""
+        found = self.tracker.find(approx_mm, self.reflectors_world(), self.clock.now())
+        self.clock.advance(self.mech.tracker_find_s)
+        return found
 
     def beam_check(self, target: str = "scanner") -> None:
         """Raise BeamBreak unless the tracker can lock on ``target``; draws no noise."""
@@ -661,7 +677,6 @@ class SimCell:
                           * (kd + lobe), np.float32(0.0))
         base = gain * kd * np.float32(cfg.optics.ambient)
         hit = np.isfinite(hits.t)
-        pts_cam = np.multiply(dirs, np.where(hit, hits.t, np.nan)[:, None], dtype=np.float64)
         o = cfg.optics
         sigma_p = blur_sigma_px(dist, float(proj.K[0, 0]), o.projector_pitch_mm,
                                 o.projector_f_number, o.projector_focus_mm)
@@ -674,7 +689,7 @@ class SimCell:
         sigma_c = np.sqrt(dof ** 2 + np.float32(o.psf_sigma_px) ** 2) / np.float32(cfg.camera_scale)
         self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
                         "shadow": t4 - t3, "shading": clock() - t4}
-        return CameraGeometry(hit.reshape(h, w), pts_cam.reshape(h, w, 3),
+        return CameraGeometry(hit.reshape(h, w), rays, hits.t.reshape(h, w),
                               proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w),
                               sigma_p.reshape(h, w), sigma_c.reshape(h, w).astype(np.float32))
 
@@ -736,16 +751,16 @@ class SimCell:
         g = self.geometry(camera)
         k = self.pattern if pattern is None else pattern
         o = self.cfg.optics
-        dn = self._irradiance(camera, g, k) * np.float32(brightness * gain)
-        rng = np.random.default_rng([self.cfg.seed, 3, self._frame])
+        dn = self._irradiance(camera, g, k)
+        noise = frame_noise(dn.shape, [self.cfg.seed, 3, self._frame])
         self._frame += 1
-        noise = rng.standard_normal(dn.shape, np.float32)
+        exposure = brightness * gain
         if o.sensor_model == "emva":
             k_dn_per_e = 255.0 / o.full_well_e * gain
             dark_e = o.dark_current_e_per_s * self.cfg.nominal_exposure_s * brightness
-            # the DN above were at unit gain: electrons = dn / (255 / full well)
-            return sensor_dn(dn, noise, k_dn_per_e, o.dark_noise_e, dark_e)
-        return quantise(dn, noise, o.read_noise_dn)
+            # the DN were at unit gain: electrons = dn / (255 / full well)
+            return sensor_dn(dn, noise, k_dn_per_e, o.dark_noise_e, dark_e, exposure)
+        return quantise(dn, noise, o.read_noise_dn, exposure)
 
     def _irradiance(self, camera: str, g: CameraGeometry, k: int) -> np.ndarray:
         """Blurred irradiance (DN at unit exposure and gain) under pattern k. Optics are linear

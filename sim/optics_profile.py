@@ -134,9 +134,11 @@ def blur_sigma_px(distance_mm: np.ndarray, focal_px: float, pitch_mm: float, f_n
     if not np.isfinite(f_number):
         return np.zeros_like(np.asarray(distance_mm, np.float32))
     f = focal_px * pitch_mm
-    d = np.maximum(np.asarray(distance_mm, np.float64), 1.0)
-    c_mm = f * f / (f_number * (focus_mm - f)) * np.abs(d - focus_mm) / d
-    return (c_mm / pitch_mm / 4.0).astype(np.float32)
+    d = np.maximum(np.asarray(distance_mm, np.float32), np.float32(1.0))
+    sigma = np.abs(d - np.float32(focus_mm))
+    sigma /= d
+    sigma *= np.float32(f * f / (f_number * (focus_mm - f)) / pitch_mm / 4.0)
+    return sigma
 
 
 def response_harmonics(profile: OpticsProfile, A: float, B: float,

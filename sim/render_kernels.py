@@ -67,6 +67,33 @@ def _rays_near_sphere(rays: np.ndarray, tfar: np.ndarray, centre: np.ndarray,
 
 
 @numba.njit(parallel=True, cache=True)
+def keep_nearer(best_t: np.ndarray, normal: np.ndarray, index: np.ndarray,
+                primitive: np.ndarray, dirs: np.ndarray, sel: np.ndarray, every_ray: bool,
+                t: np.ndarray, normal_obj: np.ndarray, R: np.ndarray, obj: int,
+                primitive_obj: np.ndarray) -> None:
+    """Merge one object's hits into the nearest hits so far, in place. Ray ``sel[j]`` (ray j
+    when ``every_ray``) met the object at ``t[j]`` on triangle ``primitive_obj[j]`` with normal
+    ``normal_obj[j]`` (object frame); where that is nearer than ``best_t``, the ray takes the
+    distance, the normal turned to world by ``R`` and facing the ray's origin (``dirs``: the
+    rays' world directions), the object's index and the triangle."""
+    for j in numba.prange(t.shape[0]):
+        i = np.int64(j) if every_ray else sel[j]
+        if not t[j] < best_t[i]:
+            continue
+        best_t[i] = t[j]
+        n0 = R[0, 0] * normal_obj[j, 0] + R[0, 1] * normal_obj[j, 1] + R[0, 2] * normal_obj[j, 2]
+        n1 = R[1, 0] * normal_obj[j, 0] + R[1, 1] * normal_obj[j, 1] + R[1, 2] * normal_obj[j, 2]
+        n2 = R[2, 0] * normal_obj[j, 0] + R[2, 1] * normal_obj[j, 1] + R[2, 2] * normal_obj[j, 2]
+        if n0 * dirs[i, 0] + n1 * dirs[i, 1] + n2 * dirs[i, 2] > 0:
+            n0, n1, n2 = -n0, -n1, -n2
+        normal[i, 0] = n0
+        normal[i, 1] = n1
+        normal[i, 2] = n2
+        index[i] = obj
+        primitive[i] = primitive_obj[j]
+
+
+@numba.njit(parallel=True, cache=True)
 def rays_from_point(dirs: np.ndarray, R: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Rays (N, 6) float32 from one ``origin`` along ``R @ dirs[i]`` (dirs (N, 3) float32)."""
     n = dirs.shape[0]
@@ -226,21 +253,24 @@ def pattern_dn(base: np.ndarray, fringe: np.ndarray, proj_x: np.ndarray, sigma_p
 
 
 @numba.njit(parallel=True, cache=True)
-def quantise(dn: np.ndarray, noise: np.ndarray, noise_dn: float) -> np.ndarray:
-    """8-bit image: ``dn + noise_dn * noise`` rounded half to even and clipped to 0..255."""
+def quantise(dn: np.ndarray, noise: np.ndarray, noise_dn: float, exposure: float = 1.0
+             ) -> np.ndarray:
+    """8-bit image: ``exposure * dn + noise_dn * noise`` rounded half to even and clipped to
+    0..255."""
     h, w = dn.shape
     out = np.empty((h, w), np.uint8)
     for r in numba.prange(h):
         for c in range(w):
-            v = np.rint(dn[r, c] + noise_dn * noise[r, c])
+            v = np.rint(exposure * dn[r, c] + noise_dn * noise[r, c])
             out[r, c] = 0 if v < 0 else (255 if v > 255 else np.uint8(v))
     return out
 
 
 @numba.njit(parallel=True, cache=True)
 def sensor_dn(dn: np.ndarray, noise: np.ndarray, k_dn_per_e: float, dark_noise_e: float,
-              dark_e: float) -> np.ndarray:
-    """8-bit image after the EMVA 1288 linear camera model: signal ``dn / K`` electrons plus
+              dark_e: float, exposure: float = 1.0) -> np.ndarray:
+    """8-bit image after the EMVA 1288 linear camera model: signal ``exposure · dn / K``
+    electrons (``dn``: the irradiance at the nominal exposure and unit gain) plus
     ``dark_e`` dark-current electrons, temporal noise of variance ``σ_d² + μ_e`` electrons²
     (read noise and shot noise, the Poisson law by its normal approximation), times the system
     gain K (DN/e⁻), rounded (quantisation noise 1/12 DN²) and clipped at 0 and 255
@@ -249,7 +279,7 @@ def sensor_dn(dn: np.ndarray, noise: np.ndarray, k_dn_per_e: float, dark_noise_e
     out = np.empty((h, w), np.uint8)
     for r in numba.prange(h):
         for c in range(w):
-            e = max(dn[r, c] / k_dn_per_e, 0.0) + dark_e
+            e = max(exposure * dn[r, c] / k_dn_per_e, 0.0) + dark_e
             sigma = math.sqrt(dark_noise_e * dark_noise_e + e)
             v = np.rint(k_dn_per_e * (e + sigma * noise[r, c]))
             out[r, c] = 0 if v < 0 else (255 if v > 255 else np.uint8(v))

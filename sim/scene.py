@@ -14,7 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
-from scancell.sim.render_kernels import move_rays, rays_from_point, rays_near_sphere
+from scancell.sim.render_kernels import (
+    keep_nearer,
+    move_rays,
+    rays_from_point,
+    rays_near_sphere,
+)
 
 
 @dataclass
@@ -80,6 +85,7 @@ class Scene:
         normal = np.zeros((n, 3), np.float32)
         idx = np.full(n, -1, np.int32)
         prim = np.full(n, -1, np.int64)
+        no_selection = np.empty(0, np.int64)
         one_origin = np.ndim(origins) == 1
         if one_origin:
             origin = np.asarray(origins, float)
@@ -103,18 +109,10 @@ class Scene:
             else:
                 rays = move_rays(world[sel], T[:3, :3], T[:3, 3])
             r = obj.scene.cast_rays(o3d.core.Tensor(rays))
-            t = r["t_hit"].numpy()
-            closer = np.flatnonzero(t < (best_t if sel is None else best_t[sel]))
-            if not closer.size:
-                continue
-            at = closer if sel is None else sel[closer]
-            best_t[at] = t[closer]
-            R = obj.T_world_from_object[:3, :3].astype(np.float32)
-            normal[at] = r["primitive_normals"].numpy()[closer] @ R.T
-            idx[at] = i
-            prim[at] = r["primitive_ids"].numpy()[closer]
-        flip = np.einsum("ij,ij->i", normal, dirs32) > 0
-        normal[flip] *= -1
+            keep_nearer(best_t, normal, idx, prim, dirs32, no_selection if sel is None else sel,
+                        sel is None, r["t_hit"].numpy(), r["primitive_normals"].numpy(),
+                        obj.T_world_from_object[:3, :3].astype(np.float32), i,
+                        r["primitive_ids"].numpy())
         return Hits(best_t, normal, idx, prim)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray,
