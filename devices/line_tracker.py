@@ -19,9 +19,13 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 from scancell.devices.base import Health, HealthState, Tracker, TrackerMeasurement, TrackerStatus
+from scancell.devices.byte_stream import read_available
 from scancell.devices.errors import BadReply, BeamBroken, ConnectionLost, DeviceFault, Timeout
 from scancell.protocols import tracker_line as tl
 from scancell.protocols.messages import now_ns
+
+#: how long the reader thread waits for a byte before it looks whether the link is closing (s)
+READ_WAIT_S = 0.05
 
 
 class LineTracker(Tracker):
@@ -57,7 +61,7 @@ class LineTracker(Tracker):
         self._closing.clear()
         self._link_error = None
         try:
-            kwargs = {"timeout": 0.05}
+            kwargs = {"timeout": READ_WAIT_S}
             if "baudrate" in self.options:
                 kwargs["baudrate"] = int(self.options["baudrate"])
             self._port = await asyncio.to_thread(serial.serial_for_url, self.url, **kwargs)
@@ -91,7 +95,7 @@ class LineTracker(Tracker):
         port = self._port
         try:
             while not self._closing.is_set() and port is not None:
-                data = port.read(4096)
+                data = read_available(port, READ_WAIT_S)
                 if not data:
                     continue
                 for line in splitter.feed(data):

@@ -24,8 +24,12 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 from scancell.devices.base import Health, HealthState, Robot, RobotStatus
+from scancell.devices.byte_stream import read_available
 from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
 from scancell.protocols import simple_message as sm
+
+#: how long a reader waits for a byte before it looks again (closing, a reply's deadline) (s)
+READ_WAIT_S = 0.05
 
 
 @dataclass
@@ -82,7 +86,7 @@ class SimpleMessageRobot(Robot):
     # ------------------------------------------------------------ links
     def _open(self, url: str) -> serial.SerialBase:
         try:
-            return serial.serial_for_url(url, timeout=0.05, do_not_open=False)
+            return serial.serial_for_url(url, timeout=READ_WAIT_S, do_not_open=False)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise ConnectionLost(f"{self.name}: cannot open {url}: {exc}") from None
 
@@ -121,7 +125,7 @@ class SimpleMessageRobot(Robot):
         port = self._state_port
         try:
             while not self._closing.is_set() and port is not None:
-                data = port.read(4096)
+                data = read_available(port, READ_WAIT_S)
                 if not data:
                     continue
                 for _, body in dec.feed(data):
@@ -171,7 +175,7 @@ class SimpleMessageRobot(Robot):
             port.write(packet)
             deadline = time.monotonic() + self.reply_timeout
             while time.monotonic() < deadline:
-                for header, _ in self._motion_decoder.feed(port.read(4096)):
+                for header, _ in self._motion_decoder.feed(read_available(port, READ_WAIT_S)):
                     if header.comm_type == sm.CommType.SERVICE_REPLY and \
                             header.msg_type == msg_type:
                         return header

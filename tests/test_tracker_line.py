@@ -212,3 +212,22 @@ def test_server_responses_stay_ascii_whatever_the_message(text):
     line = tl.error_response("00001", 3, text)
     line.decode("ascii")
     assert tl.parse_response(line.decode("ascii")).kind == "error"
+
+
+def test_a_reply_is_read_as_soon_as_it_is_there_not_at_the_read_timeout():
+    """pyserial's read(4096) returned a 60-byte reply only when its timeout ran out; the
+    reader takes what has arrived at once (here a 10 s wait that must not be waited)."""
+    import time
+
+    import serial
+    from scancell.devices.byte_stream import read_available
+
+    port = serial.serial_for_url("loop://", timeout=10.0)
+    try:
+        port.write(b"00001 ack\n00001 done\n")
+        t0 = time.monotonic()
+        assert read_available(port, 10.0) == b"00001 ack\n00001 done\n"
+        assert time.monotonic() - t0 < 5.0
+        assert read_available(port, 0.01) == b""
+    finally:
+        port.close()
