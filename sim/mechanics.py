@@ -30,6 +30,8 @@ class MechanicsProfile:
     # ---- time
     #: sim seconds one stationary tracker measurement takes (the tracker averages over it)
     tracker_shot_s: float = 0.05
+    #: sim seconds one FindReflector takes (turning to the position, searching, locking on)
+    tracker_find_s: float = 0.2
     #: sim seconds one projected pattern takes (exposure and readout)
     pattern_s: float = 0.0105
     #: frames rendered within this many sim seconds of a pose's first frame share its pose

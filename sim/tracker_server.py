@@ -30,6 +30,8 @@ class TrackerProtocolHandler:
         self._locked: bool | None = None
         #: An injected fault (SIM_FAULTS), or None.
         self.fault: str | None = None
+        #: sim seconds the last command took (a shot, a search): the servers answer no sooner
+        self.took_s = 0.0
 
     def _clock_ns(self) -> int:
         """The tracker's clock: the simulated cell's, so time stamps follow simulated time."""
@@ -54,7 +56,12 @@ class TrackerProtocolHandler:
         return out
 
     def handle(self, line: str | tl.LineError) -> list[bytes]:
-        """The reply lines to one input line (or to a line the splitter refused)."""
+        """The reply lines to one input line (or to a line the splitter refused); ``took_s``
+        says how long the tracker was busy with it."""
+        self.took_s = 0.0
+        return self._handle(line)
+
+    def _handle(self, line: str | tl.LineError) -> list[bytes]:
         if isinstance(line, tl.LineError):
             return [tl.error_response(line.tag or tl.NO_TAG, 2003, str(line))]
         try:
@@ -85,6 +92,7 @@ class TrackerProtocolHandler:
                 r = self.cell.measure_smr(self.target)
             except BeamBreak as exc:
                 return [ack, tl.error_response(tag, 1001, str(exc))]
+            self.took_s = self.cell.mech.tracker_shot_s
             x, y, z = (float(v) for v in r.point_mm)
             sx, sy, sz = (float(v) for v in r.sigma_mm)
             return [ack, tl.format_response(tag, "data", "Point",
@@ -114,6 +122,7 @@ class TrackerProtocolHandler:
                 return [tl.error_response(tag, 1002, "no reflector within 100 mm (injected)")]
             self.fault = None  # a broken beam is found again
             best = self.cell.find_reflector(np.asarray(args, float))
+            self.took_s = self.cell.mech.tracker_find_s
             if best is None:
                 return [tl.error_response(tag, 1002, "no reflector within 100 mm or "
                                                      f"{FIND_SEARCH_DEG:g} deg")]
@@ -185,7 +194,9 @@ class TcpTrackerServer:
                 for line in splitter.feed(data):
                     if self.stall:
                         continue
-                    for out in self.handler.handle(line):
+                    replies = self.handler.handle(line)
+                    await asyncio.sleep(self.handler.took_s)  # a real tracker's shot takes time
+                    for out in replies:
                         writer.write(out)
                 await writer.drain()
         except (ConnectionError, asyncio.CancelledError):
@@ -223,6 +234,7 @@ class PtyTrackerServer:
                     return
                 for line in splitter.feed(data):
                     out += self.handler.handle(line)
+                    time.sleep(self.handler.took_s)
             if time.monotonic() >= next_event:
                 out += self.handler.events()
                 next_event = time.monotonic() + self.event_period_s
