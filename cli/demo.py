@@ -198,12 +198,13 @@ def main(args: argparse.Namespace) -> int:
         stage("workers: scan, calibrate, fuse, inspect (the part's CAD: STEP and STL)")
         exported.result()
         step = (nominal_dir / "car_rear.step").resolve()
+        # On one 2-core machine the workers' station-by-station work would slow the
+        # simulator's rendering (the cell's time), which on a real cell is the cameras' own
+        # hardware: the workers yield to the simulator, the fuse worker to the scan worker.
         procs.start("worker-scan", ["worker", "scan", "--calib",
-                                    str(run_dir / "calibration" / "stereo.yaml")], env)
+                                    str(run_dir / "calibration" / "stereo.yaml")], env, nice=5)
         procs.start("worker-calibrate", ["worker", "calibrate", "--store",
                                          str(run_dir / "calibration")], env)
-        # On one 2-core machine the fuse worker's station-by-station work would slow the
-        # simulator's rendering (the cell's time); on a real cell it runs on another host.
         procs.start("worker-fuse", ["worker", "fuse", "--out", str(run_dir / "fused"),
                                     "--truth-cell", str(config)], env, nice=10)
         procs.start("worker-acceptance", ["worker", "acceptance", "--out",
