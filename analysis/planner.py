@@ -12,7 +12,8 @@ three J6 positions.
 4. What a candidate sees: samples inside the field and depth of view, facing the scanner, not
    hidden by the part (ray cast).
 5. Stations are chosen greedily by new coverage until ``coverage`` is reached, and ordered by
-   a nearest-neighbour tour in joint space from the first.
+   the time the moves between them take (the arm at the plan's speed and the rail moving
+   together): a nearest-neighbour tour from the first, shortened by 2-opt.
 6. With ``tracker_moves`` and the cell's reference nests, views where the tracker at home cannot
    see the scanner's SMR(s) may be measured from another tracker station: candidate stations on
    a ring around the part (at home's distance and height) that see >= 4 nests past the part.
@@ -344,7 +345,9 @@ class Planner:
         return None
 
     def plan(self, coverage: float = 0.90, overlap: float = 0.25, name: str = "plan",
-             max_stations: int = 60) -> tuple[Plan, PlanReport]:
+             max_stations: int = 60, speed: float = 0.2) -> tuple[Plan, PlanReport]:
+        """``speed``: the arm's between stations, a fraction of its joints' maximum speeds (the
+        plan's; it orders the stations by the moves' time)."""
         cands, tried = self.candidates(overlap)
         if not cands:
             raise PlanningError(f"none of {tried} candidate views is reachable with the tracker "
@@ -371,7 +374,8 @@ class Planner:
             covered |= chosen[-1].sees
             if chosen[-1].tracker not in used:
                 used.append(chosen[-1].tracker)
-        chosen = [c for t in used for c in self._toured([c for c in chosen if c.tracker == t])]
+        chosen = [c for t in used
+                  for c in self._toured([c for c in chosen if c.tracker == t], speed)]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
                                      c.rail_mm, None, int(c.j6_sign), tracker=c.tracker)
                          for i, c in enumerate(chosen))
@@ -404,13 +408,17 @@ class Planner:
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)
                                       for st, c in zip(stations, chosen, strict=True)}
-        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, extra=extra, ecs=self.ecs,
-                    trackers=trackers)
+        plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, speed=speed,
+                    extra=extra, ecs=self.ecs, trackers=trackers)
         return plan, report
 
-    @staticmethod
-    def _toured(cands: list[Candidate]) -> list[Candidate]:
-        return [cands[i] for i in _tour([c.q for c in cands])]
+    def _toured(self, cands: list[Candidate], speed: float) -> list[Candidate]:
+        def seconds(a: Candidate, b: Candidate) -> float:
+            rail = abs((a.rail_mm or 0.0) - (b.rail_mm or 0.0)) / self.g.rail_speed_mm_s
+            return max(self.g.robot.travel_time(a.q, b.q, speed), rail)
+
+        cost = np.array([[seconds(a, b) for b in cands] for a in cands]).reshape(len(cands), -1)
+        return [cands[i] for i in _tour(cost)]
 
 
     @staticmethod
@@ -431,15 +439,41 @@ class Planner:
         return gain
 
 
-def _tour(qs: list[np.ndarray]) -> list[int]:
-    """Nearest-neighbour order in joint space, starting from the first station."""
-    if not qs:
+def _tour(cost: np.ndarray) -> list[int]:
+    """An open path through every point from point 0, short in ``cost`` (N, N: what going from
+    i to j costs): nearest neighbour, then while one shortens it, reverse a stretch (2-opt) or
+    move a stretch of up to three points elsewhere, either way round (or-opt)."""
+    n = len(cost)
+    if n == 0:
         return []
-    left = list(range(1, len(qs)))
+    left = set(range(1, n))
     order = [0]
     while left:
-        last = qs[order[-1]]
-        k = min(left, key=lambda i: float(np.max(np.abs(qs[i] - last))))
+        k = min(left, key=lambda j: (cost[order[-1], j], j))
         order.append(k)
         left.remove(k)
+
+    def length(o: list[int]) -> float:
+        return float(cost[o[:-1], o[1:]].sum())
+
+    def neighbours(o: list[int]):
+        for i in range(1, n - 1):
+            for j in range(i + 1, n):
+                yield o[:i] + o[i:j + 1][::-1] + o[j + 1:]
+        for size in (1, 2, 3):
+            for i in range(1, n - size + 1):
+                stretch, rest = o[i:i + size], o[:i] + o[i + size:]
+                for at in range(1, len(rest) + 1):
+                    if at != i:
+                        yield rest[:at] + stretch + rest[at:]
+                        yield rest[:at] + stretch[::-1] + rest[at:]
+
+    best = length(order)
+    improved = True
+    while improved:
+        improved = False
+        for o in neighbours(order):
+            if (cand := length(o)) < best - 1e-9:
+                order, best, improved = o, cand, True
+                break
     return order

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from scancell.cli._common import default_cell_config, fail
@@ -77,8 +76,8 @@ def main(args: argparse.Namespace) -> int:
                                 "nests, at least 4): a moved tracker is located on them")
         planner = Planner(mesh, geometry, samples=args.samples, ecs=args.ecs, nests_world=nests,
                           tracker_moves=max(0, args.tracker_moves))
-        plan, report = planner.plan(args.coverage, args.overlap, name=part.stem)
-        plan = replace(plan, speed=args.speed)
+        plan, report = planner.plan(args.coverage, args.overlap, name=part.stem,
+                                    speed=args.speed)
     except (PlanningError, ConfigError) as exc:
         return fail("plan", str(exc))
     Path(args.out).write_text(plan.to_toml())

@@ -46,6 +46,8 @@ class CellGeometry:
     #: the planner may use; empty: no axis.
     rail_axis: tuple[float, float, float] | None = None
     rail_positions_mm: tuple[float, ...] = ()
+    #: how fast the rail moves between stations (mm/s): what a move along it costs
+    rail_speed_mm_s: float = 250.0
     robot: RobotModel = field(default_factory=RobotModel)
     #: SMR nests on the scanner besides its rear SMR, as drawn (CAD): name -> (centre in mcs,
     #: opening direction in mcs). Where the job points the tracker; the hand-eye job measures
@@ -112,23 +114,27 @@ class CellGeometry:
         GeometryError naming a missing or malformed key. ``scancell.config`` is its one caller
         for config files."""
         try:
-            return cls(np.asarray(t["T_world_from_base"], float),
-                       np.asarray(t["T_flange_from_mcs"], float),
-                       np.asarray(t["rig_mid_in_flange_mm"], float),
-                       np.asarray(t["smr_in_mcs_mm"], float),
-                       np.asarray(t.get("smr_opening_in_mcs", [0, 0, -1]), float),
-                       np.asarray(t["tracker_world_mm"], float),
-                       float(t.get("smr_acceptance_deg", 30.0)),
-                       float(t.get("standoff_mm", 650.0)),
-                       tuple(t.get("field_mm", (380.0, 280.0))),
-                       tuple(t.get("depth_mm", (-90.0, 90.0))),
-                       rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
-                       rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())),
-                       smr_cluster=_cluster(t.get("smr_cluster", {})))
+            g = cls(np.asarray(t["T_world_from_base"], float),
+                    np.asarray(t["T_flange_from_mcs"], float),
+                    np.asarray(t["rig_mid_in_flange_mm"], float),
+                    np.asarray(t["smr_in_mcs_mm"], float),
+                    np.asarray(t.get("smr_opening_in_mcs", [0, 0, -1]), float),
+                    np.asarray(t["tracker_world_mm"], float),
+                    float(t.get("smr_acceptance_deg", 30.0)),
+                    float(t.get("standoff_mm", 650.0)),
+                    tuple(t.get("field_mm", (380.0, 280.0))),
+                    tuple(t.get("depth_mm", (-90.0, 90.0))),
+                    rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
+                    rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())),
+                    rail_speed_mm_s=float(t.get("rail_speed_mm_s", 250.0)),
+                    smr_cluster=_cluster(t.get("smr_cluster", {})))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:
             raise GeometryError(f"missing key {exc}") from None
+        if not g.rail_speed_mm_s > 0:
+            raise GeometryError(f"rail_speed_mm_s must be > 0 mm/s, got {g.rail_speed_mm_s}")
+        return g
 
 
 def _cluster(t: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:

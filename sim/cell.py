@@ -364,6 +364,8 @@ class SimCell:
                 "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
                 "rail_axis": self.cfg.rail_axis.tolist(),
                 "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0],
+                # the simulated drive's 500 mm/s at the speed a job moves the rail (0.5)
+                "rail_speed_mm_s": 250.0,
                 # as drawn: the true nests sit where the housing's machining put them
                 "smr_cluster": {n: {"mcs_mm": list(c), "opening": list(o)}
                                 for n, (c, o) in self.cfg.smr_cluster.items()}}

@@ -211,3 +211,44 @@ def test_surface_coverage_counts_the_part_within_2_mm_of_a_measured_point():
         surface_coverage(plate, np.zeros((0, 3)))
     with pytest.raises(ValueError, match="no triangles"):
         surface_coverage(o3d.geometry.TriangleMesh(), top_left_half)
+
+
+def test_the_station_tour_takes_the_shorter_way_round():
+    """Nearest neighbour from 0 on a line goes 0, 1, 2, 3, then back past 0 to -1, -2 (8);
+    2-opt goes down first (7). Random instances: never longer than nearest neighbour, and
+    within 10 % of the best order (brute force)."""
+    from itertools import permutations
+
+    from scancell.analysis.planner import _tour
+
+    x = np.array([0.0, 1.0, -1.0, 2.0, -2.0, 3.0])
+    line = np.abs(x[:, None] - x[None, :])
+    order = _tour(line)
+    assert order[0] == 0 and sorted(order) == list(range(6))
+
+    def length(cost, order):
+        return float(cost[list(order[:-1]), list(order[1:])].sum())
+
+    assert length(line, order) == pytest.approx(7.0)
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        p = rng.uniform(0, 10, (7, 2))
+        cost = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+        nn, left = [0], set(range(1, 7))
+        while left:
+            nn.append(min(left, key=lambda j: cost[nn[-1], j]))
+            left.remove(nn[-1])
+        best = min(length(cost, (0, *o)) for o in permutations(range(1, 7)))
+        got = length(cost, _tour(cost))
+        assert got <= length(cost, nn) + 1e-9
+        assert got <= 1.1 * best
+    assert _tour(np.zeros((0, 0))) == [] and _tour(np.zeros((1, 1))) == [0]
+
+
+def test_a_rail_that_does_not_move_is_refused_by_name():
+    from scancell.model.cell_geometry import GeometryError
+
+    table = {**SimCell(SimCellConfig(camera_scale=8)).planner_table(), "rail_speed_mm_s": 0}
+    with pytest.raises(GeometryError, match="rail_speed_mm_s"):
+        CellGeometry.from_table(table)
