@@ -36,7 +36,7 @@ from scancell.sim.optics import FocalGrowthRays, PinholeModel, StereoRig, defaul
 from scancell.sim.optics_profile import (
     DEFAULT_PROFILE,
     OpticsProfile,
-    blur_sigma_px,
+    defocus_px_per_unit,
     level_light,
     optics_profile,
     response_harmonics,
@@ -48,6 +48,7 @@ from scancell.sim.render_kernels import (
     quantise,
     sensor_dn,
     shadowed,
+    surface_terms,
 )
 from scancell.sim.scene import Scene, SceneObject
 from scancell.sim.sensor_noise import frame_noise
@@ -87,6 +88,12 @@ def _blur(dn: np.ndarray, sigma: np.ndarray) -> np.ndarray:
             cv2.GaussianBlur(dn, (0, 0), float(s), dst=blurred[i])
     pos = np.clip((sigma - lo) / np.float32(levels[1] - levels[0]), 0, len(levels) - 1 - 1e-4)
     return blend_levels(blurred, pos.astype(np.float32))
+
+
+def _half_angle(rays: np.ndarray) -> float:
+    """Half-angle (rad) of the cone about a device's optical axis (+z) holding its unit rays
+    (..., 3), a little wider than the widest."""
+    return math.acos(max(-1.0, float(rays[..., 2].min()))) + 1e-4
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -624,7 +631,7 @@ class SimCell:
                                                             np.float32)
             rays = self._projector_rays
             hits = self.scene.cast(T_wp[:3, 3], rays.reshape(-1, 3) @ T_wp[:3, :3].T.astype(
-                np.float32), cameras_only=False)
+                np.float32), cameras_only=False, cone=(T_wp[:3, 2], _half_angle(rays)))
             return hits.t.reshape(rays.shape[:2])
 
         return self._at_pose("projector", compute), step
@@ -660,7 +667,8 @@ class SimCell:
         t1 = clock()
         h, w, _ = rays.shape
         dirs = rays.reshape(-1, 3)
-        hits = self.scene.cast(T_wc[:3, 3], dirs @ T_wc[:3, :3].T.astype(np.float32))
+        hits = self.scene.cast(T_wc[:3, 3], dirs @ T_wc[:3, :3].T.astype(np.float32),
+                               cone=(T_wc[:3, 2], _half_angle(rays)))
         t2 = clock()
         T_pc = np.linalg.inv(self.T_world_from_camera("projector")) @ T_wc
         proj = self.rig.projector
@@ -671,29 +679,25 @@ class SimCell:
         depth, step = self._projector_depth()
         proj_x[shadowed(proj_x, proj_y, dist, depth, step, SHADOW_TOLERANCE_MM)] = np.nan
         t4 = clock()
-        lit = np.isfinite(proj_x)
         kd, lobe = self._paint(hits, cos_h)
-        d0 = np.float32(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0]))
-        gain = np.float32(255.0 * cfg.optics.exposure)
-        fringe = np.where(lit, gain * np.clip(cos_p, 0, 1) * (d0 / np.maximum(dist, 1.0)) ** 2
-                          * (kd + lobe), np.float32(0.0))
-        base = gain * kd * np.float32(cfg.optics.ambient)
-        hit = np.isfinite(hits.t)
         o = cfg.optics
-        sigma_p = blur_sigma_px(dist, float(proj.K[0, 0]), o.projector_pitch_mm,
-                                o.projector_f_number, o.projector_focus_mm)
         cam = self.camera_model(camera)
         # the lens's blur is a property of the full-resolution sensor; small test images see
         # it 1/camera_scale as wide
         full_f = float(cam.K[0, 0]) * cfg.camera_scale
-        dof = blur_sigma_px(np.where(hit, hits.t, o.camera_focus_mm), full_f, o.camera_pitch_mm,
-                            o.camera_f_number, o.camera_focus_mm)
-        sigma_c = np.sqrt(dof ** 2 + np.float32(o.psf_sigma_px) ** 2) / np.float32(cfg.camera_scale)
+        fringe, base, sigma_p, sigma_c = surface_terms(
+            proj_x, cos_p, dist, hits.t, kd, lobe, 255.0 * o.exposure, o.ambient,
+            float(np.linalg.norm(self.rig.T_mcs_from_projector[:3, 3] - [0, 0, 650.0])),
+            defocus_px_per_unit(float(proj.K[0, 0]), o.projector_pitch_mm, o.projector_f_number,
+                                o.projector_focus_mm), o.projector_focus_mm,
+            defocus_px_per_unit(full_f, o.camera_pitch_mm, o.camera_f_number, o.camera_focus_mm),
+            o.camera_focus_mm, o.psf_sigma_px, float(cfg.camera_scale))
+        hit = np.isfinite(hits.t)
         self.timings = {"pixel_rays": t1 - t0, "ray_cast": t2 - t1, "projector_map": t3 - t2,
                         "shadow": t4 - t3, "shading": clock() - t4}
         return CameraGeometry(hit.reshape(h, w), rays, hits.t.reshape(h, w),
                               proj_x.reshape(h, w), base.reshape(h, w), fringe.reshape(h, w),
-                              sigma_p.reshape(h, w), sigma_c.reshape(h, w).astype(np.float32))
+                              sigma_p.reshape(h, w), sigma_c.reshape(h, w))
 
     def _paint(self, hits, cos_h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Diffuse albedo and specular lobe (radiance factors, float32) of every hit pixel."""

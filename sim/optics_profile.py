@@ -125,20 +125,17 @@ def optics_profile(name: str = DEFAULT_PROFILE, effects_off: tuple[str, ...] | l
     return select_profile("optics", PROFILES, EFFECTS, name, effects_off, overrides)
 
 
-def blur_sigma_px(distance_mm: np.ndarray, focal_px: float, pitch_mm: float, f_number: float,
-                  focus_mm: float) -> np.ndarray:
-    """Defocus blur (1 sigma, px of the device) of a point at ``distance_mm`` from a thin lens
-    of focal length f = ``focal_px · pitch_mm`` at f-number N, focused at s = ``focus_mm``: the
-    blur circle on the sensor has the diameter ``f² / (N (s − f)) · |d − s| / d`` (mm), and a
-    uniform disc of diameter c has sigma c/4."""
+def defocus_px_per_unit(focal_px: float, pitch_mm: float, f_number: float,
+                        focus_mm: float) -> float:
+    """k of the defocus blur ``sigma = k · |d − s| / d`` (px of the device, 1 sigma) of a point
+    at distance d from a thin lens of focal length f = ``focal_px · pitch_mm`` at f-number N,
+    focused at s = ``focus_mm``: the blur circle on the sensor has the diameter
+    ``f² / (N (s − f)) · |d − s| / d`` (mm), and a uniform disc of diameter c has sigma c/4.
+    0 for a pinhole (N infinite)."""
     if not np.isfinite(f_number):
-        return np.zeros_like(np.asarray(distance_mm, np.float32))
+        return 0.0
     f = focal_px * pitch_mm
-    d = np.maximum(np.asarray(distance_mm, np.float32), np.float32(1.0))
-    sigma = np.abs(d - np.float32(focus_mm))
-    sigma /= d
-    sigma *= np.float32(f * f / (f_number * (focus_mm - f)) / pitch_mm / 4.0)
-    return sigma
+    return f * f / (f_number * (focus_mm - f)) / pitch_mm / 4.0
 
 
 def response_harmonics(profile: OpticsProfile, A: float, B: float,

@@ -178,6 +178,38 @@ def projector_terms(dirs_cam: np.ndarray, t_hit: np.ndarray, normal_world: np.nd
 
 
 @numba.njit(parallel=True, cache=True)
+def surface_terms(proj_x: np.ndarray, cos_p: np.ndarray, dist_p: np.ndarray, t_hit: np.ndarray,
+                  kd: np.ndarray, lobe: np.ndarray, gain: float, ambient: float, d0: float,
+                  k_p: float, focus_p: float, k_c: float, focus_c: float, psf_px: float,
+                  scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per camera pixel (float32): the DN per unit projector light (``gain · cos_p · (d0 /
+    d)² · (kd + lobe)``, 0 where the projector does not light it, ``proj_x`` NaN), the ambient
+    DN (``gain · kd · ambient``), the projector's defocus blur at the surface (``k_p · |d −
+    focus_p| / d``, projector px) and the camera's blur (its defocus ``k_c · |t − focus_c| /
+    t`` at the hit, focus_c where nothing is hit, and the in-focus PSF ``psf_px``, in
+    quadrature, over ``scale``). d: the distance to the projector, t: to the camera, both
+    clipped at 1 mm; k: :func:`scancell.sim.optics_profile.defocus_px_per_unit`."""
+    n = proj_x.shape[0]
+    fringe = np.empty(n, np.float32)
+    base = np.empty(n, np.float32)
+    sigma_p = np.empty(n, np.float32)
+    sigma_c = np.empty(n, np.float32)
+    for i in numba.prange(n):
+        d = max(dist_p[i], 1.0)
+        if math.isfinite(proj_x[i]):
+            c = min(max(cos_p[i], 0.0), 1.0)
+            fringe[i] = gain * c * (d0 / d) * (d0 / d) * (kd[i] + lobe[i])
+        else:
+            fringe[i] = 0.0
+        base[i] = gain * kd[i] * ambient
+        sigma_p[i] = k_p * abs(d - focus_p) / d
+        t = max(t_hit[i], 1.0) if math.isfinite(t_hit[i]) else focus_c
+        dof = k_c * abs(t - focus_c) / t
+        sigma_c[i] = math.sqrt(dof * dof + psf_px * psf_px) / scale
+    return fringe, base, sigma_p, sigma_c
+
+
+@numba.njit(parallel=True, cache=True)
 def shadowed(proj_x: np.ndarray, proj_y: np.ndarray, dist_mm: np.ndarray, depth: np.ndarray,
              step: int, tol_mm: float) -> np.ndarray:
     """True where a point the projector would light at pixel (``proj_x``, ``proj_y``), at

@@ -9,6 +9,7 @@ camera against each of the cell's eight objects took 9 s of a station's 11 s of 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection
 from dataclasses import dataclass, field
 
@@ -77,8 +78,11 @@ class Scene:
     def remove(self, name: str) -> None:
         self.objects = [o for o in self.objects if o.name != name]
 
-    def cast(self, origins: np.ndarray, dirs: np.ndarray, cameras_only: bool = True) -> Hits:
-        """Nearest hit of each unit ray (N, 3) from origins (N, 3) or one origin (3,)."""
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, cameras_only: bool = True,
+             cone: tuple[np.ndarray, float] | None = None) -> Hits:
+        """Nearest hit of each unit ray (N, 3) from origins (N, 3) or one origin (3,).
+        ``cone``: (unit axis, half-angle in rad) of a cone holding every ray's direction (a
+        camera's field): objects outside it are skipped without testing each ray."""
         dirs32 = np.ascontiguousarray(np.asarray(dirs).reshape(-1, 3), np.float32)
         n = dirs32.shape[0]
         best_t = np.full(n, np.inf, np.float32)
@@ -97,7 +101,7 @@ class Scene:
                 continue
             centre, radius = obj.bounding_sphere()
             if one_origin:
-                sel = _in_cone(dirs32, origin, centre, radius)
+                sel = _in_cone(dirs32, origin, centre, radius, cone)
             else:
                 sel = np.flatnonzero(rays_near_sphere(world, unbounded, centre, radius))
             if sel is not None and not sel.size:
@@ -162,14 +166,19 @@ class Scene:
         return best
 
 
-def _in_cone(dirs: np.ndarray, origin: np.ndarray, centre: np.ndarray, radius: float
-             ) -> np.ndarray | None:
+def _in_cone(dirs: np.ndarray, origin: np.ndarray, centre: np.ndarray, radius: float,
+             cone: tuple[np.ndarray, float] | None = None) -> np.ndarray | None:
     """Indices of the unit directions (N, 3) from ``origin`` that can meet the sphere; None:
-    all of them (the origin is inside it)."""
+    all of them (the origin is inside it). ``cone``: see :meth:`Scene.cast`."""
     v = centre - origin
     dist = float(np.linalg.norm(v))
     if dist <= radius:
         return None
+    if cone is not None:
+        axis, half = cone
+        off = math.acos(min(1.0, max(-1.0, float(np.dot(axis, v)) / dist)))
+        if off > half + math.asin(radius / dist) + 1e-6:
+            return np.empty(0, np.int64)
     cos_lim = np.float32(np.sqrt(1.0 - (radius / dist) ** 2) - 1e-6)
     return np.flatnonzero(dirs @ (v / dist).astype(np.float32) >= cos_lim)
 

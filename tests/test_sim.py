@@ -389,6 +389,16 @@ def test_rays_culled_by_bounding_spheres_hit_what_every_ray_against_every_object
         assert np.isfinite(best).sum() > 1000  # the test casts rays that hit
         np.testing.assert_allclose(hits.t, best, rtol=1e-5, atol=1e-3)
         np.testing.assert_array_equal(hits.object_index, which)
+    # a camera's field as a cone about its axis: the objects outside it are skipped whole
+    axis = dirs.mean(axis=0) / np.linalg.norm(dirs.mean(axis=0))
+    half = float(np.arccos((dirs @ axis).min()))
+    scene.add(SceneObject("aside", o3d.geometry.TriangleMesh.create_box(100.0, 100.0, 100.0),
+                          make_T(np.eye(3), [2500.0, 0.0, -900.0])))
+    hits = scene.cast(origin, dirs, cone=(axis, half))
+    best, which = brute(origin)
+    np.testing.assert_allclose(hits.t, best, rtol=1e-5, atol=1e-3)
+    np.testing.assert_array_equal(hits.object_index, which)
+    scene.remove("aside")
     tfar = rng.uniform(0, 1500, len(dirs)).astype(np.float32)
     occluded = scene.occluded(origins, dirs, tfar)
     best, _ = brute(origins)

@@ -13,11 +13,11 @@ from scancell.sim.host import check_options
 from scancell.sim.optics_profile import (
     REALISTIC,
     ProfileError,
-    blur_sigma_px,
+    defocus_px_per_unit,
     optics_profile,
     response_harmonics,
 )
-from scancell.sim.render_kernels import pattern_dn, sensor_dn
+from scancell.sim.render_kernels import pattern_dn, sensor_dn, surface_terms
 
 pytestmark = pytest.mark.unit
 
@@ -49,9 +49,15 @@ def test_defocus_blur_against_the_thin_lens_image_distances():
     v_s = 1 / (1 / f - 1 / s)
     v_d = 1 / (1 / f - 1 / d)
     c_mm = (f / N) * np.abs(v_d - v_s) / v_d
-    np.testing.assert_allclose(blur_sigma_px(d, f_px, pitch, N, s), c_mm / pitch / 4, rtol=1e-5,
-                               atol=1e-6)
-    assert blur_sigma_px(d, f_px, pitch, float("inf"), s).max() == 0
+    k = defocus_px_per_unit(f_px, pitch, N, s)
+    n = len(d)
+    lit = np.zeros(n)  # the renderer's kernel: the projector's blur at d, the camera's at d
+    one = np.ones(n, np.float32)
+    _, _, sigma_p, sigma_c = surface_terms(lit, one, d.astype(np.float32), d.astype(np.float32),
+                                           one, one, 1.0, 0.1, 650.0, k, s, k, s, 0.0, 1.0)
+    np.testing.assert_allclose(sigma_p, c_mm / pitch / 4, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(sigma_c, c_mm / pitch / 4, rtol=1e-5, atol=1e-6)
+    assert defocus_px_per_unit(f_px, pitch, float("inf"), s) == 0
 
 
 @pytest.mark.parametrize("gamma", [1.0, 2.2])
