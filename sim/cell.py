@@ -51,7 +51,7 @@ from scancell.sim.render_kernels import (
     surface_terms,
 )
 from scancell.sim.scene import Scene, SceneObject
-from scancell.sim.sensor_noise import frame_noise
+from scancell.sim.sensor_noise import NoiseBank
 from scancell.sim.tracker_model import BeamBreak, TrackerModel, TrackerReading, TrackerSpec
 
 #: pattern indices below this show a uniform level: ``UNIFORM_BASE - v`` for the 8-bit value v
@@ -227,6 +227,7 @@ class SimCell:
         self._hold_dir = _unit(self._vib_rng.normal(size=3))
         self._hold_phase = float(self._vib_rng.uniform(0, 2 * np.pi))
         self._frame = 0
+        self._noise = NoiseBank([self.cfg.seed, 3])
         self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
         self.q = self.q_commanded.copy()
         self.rail_mm = 0.0
@@ -754,19 +755,20 @@ class SimCell:
         -1 dark, -2 full white, ``UNIFORM_BASE - v`` the uniform 8-bit level v);
         ``brightness`` scales the exposure (exposure time / nominal), ``gain`` the camera's
         analogue gain (linear)."""
-        g = self.geometry(camera)
-        k = self.pattern if pattern is None else pattern
-        o = self.cfg.optics
-        dn = self._irradiance(camera, g, k)
-        noise = frame_noise(dn.shape, [self.cfg.seed, 3, self._frame])
-        self._frame += 1
-        exposure = brightness * gain
-        if o.sensor_model == "emva":
-            k_dn_per_e = 255.0 / o.full_well_e * gain
-            dark_e = o.dark_current_e_per_s * self.cfg.nominal_exposure_s * brightness
-            # the DN were at unit gain: electrons = dn / (255 / full well)
-            return sensor_dn(dn, noise, k_dn_per_e, o.dark_noise_e, dark_e, exposure)
-        return quantise(dn, noise, o.read_noise_dn, exposure)
+        with self._noise.rendering():
+            g = self.geometry(camera)
+            k = self.pattern if pattern is None else pattern
+            o = self.cfg.optics
+            dn = self._irradiance(camera, g, k)
+            noise = self._noise.take(dn.shape, self._frame)
+            self._frame += 1
+            exposure = brightness * gain
+            if o.sensor_model == "emva":
+                k_dn_per_e = 255.0 / o.full_well_e * gain
+                dark_e = o.dark_current_e_per_s * self.cfg.nominal_exposure_s * brightness
+                # the DN were at unit gain: electrons = dn / (255 / full well)
+                return sensor_dn(dn, noise, k_dn_per_e, o.dark_noise_e, dark_e, exposure)
+            return quantise(dn, noise, o.read_noise_dn, exposure)
 
     def _irradiance(self, camera: str, g: CameraGeometry, k: int) -> np.ndarray:
         """Blurred irradiance (DN at unit exposure and gain) under pattern k. Optics are linear

@@ -177,3 +177,30 @@ def test_profiles_and_effects_are_checked():
     assert check_options({"profile": "realistic", "effects_off": ["ambient"]}) is None
     assert "profile" in check_options({"profile": "shiny"})
     assert "effects_off" in check_options({"effects_off": ["glare"]})
+
+
+def test_noise_drawn_ahead_is_the_noise_drawn_on_demand_and_waits_for_an_idle_renderer():
+    import time
+
+    from scancell.sim.sensor_noise import NoiseBank, frame_noise
+
+    shape = (1024, 1024)  # the smallest frame drawn ahead
+    bank = NoiseBank([7, 3], ahead=4)
+
+    def drawn(frame: int, timeout_s: float) -> bool:
+        fut = bank._drawn.get((shape, frame))
+        t_end = time.monotonic() + timeout_s
+        while fut is not None and not fut.done() and time.monotonic() < t_end:
+            time.sleep(0.02)
+        return fut is not None and fut.done()
+
+    np.testing.assert_array_equal(bank.take(shape, 0), frame_noise(shape, [7, 3, 0]))
+    assert drawn(4, 20.0)  # the renderer idle: frames 1 … 4 drawn ahead
+    with bank.rendering():
+        np.testing.assert_array_equal(bank.take(shape, 1), frame_noise(shape, [7, 3, 1]))
+        assert not drawn(5, 0.5)  # never while the renderer works
+    assert drawn(5, 20.0)
+    for f in (2, 3, 4, 5):
+        np.testing.assert_array_equal(bank.take(shape, f), frame_noise(shape, [7, 3, f]))
+    small = (100, 120)  # drawn on demand
+    np.testing.assert_array_equal(bank.take(small, 9), frame_noise(small, [7, 3, 9]))
