@@ -62,7 +62,7 @@ class NoiseBank:
     #: the renderer idle this long (s): the scan has ended, the next has not begun
     IDLE_S = 0.2
 
-    def __init__(self, seed: list[int], ahead: int = 64) -> None:
+    def __init__(self, seed: list[int], ahead: int = 40) -> None:
         self.seed = list(seed)
         self.ahead = ahead
         self._drawn: dict[tuple[tuple[int, int], int], Future[np.ndarray]] = {}
