@@ -204,3 +204,28 @@ def test_noise_drawn_ahead_is_the_noise_drawn_on_demand_and_waits_for_an_idle_re
         np.testing.assert_array_equal(bank.take(shape, f), frame_noise(shape, [7, 3, f]))
     small = (100, 120)  # drawn on demand
     np.testing.assert_array_equal(bank.take(small, 9), frame_noise(small, [7, 3, 9]))
+
+
+def test_a_blur_spanning_a_near_surface_keeps_the_in_focus_pixels_sharp():
+    """A camera that sees a surface a few cm from its lens has sigmas of 0.55 to ~40 px: the
+    in-focus part must still get its own blur (levels spread evenly blended it with a 14 px
+    image), and the large blurs, done on a reduced image, must match the full-size ones."""
+    import cv2
+    from scancell.sim.cell import _blur, gaussian_blur
+
+    rng = np.random.default_rng(2)
+    h, w = 400, 600
+    x = np.arange(w, dtype=np.float32)
+    image = (100 + 80 * np.cos(2 * np.pi * x / 23.0))[None, :].repeat(h, 0).astype(np.float32)
+    image += cv2.GaussianBlur(rng.normal(0, 20, (h, w)).astype(np.float32), (0, 0), 3)
+    for s in (8.5, 12.0, 20.0, 41.0):
+        got = np.empty_like(image)
+        gaussian_blur(image, s, got)
+        want = cv2.GaussianBlur(image, (0, 0), s)
+        inner = (slice(3 * int(s), h - 3 * int(s)), slice(3 * int(s), w - 3 * int(s)))
+        assert np.abs(got - want)[inner].max() < 0.02 * 80, s  # 2 % of the fringe's amplitude
+    sigma = np.full((h, w), 0.6, np.float32)
+    sigma[:, 450:] = 40.0  # the near surface, on the right
+    out = _blur(image, sigma)
+    sharp = cv2.GaussianBlur(image, (0, 0), 0.6)
+    np.testing.assert_allclose(out[50:350, 20:300], sharp[50:350, 20:300], atol=0.05)
