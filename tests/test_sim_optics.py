@@ -223,7 +223,7 @@ def test_a_blur_spanning_a_near_surface_keeps_the_in_focus_pixels_sharp():
         gaussian_blur(image, s, got)
         want = cv2.GaussianBlur(image, (0, 0), s)
         inner = (slice(3 * int(s), h - 3 * int(s)), slice(3 * int(s), w - 3 * int(s)))
-        assert np.abs(got - want)[inner].max() < 0.02 * 80, s  # 2 % of the fringe's amplitude
+        assert np.abs(got - want)[inner].max() < 0.2, s  # DN, against a 160 DN fringe
     sigma = np.full((h, w), 0.6, np.float32)
     sigma[:, 450:] = 40.0  # the near surface, on the right
     out = _blur(image, sigma)
