@@ -58,7 +58,8 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     # ... and with the VDI/VDE 2634 acceptance of the scanner (part 2) and the cell (part 3)
     acc = s["acceptance"]
     assert set(acc["part2"]["parameters"]) == {"PF", "PS", "SD", "F"}
-    assert set(acc["part3"]["parameters"]) == {"SD3"} and not acc["part3"]["errors"]
+    assert set(acc["part3"]["parameters"]) == {"SD3"} and not acc["part3"]["errors"], (
+        acc["part3"], out.stdout[-3000:])
     # 800 mm across two stations at 1/4 camera size, through the tracker (home again after the
     # scan job's moves) and the quick hand-eye
     sd3 = acc["part3"]["parameters"]["SD3"]
