@@ -13,7 +13,7 @@ three J6 positions.
    hidden by the part (ray cast).
 5. Stations are chosen greedily by new coverage until ``coverage`` is reached, and ordered by
    the time the moves between them take (the arm at the plan's speed and the rail moving
-   together): a nearest-neighbour tour from the first, shortened by 2-opt.
+   together): a nearest-neighbour tour from the first, shortened by 2-opt and or-opt.
 6. With ``tracker_moves`` and the cell's reference nests, views where the tracker at home cannot
    see the scanner's SMR(s) may be measured from another tracker station: candidate stations on
    a ring around the part (at home's distance and height) that see >= 4 nests past the part.

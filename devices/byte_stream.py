@@ -11,9 +11,12 @@ import serial
 
 #: the most one call returns; the rest waits for the next call
 CHUNK_BYTES = 4096
+#: how long a reader waits for a first byte before it looks again (is the link closing, has a
+#: reply's deadline passed) (s); also the read timeout the drivers open their ports with
+READ_WAIT_S = 0.05
 
 
-def read_available(port: serial.SerialBase, wait_s: float) -> bytes:
+def read_available(port: serial.SerialBase, wait_s: float = READ_WAIT_S) -> bytes:
     """The bytes the port holds, as soon as there is one: waits up to ``wait_s`` for the first
     byte (b"" if none came), then takes what else has already arrived without waiting. Sets the
     port's read timeout (the writer's is its own)."""

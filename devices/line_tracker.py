@@ -19,13 +19,10 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 from scancell.devices.base import Health, HealthState, Tracker, TrackerMeasurement, TrackerStatus
-from scancell.devices.byte_stream import read_available
+from scancell.devices.byte_stream import READ_WAIT_S, read_available
 from scancell.devices.errors import BadReply, BeamBroken, ConnectionLost, DeviceFault, Timeout
 from scancell.protocols import tracker_line as tl
 from scancell.protocols.messages import now_ns
-
-#: how long the reader thread waits for a byte before it looks whether the link is closing (s)
-READ_WAIT_S = 0.05
 
 
 class LineTracker(Tracker):
@@ -95,7 +92,7 @@ class LineTracker(Tracker):
         port = self._port
         try:
             while not self._closing.is_set() and port is not None:
-                data = read_available(port, READ_WAIT_S)
+                data = read_available(port)
                 if not data:
                     continue
                 for line in splitter.feed(data):

@@ -24,12 +24,9 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 from scancell.devices.base import Health, HealthState, Robot, RobotStatus
-from scancell.devices.byte_stream import read_available
+from scancell.devices.byte_stream import READ_WAIT_S, read_available
 from scancell.devices.errors import BadReply, ConnectionLost, DeviceFault, Timeout
 from scancell.protocols import simple_message as sm
-
-#: how long a reader waits for a byte before it looks again (closing, a reply's deadline) (s)
-READ_WAIT_S = 0.05
 
 
 @dataclass
@@ -125,7 +122,7 @@ class SimpleMessageRobot(Robot):
         port = self._state_port
         try:
             while not self._closing.is_set() and port is not None:
-                data = read_available(port, READ_WAIT_S)
+                data = read_available(port)
                 if not data:
                     continue
                 for _, body in dec.feed(data):
@@ -175,7 +172,7 @@ class SimpleMessageRobot(Robot):
             port.write(packet)
             deadline = time.monotonic() + self.reply_timeout
             while time.monotonic() < deadline:
-                for header, _ in self._motion_decoder.feed(read_available(port, READ_WAIT_S)):
+                for header, _ in self._motion_decoder.feed(read_available(port)):
                     if header.comm_type == sm.CommType.SERVICE_REPLY and \
                             header.msg_type == msg_type:
                         return header
