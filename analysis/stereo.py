@@ -96,27 +96,35 @@ def typical_step(column: np.ndarray) -> float:
     return float(step) if np.isfinite(step) else 1.0
 
 
-def mask_discontinuities(column: np.ndarray, max_step_px: float, max_bend_px: float = 0.75,
-                         border_px: int = 3) -> np.ndarray:
+def mask_discontinuities(column: np.ndarray, max_step_px: float | np.ndarray,
+                         max_bend_px: float | np.ndarray = 0.75, border_px: int = 3) -> np.ndarray:
     """``column`` with NaN next to any jump larger than ``max_step_px`` projector px between
     neighbouring camera pixels (depth edges, occlusions), where the column bends by more than
     ``max_bend_px`` (second difference: pixels that mix two surfaces through the lens blur),
-    and on the image's outer ``border_px`` pixels (blur and vignetting)."""
+    and on the image's outer ``border_px`` pixels (blur and vignetting). Either limit may be a
+    per-pixel map (H x W, :mod:`scancell.analysis.decode_limits`); a pair of neighbours is held
+    to the smaller of their limits, a bend to its centre pixel's."""
     c = column.copy()
     if border_px:
         c[:border_px] = c[-border_px:] = np.nan
         c[:, :border_px] = c[:, -border_px:] = np.nan
     bad = np.zeros(c.shape, bool)
+    step = np.asarray(max_step_px, np.float32)
+    bend = np.asarray(max_bend_px, np.float32)
+    step_x = np.minimum(step[:, :-1], step[:, 1:]) if step.ndim == 2 else step
+    step_y = np.minimum(step[:-1], step[1:]) if step.ndim == 2 else step
+    bend_x = bend[:, 1:-1] if bend.ndim == 2 else bend
+    bend_y = bend[1:-1] if bend.ndim == 2 else bend
     with np.errstate(invalid="ignore"):
-        dx = np.abs(np.diff(column, axis=1)) > max_step_px
-        dy = np.abs(np.diff(column, axis=0)) > max_step_px
+        dx = np.abs(np.diff(column, axis=1)) > step_x
+        dy = np.abs(np.diff(column, axis=0)) > step_y
     bad[:, :-1] |= dx
     bad[:, 1:] |= dx
     bad[:-1, :] |= dy
     bad[1:, :] |= dy
     with np.errstate(invalid="ignore"):
-        bx = np.abs(column[:, :-2] - 2 * column[:, 1:-1] + column[:, 2:]) > max_bend_px
-        by = np.abs(column[:-2] - 2 * column[1:-1] + column[2:]) > max_bend_px
+        bx = np.abs(column[:, :-2] - 2 * column[:, 1:-1] + column[:, 2:]) > bend_x
+        by = np.abs(column[:-2] - 2 * column[1:-1] + column[2:]) > bend_y
     for shift in (0, 1, 2):
         bad[:, shift:shift + bx.shape[1]] |= bx
         bad[shift:shift + by.shape[0], :] |= by

@@ -1,0 +1,164 @@
+"""The decoder's limits, derived from the fringe width and the measured noise.
+
+Every limit follows from two measured quantities and one stated confidence:
+
+- ``σ_I`` (DN, on the 8-bit scale): the intensity noise of the view, measured from the frames
+  (:func:`measured_noise_dn`);
+- the fringe width ``P = W/p`` (projector px) of each phase group;
+- ``z`` (``confidence_sigmas``, default 4): how many standard deviations of pure noise a limit
+  lets through (a Gaussian exceeds 4σ in 6·10⁻⁵ of the pixels).
+
+Formulas (N steps, modulation B in DN):
+
+- phase noise ``σ_φ = sqrt(2/N) · σ_I / B`` (rad); coordinate noise ``σ_x = σ_φ · P / 2π`` (px);
+- fringe order of a group of p_f periods unwrapped by a coarser absolute estimate of p_c
+  periods (ratio ``r = p_f/p_c``): ``σ_o = sqrt(r² σ_φc² + σ_φf²) / 2π`` fringes;
+- **order margin** (per pixel): the rounding residual ``m = |o − round(o)|`` is accepted while
+  a wrong order stays ``α`` times less likely than the right one, with Gaussian order noise:
+  ``m ≤ 1/2 − σ_o² · ln(1/α)``, α = 10⁻³ (the likelihood ratio of an error of m against one of
+  1 − m is ``exp(−(1 − 2m) / 2σ_o²)``). A fixed limit is set with ``order_margin``.
+- **modulation threshold**: the smallest B at which the order of the coarsest unwrapping step
+  is still right to z/2 standard deviations (``σ_o ≤ 1/z``):
+  ``B_min = z · sqrt(r² · 2/N_c + 2/N_f) · σ_I / 2π``; never below ``z · σ_I`` (a fringe
+  weaker than the noise's z-sigma is not a fringe);
+- **bend limit** (per pixel): the second difference of the coordinate between neighbouring
+  camera pixels of a smooth surface is noise, ``sqrt(6) σ_x``; a larger bend is a pixel that
+  mixes two surfaces through the lens blur: ``bend ≤ z · sqrt(6) · σ_x``, never below
+  ``BEND_FLOOR_PX`` (the curvature a smooth part shows at the pixel scale);
+- **step limit** (per pixel): a neighbour's coordinate may differ by the surface's own slope,
+  up to ``STEP_SLOPE_FACTOR`` times the view's median step (a surface tilted towards grazing),
+  plus noise: ``step ≤ 3 · median step + z · sqrt(2) · σ_x``; depth edges jump far more;
+- **saturation**: a pixel at or above ``saturation_dn`` (8-bit scale) in any frame is masked.
+
+Every limit can be set instead in the pattern spec's ``[limits]`` or the decode settings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+#: α of the order posterior: a wrong fringe order accepted at most once in 1000 pixels of its margin
+ORDER_ALPHA = 1e-3
+#: the median neighbour step is the view's typical surface slope; a surface tilted towards
+#: grazing incidence shows up to this many times it
+STEP_SLOPE_FACTOR = 3.0
+#: second difference (projector px) a smooth surface's own curvature may show at the pixel scale
+BEND_FLOOR_PX = 0.05
+#: phase roughness: the second difference of a linear phase is noise with variance 6 σ_φ²
+ROUGHNESS_VARIANCE = 6.0
+#: 1.4826 · MAD estimates a Gaussian's σ
+MAD_TO_SIGMA = 1.4826
+#: the 8-bit quantisation noise, 1/sqrt(12) DN: no camera measures better
+QUANTISATION_DN = 1 / np.sqrt(12)
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """Overrides of the derived limits; None means derive it (see the module doc)."""
+
+    min_modulation_dn: float | None = None
+    order_margin: float | None = None  # fringes; None: the per-pixel posterior margin
+    bend_limit_px: float | None = None
+    step_limit_px: float | None = None
+    noise_dn: float | None = None  # σ_I; None: measured from the frames
+    confidence_sigmas: float = 4.0
+    #: σ (camera px) of the Gaussian the quadrature sums are averaged over before the phase
+    smooth_px: float = 1.0
+    border_px: int = 3
+    z_min_mm: float = 50.0
+    z_max_mm: float = 5000.0
+    saturation_dn: float = 254.5
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, float], where: str = "limits") -> DecodeLimits:
+        names = {f.name for f in fields(cls)}
+        bad = sorted(set(values) - names)
+        if bad:
+            raise ValueError(f"{where}: unknown limit(s) {bad}; known: {sorted(names)}")
+        out = cls()
+        for k, v in values.items():
+            if v is None:
+                continue
+            v = float(v)
+            if not np.isfinite(v) or (v < 0 and k not in ("z_min_mm",)):
+                raise ValueError(f"{where}.{k} = {v}: must be a finite number ≥ 0")
+            out = replace(out, **{k: int(v) if k == "border_px" else v})
+        if out.z_min_mm >= out.z_max_mm:
+            raise ValueError(f"{where}: z_min_mm {out.z_min_mm} must be below z_max_mm {out.z_max_mm}")
+        return out
+
+    def merged(self, overrides: dict[str, float]) -> DecodeLimits:
+        """These limits with ``overrides`` (a spec's [limits]) on top."""
+        base = {f.name: getattr(self, f.name) for f in fields(self)}
+        base.update(overrides)
+        return DecodeLimits.from_mapping(base)
+
+
+def phase_sigma(noise_dn: float, steps: int, modulation: np.ndarray) -> np.ndarray:
+    """σ_φ (rad) of N-step phase shifting at modulation B (DN)."""
+    with np.errstate(divide="ignore"):
+        return np.float32(np.sqrt(2.0 / steps) * noise_dn) / np.asarray(modulation, np.float32)
+
+
+def order_sigma_unit(noise_dn: float, ratio: float, steps_coarse: int, steps_fine: int) -> float:
+    """σ_o · B (fringes · DN): the order noise of one unwrapping step at unit modulation."""
+    return float(np.sqrt(ratio ** 2 * 2.0 / steps_coarse + 2.0 / steps_fine) * noise_dn / (2 * np.pi))
+
+
+def min_modulation(noise_dn: float, z: float, worst_ratio: float, steps_coarse: int,
+                   steps_fine: int) -> float:
+    """B_min (DN): σ_o ≤ 1/z at the coarsest step, and at least z · σ_I."""
+    return max(z * order_sigma_unit(noise_dn, worst_ratio, steps_coarse, steps_fine), z * noise_dn)
+
+
+def margin_limit(order_sigma: np.ndarray) -> np.ndarray:
+    """Largest accepted rounding residual (fringes) per pixel for order noise σ_o."""
+    return np.float32(0.5) - np.asarray(order_sigma, np.float32) ** 2 * np.float32(np.log(1 / ORDER_ALPHA))
+
+
+def bend_limit(coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
+    """Largest second difference (px) per pixel."""
+    return np.maximum(np.float32(z * np.sqrt(6.0)) * coordinate_sigma, np.float32(BEND_FLOOR_PX))
+
+
+def step_limit(typical_step_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
+    """Largest neighbour step (px) per pixel."""
+    return (np.float32(STEP_SLOPE_FACTOR * typical_step_px)
+            + np.float32(z * np.sqrt(2.0)) * coordinate_sigma)
+
+
+def wrap_pi(d: np.ndarray) -> np.ndarray:
+    """Angles into [−π, π)."""
+    return (d + np.float32(np.pi)) % np.float32(2 * np.pi) - np.float32(np.pi)
+
+
+def measured_noise_dn(phase: np.ndarray, modulation: np.ndarray, steps: int,
+                      usable: np.ndarray, residual_var: np.ndarray | None = None) -> float:
+    """σ_I (DN, 8-bit scale) of one view.
+
+    With N ≥ 4 steps the least-squares fit leaves N − 3 degrees of freedom: σ_I² is the median
+    residual variance (÷ 0.4549·(N−3)… corrected to a mean by the χ² median ratio). With 3 steps,
+    from the phase's roughness along camera rows: the wrapped second difference of the phase of
+    a smooth surface is noise of variance 6 σ_φ², σ_φ = sqrt(2/N) σ_I / B, so
+    ``σ_I = 1.4826 · MAD(Δ²φ · B) / sqrt(6 · 2/N)`` over the usable pixels (the MAD ignores
+    the depth edges). Never below the 8-bit quantisation noise."""
+    if residual_var is not None:
+        dof = steps - 3
+        v = residual_var[usable]
+        if v.size >= 1000:
+            from scipy.stats import chi2
+
+            # the median of a χ²_dof / dof variable is below 1: correct it to the mean
+            scale = dof / chi2.ppf(0.5, dof)
+            return float(max(np.sqrt(np.median(v) * scale), QUANTISATION_DN))
+    sub = (slice(None, None, 2), slice(None))
+    phi, b, ok = phase[sub], modulation[sub], usable[sub]
+    d2 = wrap_pi(phi[:, 2:] - phi[:, 1:-1]) - wrap_pi(phi[:, 1:-1] - phi[:, :-2])
+    good = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
+    r = (d2 * b[:, 1:-1])[good]
+    if r.size < 1000:
+        return float(max(1.0, QUANTISATION_DN))  # too little to measure: 1 DN, a typical camera
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return float(max(MAD_TO_SIGMA * mad / np.sqrt(ROUGHNESS_VARIANCE * 2.0 / steps), QUANTISATION_DN))
