@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scancell.analysis import decode_limits as lim
 from scancell.analysis.decode_limits import DecodeLimits
-from scancell.analysis.phase import DecodeError, PhaseMap, unwrap_heterodyne
+from scancell.analysis.phase import DecodeError, PhaseMap, heterodyne_tree, unwrap_heterodyne
 from scancell.analysis.phase_response import (
     BINS,
     MIN_PIXELS,
@@ -61,7 +61,6 @@ class GroupPhase:
     sin_sum: np.ndarray  # float32, B·sin φ
     cos_sum: np.ndarray  # float32, B·cos φ
     background: np.ndarray  # float32 DN
-    residual_var: np.ndarray | None  # DN², N ≥ 4 only
     phase: np.ndarray = field(init=False)  # float32 [0, 2π)
     modulation: np.ndarray = field(init=False)  # float32 DN
 
@@ -156,29 +155,21 @@ def check_frames(frames: Sequence[np.ndarray], spec: PatternSet,
 
 
 def group_phase(frames: Sequence[np.ndarray], g: PhaseShiftGroup, to_dn: float) -> GroupPhase:
-    """Least squares of ``I_n = A + B·cos(φ − s·2πn/N)``: the quadrature sums, A (DN) and, with
-    N ≥ 4, the residual variance."""
+    """Least squares of ``I_n = A + B·cos(φ − s·2πn/N)``: the quadrature sums and A (DN)."""
     n = g.steps
     s = np.zeros(frames[0].shape, np.float32)
     c = np.zeros(frames[0].shape, np.float32)
     a = np.zeros(frames[0].shape, np.float32)
-    sq = np.zeros(frames[0].shape, np.float32) if n > 3 else None
     for k, img in enumerate(frames):
         d = g.sign * 2 * np.pi * k / n
         f = img.astype(np.float32, copy=False)
         cv2.scaleAdd(f, float(np.sin(d)), s, s)
         cv2.scaleAdd(f, float(np.cos(d)), c, c)
         cv2.add(a, f, a)
-        if sq is not None:
-            cv2.accumulateSquare(f, sq)
     s *= np.float32(2.0 / n * to_dn)
     c *= np.float32(2.0 / n * to_dn)
     a *= np.float32(to_dn / n)
-    resid = None
-    if sq is not None:  # Σ I² − N A² − N B²/2 over N − 3 degrees of freedom
-        resid = (sq * np.float32(to_dn ** 2) - n * a * a - 0.5 * n * (s * s + c * c)) / np.float32(n - 3)
-        np.maximum(resid, 0, out=resid)
-    return GroupPhase(g, s, c, a, resid)
+    return GroupPhase(g, s, c, a)
 
 
 def supports_estimate(g: PhaseShiftGroup, size: int) -> bool:
@@ -264,8 +255,7 @@ def decode_view(frames: Sequence[np.ndarray], spec: PatternSet, projector_size: 
     noise = limits.noise_dn
     if noise is None:  # from the raw frames, before any smoothing
         usable = (finest.modulation >= HISTOGRAM_MIN_MODULATION_DN) & ~saturated
-        noise = lim.measured_noise_dn(finest.phase, finest.modulation, finest.group.steps, usable,
-                                      finest.residual_var)
+        noise = lim.measured_noise_dn(finest.phase, finest.modulation, finest.group.steps, usable)
     # smoothing scales every phase noise by the kernel's sqrt(variance factor)
     for gp in phases:
         gp.smooth(limits.smooth_px)
@@ -327,10 +317,19 @@ def order_units(spec: PatternSet, axis: str, size: int, noise: float) -> list[fl
     periods = [g.periods_across(size) for g in groups]
     method = spec.method(axis)
     if method == "heterodyne":
-        # beats add their phases' noise: the top beat of a K-frequency tree carries 2^(K−1)
-        # phase variances and unwraps the finest fringe, max(p) times its period
+        # a beat of two phases carries both their variances: level l of the tree 2^l phase
+        # variances; each level is unwrapped by its parent of p_child / p_parent times fewer
+        # fringes (70, 64, 59: 6 and 5 by the 1-period beat, then 70, 64, 59 by 6 and 5)
         n = min(g.steps for g in groups)
-        return [lim.order_sigma_unit(noise * np.sqrt(2 ** (len(periods) - 1)), max(periods), n, n)]
+        levels = heterodyne_tree(periods)
+        out = []
+        for lvl in range(len(levels) - 2, -1, -1):
+            parents = levels[lvl + 1]
+            for i, p in enumerate(levels[lvl]):
+                ratio = p / parents[min(i, len(parents) - 1)]
+                out.append(float(np.sqrt(ratio ** 2 * 2 ** (lvl + 1) + 2 ** lvl)
+                                 * np.sqrt(2.0 / n) * noise / (2 * np.pi)))
+        return out
     order = sorted(range(len(groups)), key=lambda i: periods[i])
     if method == "gray":  # the code decides the finest group's order; it adds no phase noise
         out = [lim.order_sigma_unit(noise, 0.0, 3, groups[order[-1]].steps)]
@@ -368,7 +367,7 @@ def _unwrap_axis(axis: str, groups: list[PhaseShiftGroup], phases: list[np.ndarr
     if method == "heterodyne":
         margin = np.zeros(cand.size, np.float32)
         absolute = unwrap_heterodyne(phases, periods, margin)
-        bad |= _order_check(margin, units[0], modulation, limits)
+        bad |= _order_check(margin, max(units), modulation, limits)
         return [a * p for a, p in zip(absolute, px, strict=True)], bad
     order = sorted(range(len(groups)), key=lambda i: periods[i])
     absolute: list[np.ndarray | None] = [None] * len(groups)
@@ -392,13 +391,15 @@ def _unwrap_axis(axis: str, groups: list[PhaseShiftGroup], phases: list[np.ndarr
                    * np.float32(stripe))
             orders = x_g / np.float32(period_px) - phases[fine] / TWO_PI
             k = np.rint(orders)
-            # the stripe centre lies within stripe/2 of the truth; the phase's noise on top
+            # the stripe centre lies within stripe/2 (a quarter fringe) of the truth, and an edge
+            # pixel a little more: the order is right while the residual stays clear of 1/2 by
+            # the phase's noise
             resid = np.abs(orders - k)
             if limits.order_margin is not None:
                 bad |= ~(resid <= np.float32(limits.order_margin))
             else:
                 slack = np.float32(limits.confidence_sigmas * units[0]) / modulation
-                bad |= ~(resid <= np.float32(0.5 - stripe / 2 / period_px) - slack)
+                bad |= ~(resid <= np.float32(0.5) - slack)
         absolute[fine] = (phases[fine] + TWO_PI * k.astype(np.float32)) * px[fine]
         for unit, i in zip(units[1:], reversed(order[:-1]), strict=True):
             orders = (absolute[fine] / px[i] - phases[i]) / TWO_PI
@@ -419,16 +420,15 @@ def _unwrap_axis(axis: str, groups: list[PhaseShiftGroup], phases: list[np.ndarr
 
 
 def _plain_gray_order(x_g: np.ndarray, phase: np.ndarray, period_px: float) -> np.ndarray:
-    """Fringe order from a Gray code of one stripe per fringe: the stripe index, moved by one
-    where the phase says the pixel lies past the wrap the code's edge put it before (blur moves
-    a code edge by a pixel or two; the phase's wrap is sharp): near the start of a fringe
-    (phase < π/2) a code one stripe late is raised, near its end (phase > 3π/2) one early is
-    lowered, judged against the code's own neighbourhood median."""
+    """Fringe order from a Gray code of one stripe per fringe. Its edges and the phase's wraps
+    fall on the same projector columns, so blur puts a pixel beside an edge in the wrong
+    stripe as often as not: the order is the stripe index, and where the coordinate it gives
+    differs from its 5 x 5 median by more than half a fringe it moves by whole fringes to the
+    median (Sansoni et al., Appl. Opt. 38, 1999: the jump errors are isolated spikes)."""
     k = np.floor(x_g / np.float32(period_px)).astype(np.float32)
-    med = cv2.medianBlur(np.ascontiguousarray(k), 5)
-    early = (phase > np.float32(1.5 * np.pi)) & (k > med)
-    late = (phase < np.float32(0.5 * np.pi)) & (k < med)
-    return k - early + late
+    x = (k + phase / TWO_PI) * np.float32(period_px)
+    med = cv2.medianBlur(np.ascontiguousarray(x, np.float32), 5)
+    return k + np.rint((med - x) / np.float32(period_px))
 
 
 def gray_index(g: GrayCodeGroup, frames: Sequence[np.ndarray], background: np.ndarray) -> np.ndarray:
