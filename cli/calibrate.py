@@ -34,11 +34,82 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ecs = sub.add_parser("ecs", help="end coordinate system from SMR points P1..Pn (CSV)")
     ecs.add_argument("--points", required=True, help="CSV: id,x,y,z[,j6_deg] (mm, deg)")
     ecs.add_argument("--json", help="write the frame as JSON")
+    rig = sub.add_parser("projector-rig",
+                         help="a camera-projector rig from phase maps of a checkerboard (the "
+                              "projector as an inverse camera): one folder of frames per pose")
+    rig.add_argument("poses", nargs="+", help="folders, one per board pose, each with the frames "
+                                              "of the pattern set")
+    rig.add_argument("--patterns", required=True,
+                     help="a pattern-set spec (.toml/.json) or preset encoding both projector axes")
+    rig.add_argument("--target", default="9x7x20",
+                     help="COLSxROWSxSQUARE_MM: inner corners and square size")
+    rig.add_argument("--projector", default=None, metavar="WxH",
+                     help="projector size in px (default: the spec's [projector])")
+    rig.add_argument("--out", required=True, help="rig file to write (mode: camera_projector)")
 
 
 def main(args: argparse.Namespace) -> int:
     return {"cameras": cameras_main, "hand-eye": hand_eye_main, "ecs": ecs_main,
-            "projector": projector_main}[args.calibrate_command](args)
+            "projector": projector_main, "projector-rig": projector_rig_main}[
+        args.calibrate_command](args)
+
+
+def projector_rig_main(args: argparse.Namespace) -> int:
+    """Decode every pose's frames, find the board's corners in both devices, calibrate."""
+    from scancell.analysis.pattern_decode import decode_view
+    from scancell.analysis.pattern_files import find_frames, load_pattern_set, read_frames
+    from scancell.analysis.phase import DecodeError
+    from scancell.analysis.projector_calibration import calibrate_camera_projector, pose_corners
+    from scancell.analysis.scanner import ImageSetError
+    from scancell.analysis.stereo_calibration import CalibrationError, ChessboardSpec
+    from scancell.model.pattern_set import PatternSpecError
+
+    try:
+        board = ChessboardSpec.parse(args.target)
+        spec = load_pattern_set(args.patterns)
+        if set(spec.axes) != {"x", "y"}:
+            raise PatternSpecError(f"{args.patterns}: encodes axis {', '.join(spec.axes)} only; the "
+                                   f"projector's calibration needs columns and rows (x and y)")
+        size = _projector_size(args.projector, spec)
+        poses, camera_size = [], None
+        for i, folder in enumerate(args.poses, 1):
+            frames, names = read_frames(find_frames(folder, spec))
+            shape = (frames[0].shape[1], frames[0].shape[0])
+            if camera_size is not None and shape != camera_size:
+                raise ImageSetError(f"{names[0]}: {shape[0]} x {shape[1]}, but the first pose's "
+                                    f"frames are {camera_size[0]} x {camera_size[1]}")
+            camera_size = shape
+            view = decode_view(frames, spec, size, names=names, where=folder)
+            found = pose_corners(folder, view, board)
+            print(f"pose {i}/{len(args.poses)} {folder}: "
+                  f"{found if isinstance(found, str) else f'{len(found.camera)} corners'}")
+            poses.append((folder, found) if isinstance(found, str) else found)
+        report = calibrate_camera_projector(poses, camera_size, size)
+        report.rig.write(args.out)
+    except (CalibrationError, ImageSetError, DecodeError, PatternSpecError) as exc:
+        return fail("calibrate projector-rig", str(exc))
+    except OSError as exc:
+        return fail("calibrate projector-rig", f"{exc.filename or args.out}: {exc.strerror or exc}")
+    print(report.table())
+    print(f"-> {args.out}")
+    return 0
+
+
+def _projector_size(text: str | None, spec) -> tuple[int, int]:
+    from scancell.model.pattern_set import PatternSpecError
+
+    if text:
+        try:
+            w, h = (int(v) for v in text.lower().split("x"))
+            if w > 0 and h > 0:
+                return w, h
+        except ValueError:
+            pass
+        raise PatternSpecError(f"--projector {text!r}: expected WxH, e.g. 1280x800")
+    if spec.width and spec.height:
+        return spec.width, spec.height
+    raise PatternSpecError("the projector's size: give --projector WxH or [projector] width and "
+                           "height in the spec")
 
 
 def projector_main(args: argparse.Namespace) -> int:

@@ -60,6 +60,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     nm.add_argument("--part", default="car_rear",
                     help="the simulated part (car_rear_defects gives car_rear's nominal)")
     nm.add_argument("--out", required=True, help="folder")
+    rg = sub.add_parser("rig", help="a simulated camera-projector rig's captures with their "
+                                    "truth: DIR/rig_true.yaml, DIR/board_NN/ (checkerboard poses "
+                                    "for `scancell calibrate projector-rig`), DIR/plane/ (a sheet "
+                                    "for `scancell decode`) and DIR/truth.json")
+    rg.add_argument("--patterns", default="gray-phase-xy",
+                    help="a pattern-set preset or spec file (default gray-phase-xy)")
+    rg.add_argument("--poses", type=int, default=8, help="checkerboard poses (0: none)")
+    rg.add_argument("--target", default="9x7x15", help="COLSxROWSxSQUARE_MM of the board")
+    rg.add_argument("--scale", type=float, default=1.0, help="camera resolution factor")
+    rg.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=8)
+    rg.add_argument("--profile", default="realistic", help="optics profile (docs/simulation.md)")
+    rg.add_argument("--seed", type=int, default=0)
+    rg.add_argument("--out", required=True)
 
 
 def main(args: argparse.Namespace) -> int:

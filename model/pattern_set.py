@@ -404,6 +404,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     "gray-phase": {"name": "gray-phase", "unwrap": "gray", "groups": [
         {"kind": "phase_shift", "axis": "x", "periods": 32, "steps": 4},
         {"kind": "complementary_gray_code", "axis": "x", "bits": 6}]},
+    # the same on both projector axes (columns, then rows): what a camera-projector rig's
+    # calibration needs, and a scan whose points come from the projector's ray
+    "gray-phase-xy": {"name": "gray-phase-xy", "unwrap": "gray", "groups": [
+        {"kind": "phase_shift", "axis": "x", "periods": 32, "steps": 4},
+        {"kind": "complementary_gray_code", "axis": "x", "bits": 6},
+        {"kind": "phase_shift", "axis": "y", "periods": 20, "steps": 4},
+        {"kind": "complementary_gray_code", "axis": "y", "bits": 6}]},
 }
 DEFAULT_PRESET = "heterodyne-3x3"
 

@@ -65,14 +65,31 @@ class Plane:
     white: float = 0.85
     black: float = 0.12
 
-    def albedo(self, xy: np.ndarray) -> np.ndarray:
+    def albedo(self, xy: np.ndarray, footprint: np.ndarray | None = None) -> np.ndarray:
+        """Albedo at board points ``xy`` (H, W, 2, mm), averaged over each camera pixel's
+        ``footprint`` (H, W, 2: its extent along the board's x and y, mm), as a sensor
+        integrates over its pixel: each square edge is box-filtered along the axis it crosses,
+        which is exact for a pixel whose footprint lines up with the squares. Without a
+        footprint, the albedo at the point (the square edges are then hard)."""
         if self.squares <= 0:
             return np.full(xy.shape[:-1], self.white)
-        i = np.floor(xy[..., 0] / self.squares).astype(np.int64)
-        j = np.floor(xy[..., 1] / self.squares).astype(np.int64)
-        inside = ((i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1))
-        dark = ((i + j) % 2 == 0) & inside
-        return np.where(dark, self.black, self.white)
+        q = xy / self.squares
+        i = np.floor(q[..., 0])
+        j = np.floor(q[..., 1])
+        inside = (i >= -1) & (i <= self.cols - 1) & (j >= -1) & (j <= self.rows - 1)
+        signs = []
+        for axis, cell in ((0, i), (1, j)):
+            parity = np.where(cell % 2 == 0, 1.0, -1.0)
+            if footprint is None:
+                signs.append(parity)
+                continue
+            f = q[..., axis] - cell
+            edge_mm = np.minimum(f, 1 - f) * self.squares
+            half = np.maximum(footprint[..., axis] / 2, 1e-9)
+            signs.append(parity * np.clip(edge_mm / half, 0.0, 1.0))
+        dark = 0.5 * (1 + signs[0] * signs[1])  # 1 on squares of even i + j
+        dark = np.where(inside, dark, 0.0)
+        return self.white + (self.black - self.white) * dark
 
     def corners_board(self) -> np.ndarray:
         """(cols·rows, 3) inner corners on the board (mm), row by row as OpenCV finds them."""
@@ -134,7 +151,9 @@ class RigSimulator:
     def render(self, plane: Plane, spec: PatternSet, exposure: float = 1.0) -> list[np.ndarray]:
         """The camera's frames of every pattern of ``spec``."""
         board, uv, light, _ = self.geometry(plane)
-        albedo = plane.albedo(board)
+        # each pixel's footprint on the board: how far its board point moves to the next pixel
+        gy, gx = np.gradient(board, axis=(0, 1))
+        albedo = plane.albedo(board, np.abs(gx) + np.abs(gy))
         pw, ph = self.truth.projector_size
         o = self.optics
         frames = []
@@ -173,3 +192,63 @@ class RigSimulator:
 
     def true_points(self, plane: Plane) -> np.ndarray:
         return self.geometry(plane)[3]
+
+
+#: the board poses ``write_captures`` uses in turn: (distance mm, tilt about x and y deg,
+#: board centre offset mm); tilted 20-30° in every direction, as Zhang's method wants
+BOARD_POSES = [(420, (20, 0), (0, 0)), (450, (-20, 10), (-20, 10)), (480, (0, 25), (15, -10)),
+               (440, (15, -25), (10, 15)), (500, (-10, -15), (-25, -15)), (400, (25, 20), (0, 5)),
+               (460, (-25, -5), (20, 0)), (430, (5, 30), (-10, -5)), (470, (-15, 20), (5, 10)),
+               (410, (10, -10), (-15, 0))]
+
+
+def write_captures(args) -> int:
+    """``scancell sim rig``: checkerboard poses, a plain sheet and the truth, on disk."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from scancell.analysis.pattern_files import load_pattern_set
+    from scancell.analysis.stereo_calibration import CalibrationError, ChessboardSpec
+    from scancell.model.pattern_set import PatternSpecError
+    from scancell.sim.profiles import ProfileError
+
+    try:
+        spec = load_pattern_set(args.patterns)
+        board = ChessboardSpec.parse(args.target)
+        sim = RigSimulator(default_rig(args.scale), optics_profile(args.profile), args.seed,
+                           args.bit_depth)
+    except (PatternSpecError, CalibrationError, ProfileError) as exc:
+        print(f"scancell sim rig: {exc}", file=sys.stderr)
+        return 2
+    if not 0 <= args.poses <= len(BOARD_POSES):
+        print(f"scancell sim rig: --poses {args.poses}: 0 to {len(BOARD_POSES)}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sim.truth.write(out / "rig_true.yaml")
+    size = (board.cols - 1) * board.square_mm, (board.rows - 1) * board.square_mm
+
+    def save(folder: Path, frames: list[np.ndarray]) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        for k, f in enumerate(frames):
+            cv2.imwrite(str(folder / f"frame_{k:02d}.png"), f)
+
+    for i, (d, tilt, centre) in enumerate(BOARD_POSES[:args.poses]):
+        plane = Plane(board_pose(d, tilt, centre, size), board.square_mm, board.cols, board.rows)
+        save(out / f"board_{i:02d}", sim.render(plane, spec))
+        print(f"board pose {i + 1}/{args.poses} -> {out / f'board_{i:02d}'}")
+    sheet = Plane(board_pose(450.0, (12.0, -18.0)))
+    save(out / "plane", sim.render(sheet, spec))
+    T = sheet.T_cam_from_board
+    truth = {"plane_normal": T[:3, 2].tolist(), "plane_offset_mm": float(T[:3, 2] @ T[:3, 3]),
+             "frame": "camera", "patterns": spec.to_dict(), "bit_depth": args.bit_depth,
+             "profile": args.profile, "seed": args.seed}
+    (out / "truth.json").write_text(json.dumps(truth, indent=2))
+    pw, ph = sim.truth.projector_size
+    (out / "patterns.json").write_text(json.dumps({**spec.to_dict(),
+                                                   "projector": {"width": pw, "height": ph}},
+                                                  indent=2))
+    print(f"{len(spec)} frames a capture of {sim.truth.image_size[0]} x {sim.truth.image_size[1]} "
+          f"px; the sheet's plane and the true rig -> {out}")
+    return 0

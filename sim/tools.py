@@ -206,6 +206,10 @@ def run(args: argparse.Namespace) -> int:
         return targets(args)
     if args.sim_command == "nominal":
         return nominal(args)
+    if args.sim_command == "rig":
+        from scancell.sim.projector_rig_sim import write_captures
+
+        return write_captures(args)
     return render(args)
 
 
