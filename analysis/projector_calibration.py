@@ -66,8 +66,8 @@ def corner_projector_coords(corners: np.ndarray, view: ViewDecode, window: int) 
     out = np.full((len(corners), 2), np.nan)
     need = MIN_WINDOW_SHARE * (2 * window + 1) ** 2
     for i, (cx, cy) in enumerate(corners):
-        x0, x1 = int(round(cx)) - window, int(round(cx)) + window + 1
-        y0, y1 = int(round(cy)) - window, int(round(cy)) + window + 1
+        ix, iy = int(np.rint(cx)), int(np.rint(cy))
+        x0, x1, y0, y1 = ix - window, ix + window + 1, iy - window, iy + window + 1
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
             continue
         uu, vv = u_map[y0:y1, x0:x1], v_map[y0:y1, x0:x1]
