@@ -237,7 +237,7 @@ def decode_view(frames: Sequence[np.ndarray], spec: PatternSet, projector_size: 
         raise DecodeError(f"unknown compensation {compensation!r}: 'passive' or 'off'")
     limits = (limits or DecodeLimits()).merged(spec.limits)
     check_frames(frames, spec, names, where)
-    spec.check_projector(*projector_size, where=f"{where}: pattern set {spec.name}".rstrip())
+    spec.check_projector(*projector_size, where=spec.source or f"pattern set {spec.name}".rstrip())
     to_dn = np.float32(255.0 / full_scale(frames, names))
     sizes = {"x": projector_size[0], "y": projector_size[1]}
     z = limits.confidence_sigmas

@@ -58,15 +58,13 @@ def reconstruct(rig: CameraProjectorRig, view: ViewDecode, limits: DecodeLimits 
     t1 = time.perf_counter()
     u = masked["x"][rows, cols] if "x" in masked else None
     v = masked["y"][rows, cols] if "y" in masked else None
-    X = rig.triangulate(rows, cols, u, v)
+    X, per_px = rig.triangulate_with_sensitivity(rows, cols, u, v)
     good = np.isfinite(X).all(1) & (X[:, 2] > limits.z_min_mm) & (X[:, 2] < limits.z_max_mm)
-    X, rows, cols = X[good], rows[good], cols[good]
+    X, per_px, rows, cols = X[good], per_px[good], rows[good], cols[good]
     t2 = time.perf_counter()
-    # depth noise: σ_coordinate · |dX/dcoordinate|; with both axes, the better-conditioned one
+    # the point's noise: the coordinate's (the column's, else the row's) times |∂X/∂coordinate|
     axis = "x" if "x" in view.sigma else "y"
-    sig = view.sigma[axis][rows, cols].astype(np.float64)
-    per_px = rig.depth_per_px(X, 0 if axis == "x" else 1) if len(X) else np.zeros(0)
-    unc = (sig * per_px).astype(np.float32)
+    unc = (view.sigma[axis][rows, cols] * per_px).astype(np.float32)
     if timings is not None:
         timings.update(mask=t1 - t0, triangulate=t2 - t1, uncertainty=time.perf_counter() - t2)
     return Cloud(X.astype(np.float32), view.modulation[rows, cols].astype(np.float32),

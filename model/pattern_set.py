@@ -142,6 +142,8 @@ class PatternSet:
     limits: dict[str, float] = field(default_factory=dict)
     width: int | None = None
     height: int | None = None
+    #: where the spec came from (its file, or "preset NAME"), for messages
+    source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         if not self.groups:
@@ -299,7 +301,7 @@ class PatternSet:
                        frames if frames is None or isinstance(frames, str) else tuple(frames),
                        {k: float(v) for k, v in limits.items()},
                        int(proj["width"]) if "width" in proj else None,
-                       int(proj["height"]) if "height" in proj else None)
+                       int(proj["height"]) if "height" in proj else None, where)
         except PatternSpecError as exc:
             raise PatternSpecError(f"{where}: {exc}") from None
 
