@@ -55,7 +55,7 @@ def check_board(points: np.ndarray, pixels: np.ndarray, background: np.ndarray, 
     centre = P.mean(0)
     normal = np.linalg.svd(P - centre, full_matrices=False)[2][2]
     r = (P - centre) @ normal
-    ok, rvec, tvec = cv2.solvePnP(board.object_points().astype(np.float64), corners.astype(np.float64),
+    _, rvec, tvec = cv2.solvePnP(board.object_points().astype(np.float64), corners.astype(np.float64),
                                   K, D)
     n_pnp = cv2.Rodrigues(rvec)[0][:, 2]
     d = P @ n_pnp - n_pnp @ tvec.ravel()

@@ -66,8 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                     "for `scancell decode`) and DIR/truth.json")
     rg.add_argument("--patterns", default="gray-phase-xy",
                     help="a pattern-set preset or spec file (default gray-phase-xy)")
-    rg.add_argument("--poses", type=int, default=8, help="checkerboard poses (0: none)")
-    rg.add_argument("--target", default="9x7x15", help="COLSxROWSxSQUARE_MM of the board")
+    rg.add_argument("--poses", type=int, default=10, help="checkerboard poses (0: none)")
+    rg.add_argument("--target", default="9x7x18", help="COLSxROWSxSQUARE_MM of the board")
     rg.add_argument("--scale", type=float, default=1.0, help="camera resolution factor")
     rg.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=8)
     rg.add_argument("--profile", default="realistic", help="optics profile (docs/simulation.md)")

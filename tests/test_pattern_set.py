@@ -110,7 +110,7 @@ def test_spec_files_in_toml_and_json_and_their_errors(tmp_path):
     assert load_pattern_set(js) == spec
     bad = tmp_path / "bad.toml"
     bad.write_text("groups = [")
-    with pytest.raises(PatternSpecError, match="bad.toml: not valid TOML"):
+    with pytest.raises(PatternSpecError, match=r"bad.toml: not valid TOML"):
         load_pattern_set(bad)
     with pytest.raises(PatternSpecError, match="neither a preset"):
         load_pattern_set(tmp_path / "missing.toml")
@@ -127,8 +127,8 @@ def test_frames_are_found_by_glob_or_in_natural_name_order(tmp_path):
     (tmp_path / "notes.txt").write_text("x")
     assert [p.name for p in find_frames(tmp_path, spec)] == [f"f{k}.png" for k in (0, 1, 2, 3, 4, 10)]
     (tmp_path / "f11.png").write_bytes(b"")
-    with pytest.raises(ImageSetError, match="7 frames .* needs 6"):
+    with pytest.raises(ImageSetError, match=r"7 frames .* needs 6"):
         find_frames(tmp_path, spec)
     picked = PatternSet.from_dict({**spec.to_dict(), "frames": "f[0-4].png"})
-    with pytest.raises(ImageSetError, match="5 frames matching 'f\\[0-4\\].png'"):
+    with pytest.raises(ImageSetError, match=r"5 frames matching 'f\[0-4\].png'"):
         find_frames(tmp_path, picked)

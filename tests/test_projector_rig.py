@@ -97,12 +97,12 @@ def test_bad_frames_are_named():
     frames = sim.render(SHEET, spec)
     names = [f"f{k}.png" for k in range(6)]
     mixed = [*frames[:5], frames[5].astype(np.uint16) * 16]
-    with pytest.raises(DecodeError, match="f5.png: uint16 pixels, but f0.png is uint8"):
+    with pytest.raises(DecodeError, match=r"f5.png: uint16 pixels, but f0.png is uint8"):
         decode_view(mixed, spec, sim.truth.projector_size, names=names)
     with pytest.raises(DecodeError, match="5 frames, but the pattern set slstudio-2x3 needs 6"):
         decode_view(frames[:5], spec, sim.truth.projector_size, names=names)
     small = [*frames[:3], frames[3][:-2], *frames[4:]]
-    with pytest.raises(DecodeError, match="f3.png: size"):
+    with pytest.raises(DecodeError, match=r"f3.png: size"):
         decode_view(small, spec, sim.truth.projector_size, names=names)
 
 
@@ -150,12 +150,13 @@ def test_slstudio_calibration_is_read_as_it_is(tmp_path):
     start, end = text.index("<Kp"), text.index("</Tp>") + len("</Tp>")
     broken = tmp_path / "camera_only.xml"
     broken.write_text(text[:start] + text[end:])
-    with pytest.raises(CalibrationError, match="camera_only.xml: a camera-only calibration .*Kp"):
+    with pytest.raises(CalibrationError, match=r"camera_only.xml: a camera-only calibration .*Kp"):
         read_rig(broken)
 
 
 def _slstudio() -> Path:
-    return Path(__file__).resolve().parent.parent.parent / "shared/data/realfringe/slstudio/calibration/calibration.xml"
+    return (Path(__file__).resolve().parent.parent.parent
+            / "shared/data/realfringe/slstudio/calibration/calibration.xml")
 
 
 @pytest.mark.unit
@@ -180,14 +181,14 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 @pytest.mark.process
 def test_a_simulated_rig_is_calibrated_from_phase_maps_and_measures_the_true_plane(tmp_path):
     """scancell sim rig -> scancell calibrate projector-rig -> scancell decode, by the CLIs."""
-    r = _run("sim", "rig", "--scale", "0.5", "--poses", "8", "--out", str(tmp_path))
+    r = _run("sim", "rig", "--scale", "0.5", "--poses", "10", "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     rig_file = tmp_path / "rig.yaml"
     r = _run("calibrate", "projector-rig", "--patterns", str(tmp_path / "patterns.json"),
-             "--target", "9x7x15", "--out", str(rig_file),
+             "--target", "9x7x18", "--out", str(rig_file),
              *sorted(str(p) for p in tmp_path.glob("board_*")))
     assert r.returncode == 0, r.stderr
-    assert "calibration from 8 poses" in r.stdout
+    assert "calibration from 10 poses" in r.stdout
     got, true = read_rig(rig_file), read_rig(tmp_path / "rig_true.yaml")
     d_r = got.R @ true.R.T
     assert np.degrees(np.arccos(np.clip((np.trace(d_r) - 1) / 2, -1, 1))) < 0.05
@@ -201,7 +202,8 @@ def test_a_simulated_rig_is_calibrated_from_phase_maps_and_measures_the_true_pla
     truth = json.loads((tmp_path / "truth.json").read_text())
     pts, fields = read_ply(out)
     res = pts @ np.array(truth["plane_normal"]) - truth["plane_offset_mm"]
-    assert abs(np.mean(res)) < 0.05 and np.sqrt(np.mean(res ** 2)) < 0.1  # mm, against the truth
+    # mm, against the truth (measured: -0.020 / 0.032 mm at seeds 0 and 1; 8 poses: -0.09 / 0.10)
+    assert abs(np.mean(res)) < 0.06 and np.sqrt(np.mean(res ** 2)) < 0.08
     assert "uncertainty" in fields
     header = out.read_bytes()[:600].decode("ascii", "replace")
     assert "comment frame: camera" in header
