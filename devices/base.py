@@ -433,6 +433,9 @@ class Projector(Device):
     - the scanner's fringe sequence ``{"kind": "fringe", "steps": 3, "periods": [70, 64, 59]}``,
       optionally with ``"precompensation"``: 256 ints, the 8-bit value to project for each
       value wanted (the inverse of a projector-response calibration);
+    - any pattern set ``{"kind": "patterns", "patterns": "gray-phase"}`` (a preset name or a
+      pattern-set table, :mod:`scancell.model.pattern_set`), also with an optional
+      ``"precompensation"``;
     - uniform levels ``{"kind": "levels", "levels": [0, 15, …, 255]}``: pattern k lights the
       whole image at levels[k] (a projector-response calibration).
     """

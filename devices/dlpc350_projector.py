@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 
 from scancell.devices.dlp_projector import DLP_OPTIONS, DlpProjector, ValidationFailed
 from scancell.devices.errors import DeviceFault, Timeout
+from scancell.model.pattern_set import PatternSpecError, sequence_pattern_set
 from scancell.protocols import dlpc350 as c
 from scancell.protocols.commands import CommandError
 
@@ -29,7 +30,8 @@ FLASH_LAYOUT_SCHEMA: dict[str, Any] = {
     "type": "array",
     "items": {"type": "object", "required": ["kind", "first_image"],
               "additionalProperties": False, "properties": {
-                  "kind": {"enum": ["fringe", "levels"]},
+                  "kind": {"enum": ["fringe", "levels", "patterns"]},
+                  "patterns": {"type": ["string", "object"]},
                   "first_image": {"type": "integer", "minimum": 0, "maximum": 255},
                   "periods": {"type": "array", "minItems": 1,
                               "items": {"type": "number", "exclusiveMinimum": 0}},
@@ -40,8 +42,11 @@ FLASH_LAYOUT_SCHEMA: dict[str, Any] = {
                                       "items": {"type": "integer", "minimum": 0,
                                                 "maximum": 255}}},
               "allOf": [{"if": {"properties": {"kind": {"const": "levels"}}},
-                         "then": {"required": ["levels"]},
-                         "else": {"required": ["periods"]}}]},
+                         "then": {"required": ["levels"]}},
+                        {"if": {"properties": {"kind": {"const": "fringe"}}},
+                         "then": {"required": ["periods"]}},
+                        {"if": {"properties": {"kind": {"const": "patterns"}}},
+                         "then": {"required": ["patterns"]}}]},
 }
 
 
@@ -57,16 +62,20 @@ def locate(flash: list[dict[str, Any]], spec: dict[str, Any]) -> list[tuple[int,
         if missing:
             return f"levels {missing} are not in the projector's flash"
         return [where[int(v)] for v in spec["levels"]]
-    periods = [float(p) for p in spec.get("periods", [70, 64, 59])]
-    steps = int(spec.get("steps", 3))
+    try:
+        wanted = sequence_pattern_set(spec)
+    except PatternSpecError as exc:
+        return str(exc)
     pre = spec.get("precompensation")
     for entry in flash:
-        if (entry["kind"] == "fringe" and [float(p) for p in entry["periods"]] == periods
-                and int(entry.get("steps", 3)) == steps and entry.get("precompensation") == pre):
-            return [(entry["first_image"] + k // PLANES, k % PLANES)
-                    for k in range(steps * len(periods))]
+        if (entry["kind"] != "levels" and sequence_pattern_set(entry).shows_the_same(wanted)
+                and entry.get("precompensation") == pre):
+            return [(entry["first_image"] + k // PLANES, k % PLANES) for k in range(len(wanted))]
     what = "pre-compensated " if pre is not None else ""
-    return (f"the projector's flash holds no {what}fringes of periods {periods} x {steps} steps "
+    seq = wanted.fringe_sequence()
+    held = (f"fringes of periods {list(seq.periods)} x {seq.steps} steps" if seq is not None
+            else f"pattern set {wanted.name or wanted.to_dict()['groups']}")
+    return (f"the projector's flash holds no {what}{held} "
             f"(a DLPC350 plays flash images only: flash them, docs/commissioning.md)")
 
 
@@ -75,7 +84,7 @@ def images_needed(flash: list[dict[str, Any]]) -> int:
     def patterns(e: dict[str, Any]) -> int:
         if e["kind"] == "levels":
             return len(e["levels"])
-        return int(e.get("steps", 3)) * len(e.get("periods", [70, 64, 59]))
+        return len(sequence_pattern_set(e))
 
     return max((e["first_image"] + -(-patterns(e) // PLANES) for e in flash), default=0)
 

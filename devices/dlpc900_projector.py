@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scancell.devices.dlp_projector import DLP_OPTIONS, DlpProjector, ValidationFailed
 from scancell.devices.errors import DeviceFault
-from scancell.model.patterns import FringeSequence
+from scancell.model.pattern_set import sequence_pattern_set
 from scancell.protocols import dlpc900 as c
 from scancell.protocols.commands import CommandError
 
@@ -31,8 +31,8 @@ def pattern_images(spec: dict[str, Any], width: int, height: int) -> list[np.nda
         if not levels or min(levels) < 0 or max(levels) > 255:
             raise ValueError(f"levels must be 8-bit values, got {spec.get('levels')}")
         return [np.full((height, width), v, np.uint8) for v in levels]
-    seq = FringeSequence.from_spec(spec)
-    images = [seq.image(k, width, height) for k in range(len(seq))]
+    patterns = sequence_pattern_set(spec)
+    images = [patterns.image(k, width, height) for k in range(len(patterns))]
     pre = spec.get("precompensation")
     if pre is not None:
         lut = np.asarray(pre, np.int64)

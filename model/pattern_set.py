@@ -228,6 +228,10 @@ class PatternSet:
                     f"{size} px along {g.axis}: it needs {int(np.ceil(np.log2(size / g.stripe(size))))} "
                     f"bits")
 
+    def shows_the_same(self, other: PatternSet) -> bool:
+        """Whether both project the same frames (names, unwrapping and limits aside)."""
+        return self.groups == other.groups and self.placement() == other.placement()
+
     # -- rendering ---------------------------------------------------------------------------
     def frame_profile(self, k: int, size_x: int, size_y: int) -> tuple[str, np.ndarray] | None:
         """(axis, relative intensity along that axis, float 0 … 1) of frame k; None for a frame
@@ -421,3 +425,26 @@ def preset(name: str) -> PatternSet:
     if name not in PRESETS:
         raise PatternSpecError(f"no preset {name!r}; presets: {', '.join(PRESETS)}")
     return PatternSet.from_dict(PRESETS[name], f"preset {name}")
+
+
+def sequence_pattern_set(spec: dict[str, Any]) -> PatternSet:
+    """The pattern set a projector sequence spec (the ``load_sequence`` command, a DLPC350 flash
+    entry) describes: kind ``"fringe"`` (``periods``, ``steps``: the scanner's phase-shift
+    fringes) or kind ``"patterns"`` (``patterns``: a preset name or a pattern-set table).
+    PatternSpecError otherwise."""
+    kind = spec.get("kind", "fringe")
+    if kind == "patterns":
+        value = spec.get("patterns")
+        if isinstance(value, str):
+            return preset(value)
+        if isinstance(value, dict):
+            return PatternSet.from_dict(value, "patterns")
+        raise PatternSpecError("kind 'patterns' needs 'patterns': a preset name or a pattern-set table")
+    if kind != "fringe":
+        raise PatternSpecError(f"sequence kind {kind!r}: 'fringe', 'patterns' or 'levels'")
+    from scancell.model.patterns import FringeSequence
+
+    try:
+        return PatternSet.from_fringe_sequence(FringeSequence.from_spec(spec))
+    except ValueError as exc:
+        raise PatternSpecError(str(exc)) from None

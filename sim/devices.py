@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scancell.devices.base import OK, Camera, CameraSettings, Frame, Health, Projector, operation
 from scancell.devices.errors import ConnectionLost, Timeout
-from scancell.model.patterns import FringeSequence
+from scancell.model.pattern_set import sequence_pattern_set
 from scancell.protocols.commands import CommandError
 from scancell.protocols.messages import now_ns
 from scancell.sim.cell import UNIFORM_BASE
@@ -198,10 +198,16 @@ class SimProjector(SimLink, Projector):
                     raise ValueError(f"levels must be 8-bit values, got {spec['levels']}")
                 self._levels = levels
                 return len(levels)
-            seq = FringeSequence.from_spec(spec)
+            patterns = sequence_pattern_set(spec)
+            seq = patterns.fringe_sequence()
+            if seq is None:
+                raise ValueError(
+                    f"the simulated binocular cell renders column phase-shift fringes of one step "
+                    f"count from frame 0 (a FringeSequence); pattern set {patterns.name or spec} is "
+                    f"not one (`scancell sim rig` renders any pattern set on a camera-projector rig)")
             pre = spec.get("precompensation")
             lut = None if pre is None else np.asarray(pre, np.int64)
-        except (ValueError, TypeError, KeyError) as exc:
+        except (ValueError, TypeError, KeyError) as exc:  # PatternSpecError is a ValueError
             raise CommandError("invalid", f"{self.name}: {exc}") from None
         self._levels = None
 

@@ -19,7 +19,7 @@ from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
-from scancell.model.patterns import FringeSequence
+from scancell.model.pattern_set import sequence_pattern_set
 from scancell.protocols import dlp_hid
 from scancell.protocols import dlpc350 as c350
 from scancell.protocols import dlpc900 as c900
@@ -410,9 +410,8 @@ def flash_images(layout: list[dict[str, Any]], width: int, height: int) -> list[
         if entry["kind"] == "levels":
             pats = [np.full((height, width), int(v), np.uint8) for v in entry["levels"]]
         else:
-            seq = FringeSequence(tuple(float(p) for p in entry["periods"]),
-                                 int(entry.get("steps", 3)))
-            pats = [seq.image(k, width, height) for k in range(len(seq))]
+            patterns = sequence_pattern_set(entry)
+            pats = [patterns.image(k, width, height) for k in range(len(patterns))]
             if entry.get("precompensation") is not None:
                 lut = np.asarray(entry["precompensation"], np.uint8)
                 pats = [lut[p] for p in pats]

@@ -223,3 +223,20 @@ def test_basler_unknown_serial_names_what_was_found():
             await BaslerCamera("cam", {"serial": "12345678"}).connect()
 
     asyncio.run(body())
+
+
+@pytest.mark.unit
+def test_the_simulated_cell_renders_pattern_sets_it_can_and_names_those_it_cannot(world):
+    from scancell.protocols.commands import CommandError
+
+    async def run() -> None:
+        async with scanner(world) as (_, _, projector):
+            assert await projector.load_sequence({"kind": "patterns",
+                                                  "patterns": "slstudio-2x3"}) == 6
+            assert world.cell.sequence.periods == (16.0, 1.0)
+            with pytest.raises(CommandError, match="pattern set gray-phase is not one"):
+                await projector.load_sequence({"kind": "patterns", "patterns": "gray-phase"})
+            with pytest.raises(CommandError, match="no preset 'nope'"):
+                await projector.load_sequence({"kind": "patterns", "patterns": "nope"})
+
+    asyncio.run(run())

@@ -430,3 +430,49 @@ def test_hid_url_opens_through_hidapi_with_the_report_id(monkeypatch: pytest.Mon
             open_link("usb://0451:6401")
     finally:
         emu.stop()
+
+
+@pytest.mark.parametrize("patterns", ["gray-phase", "slstudio-2x3"])
+def test_dlpc900_uploads_any_pattern_set_as_its_spec_renders_it(patterns: str) -> None:
+    """The same spec renders the projector's images and describes the decode."""
+    from scancell.model.pattern_set import preset
+
+    gen = _emulated("dlpc900")
+    emu, proj = next(gen)
+
+    async def run() -> None:
+        await proj.connect()
+        spec = preset(patterns)
+        assert await proj.load_sequence({"kind": "patterns", "patterns": patterns}) == len(spec)
+        await proj.play()
+        shown = emu.server.firmware.images()
+        assert len(shown) == len(spec)
+        for k, img in enumerate(shown):
+            np.testing.assert_array_equal(img, spec.image(k, 320, 200))
+        # a table, as a spec file would hold it, loads the same
+        table = {"kind": "patterns", "patterns": spec.to_dict()}
+        assert await proj.load_sequence(table) == len(spec)
+
+    try:
+        asyncio.run(run())
+    finally:
+        next(gen, None)
+
+
+def test_dlpc350_flash_holds_pattern_sets_and_the_driver_finds_them() -> None:
+    from scancell.model.pattern_set import preset
+
+    flash = [*DEFAULT_FLASH, {"kind": "patterns", "patterns": "slstudio-2x3", "first_image": 20}]
+    where = locate(flash, {"kind": "patterns", "patterns": "slstudio-2x3"})
+    assert where == [(20, 0), (20, 1), (20, 2), (21, 0), (21, 1), (21, 2)]
+    # the heterodyne preset is the flash's fringe entry: one spec, one set of images
+    assert locate(flash, {"kind": "patterns", "patterns": "heterodyne-3x3"}) == locate(flash, FRINGES)
+    assert "holds no pattern set gray-phase" in locate(flash, {"kind": "patterns",
+                                                               "patterns": "gray-phase"})
+    assert "no preset 'nope'" in locate(flash, {"kind": "patterns", "patterns": "nope"})
+    from scancell.sim.dlp_emulator import flash_images
+
+    planes = flash_images(flash, 64, 40)
+    spec = preset("slstudio-2x3")
+    for k, (img, plane) in enumerate(where):
+        np.testing.assert_array_equal(planes[img][plane], spec.image(k, 64, 40))
