@@ -165,3 +165,25 @@ def measured_noise_dn(phase: np.ndarray, modulation: np.ndarray, steps: int,
         return float(max(1.0, QUANTISATION_DN))  # too little to measure: 1 DN, a typical camera
     mad = float(np.median(np.abs(best - np.median(best))))
     return float(max(MAD_TO_SIGMA * mad / np.sqrt(ROUGHNESS_VARIANCE * 2.0 / steps), QUANTISATION_DN))
+
+
+def typical_step(coord: np.ndarray) -> float:
+    """Median change of a coordinate map between horizontal and vertical neighbours (px): the
+    surface's own slope, whichever image axis the fringes cross."""
+    with np.errstate(invalid="ignore"):
+        sx = np.nanmedian(np.abs(np.diff(coord[::4], axis=1))) if coord.shape[1] > 1 else np.nan
+        sy = np.nanmedian(np.abs(np.diff(coord[:, ::4], axis=0))) if coord.shape[0] > 1 else np.nan
+    finite = [v for v in (sx, sy) if np.isfinite(v)]
+    return float(max(finite)) if finite else 1.0
+
+
+def discontinuity_limits(coord: np.ndarray, sigma: np.ndarray, limits: DecodeLimits
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """The per-pixel step and bend limits (px) of a coordinate map with noise ``sigma`` (px),
+    or the limits' fixed values where set."""
+    z = limits.confidence_sigmas
+    step = (np.float32(limits.step_limit_px) if limits.step_limit_px is not None
+            else step_limit(typical_step(coord), sigma, z))
+    bend = (np.float32(limits.bend_limit_px) if limits.bend_limit_px is not None
+            else bend_limit(sigma, z))
+    return step, bend

@@ -19,26 +19,11 @@ from scancell.analysis.projector_rig import CameraProjectorRig
 from scancell.analysis.stereo import Cloud, mask_discontinuities
 
 
-def typical_step(coord: np.ndarray) -> float:
-    """Median change of the coordinate between horizontal and vertical neighbours (px): the
-    surface's own slope (fringes along either image axis)."""
-    with np.errstate(invalid="ignore"):
-        sx = np.nanmedian(np.abs(np.diff(coord[::4], axis=1)))
-        sy = np.nanmedian(np.abs(np.diff(coord[:, ::4], axis=0)))
-    step = np.nanmax([sx, sy]) if np.isfinite([sx, sy]).any() else np.nan
-    return float(step) if np.isfinite(step) else 1.0
-
-
 def masked_coordinates(view: ViewDecode, limits: DecodeLimits) -> dict[str, np.ndarray]:
     """Each axis's coordinates with depth edges, mixed pixels and the border masked."""
-    z = limits.confidence_sigmas
     out = {}
     for axis, coord in view.coords.items():
-        sigma = view.sigma[axis]
-        step = (np.float32(limits.step_limit_px) if limits.step_limit_px is not None
-                else lim.step_limit(typical_step(coord), sigma, z))
-        bend = (np.float32(limits.bend_limit_px) if limits.bend_limit_px is not None
-                else lim.bend_limit(sigma, z))
+        step, bend = lim.discontinuity_limits(coord, view.sigma[axis], limits)
         out[axis] = mask_discontinuities(coord, step, bend, limits.border_px)
     return out
 

@@ -195,11 +195,15 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
                 rect: Rectification | None = None, max_step_px: float | None = None,
                 z_range_mm: tuple[float, float] = (50.0, 5000.0),
                 timings: dict[str, float] | None = None, engine: str = "fast",
-                sigma: tuple[np.ndarray, np.ndarray] | None = None) -> Cloud:
+                sigma: tuple[np.ndarray, np.ndarray] | None = None,
+                edge_limits: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+                | None = None, border_px: int = 3) -> Cloud:
     """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s).
     ``engine="numpy"`` matches with the numpy reference instead of the numba kernel.
     ``sigma``: the left and right column-noise maps (analysis.uncertainty.column_sigma), for a
-    per-point uncertainty."""
+    per-point uncertainty. ``edge_limits``: per camera the (step, bend) limits of
+    :func:`mask_discontinuities`, per pixel (analysis.decode_limits.discontinuity_limits);
+    None: steps of 3 x the typical step and bends of 0.75 px (the scanner's fixed ones)."""
     clock = time.perf_counter
     t0 = clock()
     for side, pm in (("left", left), ("right", right)):
@@ -207,11 +211,12 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
     rect = rect or rectify(calib)
     if max_step_px is None:  # a few times the surface's own slope: depth edges jump far more
         max_step_px = 3.0 * typical_step(left.column)
-    if engine == "fast":
+    if engine == "fast" and edge_limits is None:
         return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0,
                                  sigma)
-    col_l = _remap(mask_discontinuities(left.column, max_step_px), rect.maps1)
-    col_r = _remap(mask_discontinuities(right.column, max_step_px), rect.maps2)
+    (step_l, bend_l), (step_r, bend_r) = edge_limits or ((max_step_px, 0.75), (max_step_px, 0.75))
+    col_l = _remap(mask_discontinuities(left.column, step_l, bend_l, border_px), rect.maps1)
+    col_r = _remap(mask_discontinuities(right.column, step_r, bend_r, border_px), rect.maps2)
     t1 = clock()
     rows, xl, xr = match_rows(col_l, col_r, max_step_px)
     t2 = clock()

@@ -112,6 +112,7 @@ def _binocular_patterns(args: argparse.Namespace, rig, t0: float) -> int:
     from pathlib import Path
 
     from scancell.analysis.cloud_io import write_ply
+    from scancell.analysis.decode_limits import discontinuity_limits
     from scancell.analysis.pattern_decode import decode_view
     from scancell.analysis.pattern_files import find_frames, load_pattern_set, read_frames
     from scancell.analysis.phase import DecodeError
@@ -141,8 +142,10 @@ def _binocular_patterns(args: argparse.Namespace, rig, t0: float) -> int:
                                  args.compensation, names, where=f"{args.images}/{side}"))
     t2 = time.perf_counter()
     steps: dict[str, float] = {}
+    edges = tuple(discontinuity_limits(v.coords["x"], v.sigma["x"], limits) for v in views)
     cloud = reconstruct(rig, views[0].phase_map(), views[1].phase_map(), timings=steps,
-                        engine="numpy", z_range_mm=(limits.z_min_mm, limits.z_max_mm))
+                        engine="numpy", z_range_mm=(limits.z_min_mm, limits.z_max_mm),
+                        edge_limits=edges, border_px=limits.border_px)
     if len(cloud) == 0:
         raise DecodeError("no stereo matches: do both cameras see the same lit surface?")
     write_ply(args.out, cloud.points, {"quality": cloud.quality, "intensity": cloud.intensity},

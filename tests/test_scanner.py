@@ -170,6 +170,29 @@ def test_decode_cli_matches_the_true_surface(station, tmp_path):
     assert len(pts) > 0.6 * len(cell.true_points())
 
 
+@pytest.mark.process
+def test_binocular_decode_of_a_pattern_set_matches_the_true_surface(station, tmp_path):
+    """The generic decoder (analysis/pattern_decode.py) on two cameras: a spec that picks the
+    frames by glob, limits derived from the measured noise, then the stereo matcher."""
+    root, cell = station["root"], station["cell"]
+    spec = tmp_path / "het.toml"
+    spec.write_text('frames = "*.png"\nunwrap = "heterodyne"\n' + "".join(
+        f'[[groups]]\nkind = "phase_shift"\naxis = "x"\nperiods = {p}\nsteps = 3\n'
+        for p in (70, 64, 59)))
+    out = subprocess.run([sys.executable, "-m", "scancell", "decode", "--calib",
+                          str(station["calib"]), "--images", str(root / "images"), "--patterns",
+                          str(spec), "--out", str(tmp_path / "cloud.ply")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    pts, _ = read_ply(tmp_path / "cloud.ply")
+    world = apply_T(cell.T_world_from_mcs(), pts)
+    d = cell.surface_distance(apply_T(_rigid_fit(world, cell), world))
+    assert np.sqrt(np.mean(d**2)) < 0.08  # mm, as the default decode's test
+    assert np.percentile(d, 99.9) < 0.5
+    assert len(pts) > 0.5 * len(cell.true_points())
+    assert "comment frame: MCS" in (tmp_path / "cloud.ply").read_bytes()[:400].decode("ascii", "replace")
+
+
 def _rigid_fit(points_world: np.ndarray, cell: SimCell) -> np.ndarray:
     """Point-to-plane ICP of the cloud onto the true surface (world), 4x4."""
     import open3d as o3d
