@@ -31,7 +31,13 @@ import cv2
 import numpy as np
 from scancell.analysis import decode_limits as lim
 from scancell.analysis.decode_limits import DecodeLimits
-from scancell.analysis.phase import DecodeError, PhaseMap, heterodyne_tree, unwrap_heterodyne
+from scancell.analysis.phase import (
+    DecodeError,
+    PhaseMap,
+    check_one_size,
+    heterodyne_tree,
+    unwrap_heterodyne,
+)
 from scancell.analysis.phase_response import (
     BINS,
     MIN_PIXELS,
@@ -141,18 +147,11 @@ def full_scale(frames: Sequence[np.ndarray], names: Sequence[str] | None = None)
 
 def check_frames(frames: Sequence[np.ndarray], spec: PatternSet,
                  names: Sequence[str] | None = None, where: str = "frames") -> None:
-    label = (lambda i: names[i]) if names else (lambda i: f"frame {i}")
     if len(frames) != len(spec):
         raise DecodeError(f"{where}: {len(frames)} frames, but the pattern set "
                           f"{spec.name or ''} needs {len(spec)} (set 'frames' in the spec to pick "
                           f"them)".replace("  ", " "))
-    shape = frames[0].shape
-    for i, f in enumerate(frames):
-        if f.ndim != 2:
-            raise DecodeError(f"{label(i)}: expected a single-channel image, got shape {f.shape}")
-        if f.shape != shape:
-            raise DecodeError(f"{label(i)}: size {f.shape[1]} x {f.shape[0]} differs from "
-                              f"{label(0)}'s {shape[1]} x {shape[0]}")
+    check_one_size(frames, names)
 
 
 def group_phase(frames: Sequence[np.ndarray], g: PhaseShiftGroup, to_dn: float) -> GroupPhase:

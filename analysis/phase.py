@@ -177,9 +177,14 @@ def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float],
 
 
 def _check_images(images: Sequence[np.ndarray], expected: int, names: Sequence[str] | None) -> None:
-    label = (lambda i: names[i]) if names else (lambda i: f"image {i}")
     if len(images) != expected:
         raise DecodeError(f"expected {expected} images (K periods x N steps), got {len(images)}")
+    check_one_size(images, names)
+
+
+def check_one_size(images: Sequence[np.ndarray], names: Sequence[str] | None = None) -> None:
+    """DecodeError naming the first image that is not one channel of the first one's size."""
+    label = (lambda i: names[i]) if names else (lambda i: f"image {i}")
     shape = images[0].shape
     for i, img in enumerate(images):
         if img.ndim != 2:

@@ -301,18 +301,11 @@ def read_rig(path: str | Path) -> Any:
     ``calibration.xml``) or a binocular
     :class:`~scancell.analysis.stereo_calibration.StereoCalibration` (``mode: binocular`` or no
     mode, the stereo.yaml of ``scancell calibrate cameras``)."""
-    from scancell.analysis.stereo_calibration import StereoCalibration
+    from scancell.analysis.stereo_calibration import StereoCalibration, open_storage
 
     p = Path(path)
-    if not p.is_file():
-        raise CalibrationError(f"{p}: no such calibration file")
+    fs = open_storage(p)
     try:
-        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise CalibrationError(f"{p}: not an OpenCV FileStorage file: {exc.err}") from None
-    try:
-        if not fs.isOpened():
-            raise CalibrationError(f"{p}: cannot be opened as OpenCV FileStorage")
         node = fs.getNode("mode")
         mode = node.string() if not node.empty() else ""
         if mode not in ("", MODE_BINOCULAR, MODE_CAMERA_PROJECTOR):

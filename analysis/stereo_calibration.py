@@ -28,6 +28,19 @@ class CalibrationError(ValueError):
     """A calibration file or a calibration image set is unusable; the message says why."""
 
 
+def open_storage(path: Path) -> cv2.FileStorage:
+    """An OpenCV FileStorage file opened for reading; CalibrationError naming the file."""
+    if not path.is_file():
+        raise CalibrationError(f"{path}: no such calibration file")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise CalibrationError(f"{path}: not an OpenCV FileStorage file: {exc.err}") from None
+    if not fs.isOpened():
+        raise CalibrationError(f"{path}: cannot be opened as OpenCV FileStorage")
+    return fs
+
+
 @dataclass
 class StereoCalibration:
     image_size: tuple[int, int]  # (width, height) px
@@ -66,15 +79,8 @@ class StereoCalibration:
     @classmethod
     def read(cls, path: str | Path) -> StereoCalibration:
         p = Path(path)
-        if not p.is_file():
-            raise CalibrationError(f"{p}: no such calibration file")
+        fs = open_storage(p)
         try:
-            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as exc:
-            raise CalibrationError(f"{p}: not an OpenCV FileStorage file: {exc.err}") from None
-        try:
-            if not fs.isOpened():
-                raise CalibrationError(f"{p}: cannot be opened as OpenCV FileStorage")
             values = {}
             for key in REQUIRED_KEYS:
                 node = fs.getNode(key)

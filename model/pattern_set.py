@@ -349,6 +349,12 @@ def _number(d: dict, key: str, where: str, kind=float, positive: bool = True):
     return kind(v)
 
 
+#: the keys each kind of group takes besides kind, axis, sign and first
+_GROUP_KEYS = {"phase_shift": ("steps", "periods", "period_px"),
+               "gray_code": ("bits", "stripe_px", "inverse"),
+               "complementary_gray_code": ("bits", "stripe_px", "inverse")}
+
+
 def _group(d: Any, where: str) -> Group:
     if not isinstance(d, dict):
         raise PatternSpecError(f"{where}: expected a table")
@@ -364,13 +370,13 @@ def _group(d: Any, where: str) -> Group:
     first = _number(d, "first", where, int, positive=False) if "first" in d else None
     if first is not None and first < 0:
         raise PatternSpecError(f"{where}.first = {first}: a frame index, 0 or more")
+    extra = sorted(set(d) - {"kind", "axis", "sign", "first", *_GROUP_KEYS[kind]})
+    if extra:
+        raise PatternSpecError(f"{where}: unknown key(s) {extra} for a {kind} group")
+    need = "steps" if kind == "phase_shift" else "bits"
+    if need not in d:
+        raise PatternSpecError(f"{where}: a {kind} group needs {need!r}")
     if kind == "phase_shift":
-        allowed = {"kind", "axis", "steps", "periods", "period_px", "sign", "first"}
-        extra = sorted(set(d) - allowed)
-        if extra:
-            raise PatternSpecError(f"{where}: unknown key(s) {extra} for a phase_shift group")
-        if "steps" not in d:
-            raise PatternSpecError(f"{where}: a phase_shift group needs 'steps'")
         steps = _number(d, "steps", where, int)
         if steps < 3:
             raise PatternSpecError(f"{where}.steps = {steps}: phase shifting needs at least 3 steps")
@@ -380,12 +386,6 @@ def _group(d: Any, where: str) -> Group:
         periods = _number(d, "periods", where) if "periods" in d else None
         period_px = _number(d, "period_px", where) if "period_px" in d else None
         return PhaseShiftGroup(axis, steps, periods, period_px, sign, first)
-    allowed = {"kind", "axis", "bits", "stripe_px", "inverse", "sign", "first"}
-    extra = sorted(set(d) - allowed)
-    if extra:
-        raise PatternSpecError(f"{where}: unknown key(s) {extra} for a {kind} group")
-    if "bits" not in d:
-        raise PatternSpecError(f"{where}: a {kind} group needs 'bits'")
     bits = _number(d, "bits", where, int)
     if bits > 16:
         raise PatternSpecError(f"{where}.bits = {bits}: at most 16")
