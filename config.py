@@ -241,9 +241,20 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         except (ValueError, TypeError) as exc:
             raise err("[recorder]", str(exc)) from None
     scanner = _table(raw, "scanner", err)
-    unknown = set(scanner) - {"exposures_us"}
+    unknown = set(scanner) - {"exposures_us", "decode_limits"}
     if unknown:
-        raise err("[scanner]", f"unknown key {sorted(unknown)[0]!r} (known: exposures_us)")
+        raise err("[scanner]", f"unknown key {sorted(unknown)[0]!r} (known: exposures_us, "
+                               f"decode_limits)")
+    limits = scanner.get("decode_limits")
+    if limits is not None:
+        from scancell.analysis.decode_limits import DecodeLimits
+
+        if not isinstance(limits, dict):
+            raise err("[scanner] decode_limits", "must be a table of limits (docs/decoding.md)")
+        try:
+            DecodeLimits.from_mapping(limits, "decode_limits")
+        except (ValueError, TypeError) as exc:
+            raise err("[scanner] decode_limits", str(exc)) from None
     exp = scanner.get("exposures_us")
     if exp is not None and exp != "auto" and not (
             isinstance(exp, list) and 1 <= len(exp) <= 6

@@ -81,6 +81,8 @@ class DecodeLimits:
         for k, v in values.items():
             if v is None:
                 continue
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ValueError(f"{where}.{k} = {v!r}: must be a number")
             v = float(v)
             if not np.isfinite(v) or (v < 0 and k not in ("z_min_mm",)):
                 raise ValueError(f"{where}.{k} = {v}: must be a finite number ≥ 0")

@@ -78,6 +78,27 @@ class DecodeSettings:
     #: "passive": estimate a nonlinear response's phase error from the fringes themselves and
     #: remove it (:mod:`scancell.analysis.phase_response`); "off": decode the phases as measured
     compensation: str = "passive"
+    #: the stereo matcher's masks (analysis.stereo.mask_discontinuities): largest bend (px),
+    #: largest step (px; None: 3 x the view's typical step), image border (px), depth range (mm)
+    bend_limit_px: float = 0.75
+    step_limit_px: float | None = None
+    border_px: int = 3
+    z_min_mm: float = 50.0
+    z_max_mm: float = 5000.0
+
+    #: the decode limits (analysis.decode_limits.DecodeLimits, a cell's ``[scanner]
+    #: decode_limits``) these settings take; the others are the pattern-set decoder's alone
+    LIMITS_TAKEN = ("min_modulation_dn", "order_margin", "saturation_dn", "bend_limit_px",
+                    "step_limit_px", "border_px", "z_min_mm", "z_max_mm")
+
+    def with_limits(self, limits: dict[str, float]) -> DecodeSettings:
+        """These settings with a limits table on top (keys outside LIMITS_TAKEN are left to
+        the pattern-set decoder: the caller says so)."""
+        from dataclasses import replace
+
+        taken = {k: (int(v) if k == "border_px" else float(v)) for k, v in limits.items()
+                 if k in self.LIMITS_TAKEN and v is not None}
+        return replace(self, **taken)
 
 
 def modulation_floor(min_dn: float) -> float:

@@ -96,8 +96,10 @@ class ScanDecoder:
         sigma = tuple(column_sigma(pm.modulation, pm.background, self.sequence,
                                    self.projector_width, self.noise) for pm in (pl, pr))
         steps: dict[str, float] = {}
-        cloud = reconstruct(self.calib, pl, pr, rect, timings=steps, engine=self.settings.engine,
-                            sigma=sigma)
+        st = self.settings
+        cloud = reconstruct(self.calib, pl, pr, rect, st.step_limit_px, (st.z_min_mm, st.z_max_mm),
+                            steps, st.engine, sigma, bend_px=st.bend_limit_px,
+                            border_px=st.border_px)
         t3 = time.perf_counter()
         timings = {"rectify_maps": t1 - t0, "phase": t2 - t1, **steps, "total": t3 - t0}
         return ScanResult(cloud, pl, pr, timings)

@@ -197,13 +197,14 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
                 timings: dict[str, float] | None = None, engine: str = "fast",
                 sigma: tuple[np.ndarray, np.ndarray] | None = None,
                 edge_limits: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-                | None = None, border_px: int = 3) -> Cloud:
+                | None = None, border_px: int = 3, bend_px: float = 0.75) -> Cloud:
     """Triangulate matched phase into a cloud in MCS; ``timings`` receives the step times (s).
     ``engine="numpy"`` matches with the numpy reference instead of the numba kernel.
     ``sigma``: the left and right column-noise maps (analysis.uncertainty.column_sigma), for a
     per-point uncertainty. ``edge_limits``: per camera the (step, bend) limits of
     :func:`mask_discontinuities`, per pixel (analysis.decode_limits.discontinuity_limits);
-    None: steps of 3 x the typical step and bends of 0.75 px (the scanner's fixed ones)."""
+    None: steps of ``max_step_px`` (default 3 x the typical step) and bends of ``bend_px``
+    (the scanner's fixed limits, analysis.phase.DecodeSettings)."""
     clock = time.perf_counter
     t0 = clock()
     for side, pm in (("left", left), ("right", right)):
@@ -213,8 +214,8 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
         max_step_px = 3.0 * typical_step(left.column)
     if engine == "fast" and edge_limits is None:
         return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0,
-                                 sigma)
-    (step_l, bend_l), (step_r, bend_r) = edge_limits or ((max_step_px, 0.75), (max_step_px, 0.75))
+                                 sigma, float(bend_px), int(border_px))
+    (step_l, bend_l), (step_r, bend_r) = edge_limits or ((max_step_px, bend_px), (max_step_px, bend_px))
     col_l = _remap(mask_discontinuities(left.column, step_l, bend_l, border_px), rect.maps1)
     col_r = _remap(mask_discontinuities(right.column, step_r, bend_r, border_px), rect.maps2)
     t1 = clock()
@@ -247,7 +248,8 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
 
 def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_step: float,
                       z_range_mm: tuple[float, float], timings: dict[str, float] | None,
-                      t0: float, sigma: tuple[np.ndarray, np.ndarray] | None) -> Cloud:
+                      t0: float, sigma: tuple[np.ndarray, np.ndarray] | None,
+                      bend_px: float = 0.75, border_px: int = 3) -> Cloud:
     """The same reconstruction with the numba kernels (scancell.analysis.kernels)."""
     from scancell.analysis import kernels as k
 
@@ -255,7 +257,7 @@ def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_
     masked = []
     for pm, maps in ((left, rect.maps1), (right, rect.maps2)):
         out = np.empty(pm.column.shape, np.float32)
-        k.mask_discontinuities(pm.column, max_step, 0.75, 3, out)
+        k.mask_discontinuities(pm.column, max_step, bend_px, border_px, out)
         masked.append(_remap(out, maps))
     col_l, col_r = masked
     t1 = clock()

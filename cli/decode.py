@@ -59,13 +59,24 @@ def main(args: argparse.Namespace) -> int:
         return fail("decode", f"{exc.filename or args.out}: {exc.strerror or exc}")
 
 
+def _limit_values(args: argparse.Namespace) -> dict[str, float]:
+    """The limits asked: the cell's ``[scanner] decode_limits`` (``--config``), then
+    ``--limit`` and ``--min-modulation`` over it."""
+    values: dict[str, float] = {}
+    if args.config:
+        from scancell.config import load_cell_config
+
+        values.update(load_cell_config(args.config).scanner.get("decode_limits") or {})
+    values.update(parse_limits(args.limit))
+    if args.min_modulation is not None:
+        values["min_modulation_dn"] = args.min_modulation
+    return values
+
+
 def _limits(args: argparse.Namespace):
     from scancell.analysis.decode_limits import DecodeLimits
 
-    values = parse_limits(args.limit)
-    if args.min_modulation is not None:
-        values["min_modulation_dn"] = args.min_modulation
-    return DecodeLimits.from_mapping(values, "--limit")
+    return DecodeLimits.from_mapping(_limit_values(args), "--limit")
 
 
 def _camera_projector(args: argparse.Namespace, rig, t0: float) -> int:
@@ -200,9 +211,7 @@ def _binocular(args: argparse.Namespace, calib, t0: float) -> int:
     # cached kernels cost 1.4 s per process, and save 0.6 s on one scene.
     engine = "numpy" if args.engine == "auto" else args.engine
     settings = DecodeSettings(method=args.method, engine=engine,
-                              compensation=args.compensation,
-                              **({} if args.min_modulation is None else
-                                 {"min_modulation_dn": args.min_modulation}))
+                              compensation=args.compensation).with_limits(_limit_values(args))
     sets = read_exposure_sets(args.images, len(seq))
     t_read = time.perf_counter() - t0
     decoder = ScanDecoder(calib, seq, args.projector_width or PROJECTOR_WIDTH, settings)
@@ -255,6 +264,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="what was projected: a preset (heterodyne-3x3, the default; slstudio-2x3; "
                         "gray-phase) or a pattern-set spec file (.toml or .json). Frames are the "
                         "spec's 'frames' glob or list, else the folder's images in name order")
+    p.add_argument("--config", default=None, metavar="CELL.toml",
+                   help="take the decode limits from the cell's [scanner] decode_limits table "
+                        "(--limit and --min-modulation over it)")
     p.add_argument("--limit", action="append", metavar="KEY=VALUE",
                    help="override a derived decode limit (repeatable): min_modulation_dn, "
                         "order_margin, bend_limit_px, step_limit_px, noise_dn, confidence_sigmas, "

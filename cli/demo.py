@@ -202,7 +202,8 @@ def main(args: argparse.Namespace) -> int:
         # simulator's rendering (the cell's time), which on a real cell is the cameras' own
         # hardware: the workers yield to the simulator, the fuse worker to the scan worker.
         procs.start("worker-scan", ["worker", "scan", "--calib",
-                                    str(run_dir / "calibration" / "stereo.yaml")], env, nice=5)
+                                    str(run_dir / "calibration" / "stereo.yaml"),
+                                    "--config", str(config)], env, nice=5)
         procs.start("worker-calibrate", ["worker", "calibrate", "--store",
                                          str(run_dir / "calibration")], env)
         procs.start("worker-fuse", ["worker", "fuse", "--out", str(run_dir / "fused"),

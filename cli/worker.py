@@ -4,6 +4,7 @@ workers as bus clients."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from scancell.cli._common import add_bus_arguments, fail, serve
@@ -17,6 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     scan.add_argument("--calib", required=True,
                       help="stereo.yaml of the scanner; the projector response is kept next to it "
                            "(projector_response.json, written by calibrate_projector jobs)")
+    scan.add_argument("--config", default=None, metavar="CELL.toml",
+                      help="take the decode limits from the cell's [scanner] decode_limits table")
     scan.add_argument("--projector-width", type=int, default=None,
                       help="projector columns (default: the DLP's, 1280)")
     cal = sub.add_parser("calibrate", help="hand-eye from calibrate_hand_eye jobs -> "
@@ -129,6 +132,24 @@ def inspect_main(args: argparse.Namespace) -> int:
                              f"{settings.inspection.align})")
 
 
+def scan_settings(config: str | None):
+    """The scan worker's decode settings: the cell's ``[scanner] decode_limits`` over the
+    defaults; the limits the binocular decoder does not take are named on stderr."""
+    from scancell.analysis.phase import DecodeSettings
+
+    if not config:
+        return DecodeSettings()
+    from scancell.config import load_cell_config
+
+    limits = load_cell_config(config).scanner.get("decode_limits") or {}
+    left = sorted(set(limits) - set(DecodeSettings.LIMITS_TAKEN))
+    if left:
+        print(f"scancell worker scan: [scanner] decode_limits {', '.join(left)}: for pattern-set "
+              f"decodes only; the scanner's binocular decoder keeps its own (docs/decoding.md)",
+              file=sys.stderr)
+    return DecodeSettings().with_limits(limits)
+
+
 def scan_main(args: argparse.Namespace) -> int:
     from scancell.analysis.projector_response import RESPONSE_FILE
     from scancell.analysis.stereo_calibration import CalibrationError, StereoCalibration
@@ -137,11 +158,13 @@ def scan_main(args: argparse.Namespace) -> int:
 
     try:
         calib = StereoCalibration.read(args.calib)
-    except CalibrationError as exc:
+        settings = scan_settings(args.config)
+    except (CalibrationError, ValueError) as exc:
         return fail("worker scan", str(exc))
     width = args.projector_width or PROJECTOR_WIDTH
     response = Path(args.calib).parent / RESPONSE_FILE
-    return serve(args, "worker scan", lambda bus: ScanWorker(bus, calib, width, response),
+    return serve(args, "worker scan",
+                 lambda bus: ScanWorker(bus, calib, width, response, settings=settings),
                  lambda bus: f"scan worker on cell {bus.keys.cell!r}: waiting for scans "
                              f"(calibration {args.calib}, {calib.image_size[0]} x "
                              f"{calib.image_size[1]})")

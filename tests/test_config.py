@@ -52,6 +52,13 @@ def _write(tmp_path: Path, text: str) -> Path:
     ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
      "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
      "plane_size_mm=[200,50]\nballbar3_length_mm=800\n", "a Part 3 test needs all of"),
+    ("[cell]\nname='x'\n[scanner]\ndecode_limits={bend_px=1}\n",
+     "[scanner] decode_limits: decode_limits: unknown limit(s) ['bend_px']"),
+    ("[cell]\nname='x'\n[scanner]\ndecode_limits={bend_limit_px='wide'}\n",
+     "decode_limits.bend_limit_px = 'wide': must be a number"),
+    ("[cell]\nname='x'\n[scanner]\ndecode_limits={z_min_mm=900, z_max_mm=100}\n",
+     "z_min_mm 900.0 must be below z_max_mm 100.0"),
+    ("[cell]\nname='x'\n[scanner]\ndecode_limits=3\n", "must be a table of limits"),
 ])
 def test_errors_name_file_key_and_problem(tmp_path, text, expected):
     path = _write(tmp_path, text)

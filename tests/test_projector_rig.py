@@ -257,3 +257,25 @@ def test_decode_cli_refuses_bad_input_and_writes_nothing(tmp_path):
     r = decode(good)
     assert r.returncode == 0, r.stderr
     assert out.exists()
+
+
+@pytest.mark.process
+def test_decode_limits_from_the_cell_config_and_the_command_line(tmp_path):
+    sim = RigSimulator(default_rig(SCALE), seed=1)
+    rig = tmp_path / "rig.yaml"
+    sim.truth.write(rig)
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    for k, f in enumerate(sim.render(SHEET, preset("slstudio-2x3"))):
+        cv2.imwrite(str(frames_dir / f"f{k}.png"), f)
+    cell = tmp_path / "cell.toml"
+    cell.write_text("[cell]\nname = 'x'\n[scanner]\ndecode_limits = {min_modulation_dn = 40.0}\n")
+    base = ["decode", "--calib", str(rig), "--patterns", "slstudio-2x3", "--images",
+            str(frames_dir), "--out", str(tmp_path / "o.ply"), "--config", str(cell)]
+    r = _run(*base)
+    assert r.returncode == 0, r.stderr
+    assert "modulation threshold 40.0 DN" in r.stdout
+    r = _run(*base, "--limit", "min_modulation_dn=20")
+    assert r.returncode == 0 and "modulation threshold 20.0 DN" in r.stdout
+    r = _run(*base, "--limit", "min_modulation=20")
+    assert r.returncode == 2 and "unknown limit(s) ['min_modulation']" in r.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -191,6 +192,33 @@ def test_binocular_decode_of_a_pattern_set_matches_the_true_surface(station, tmp
     assert np.percentile(d, 99.9) < 0.5
     assert len(pts) > 0.5 * len(cell.true_points())
     assert "comment frame: MCS" in (tmp_path / "cloud.ply").read_bytes()[:400].decode("ascii", "replace")
+
+
+@pytest.mark.unit
+def test_the_cells_decode_limits_reach_both_engines(station, tmp_path):
+    """``[scanner] decode_limits`` over the scan worker's settings: a tighter bend limit and a
+    higher modulation threshold keep fewer points, alike in the numba kernels and numpy."""
+    from scancell.cli.worker import scan_settings
+
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text("[cell]\nname = 'x'\n[scanner]\ndecode_limits = {bend_limit_px = 0.1, "
+                   "min_modulation_dn = 30, noise_dn = 1.0}\n")
+    settings = scan_settings(str(cfg))
+    assert (settings.bend_limit_px, settings.min_modulation_dn) == (0.1, 30.0)
+    calib = StereoCalibration.read(station["calib"])
+    images = {side: [cv2.imread(str(station["root"] / "images" / side / f"{k:02d}.png"), 0)
+                     for k in range(9)] for side in ("left", "right")}
+    counts = {}
+    for engine in ("fast", "numpy"):
+        for name, st in (("default", DecodeSettings(engine=engine)),
+                         ("config", replace(settings, engine=engine))):
+            counts[engine, name] = len(ScanDecoder(calib, FringeSequence(), W, st)
+                                       .decode(images["left"], images["right"]).cloud)
+    assert counts["fast", "default"] == counts["numpy", "default"]
+    assert counts["fast", "config"] < 0.9 * counts["fast", "default"]
+    # a 0.1 px bend limit lies inside the column's noise: the kernels' float32 and numpy's
+    # float64 second differences fall to either side of it for a few pixels
+    assert counts["fast", "config"] == pytest.approx(counts["numpy", "config"], rel=0.01)
 
 
 def _rigid_fit(points_world: np.ndarray, cell: SimCell) -> np.ndarray:

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scancell.analysis.phase import DecodeError
+from scancell.analysis.phase import DecodeError, DecodeSettings
 from scancell.analysis.phase_response import response_warning
 from scancell.analysis.projector_response import ProjectorResponse, ResponseCalibrationError, fit_response
 from scancell.analysis.scanner import ScanDecoder, ScanResult
@@ -168,8 +168,10 @@ class ScanWorker(ThreadedWorker[PendingScan]):
 
     def __init__(self, bus: BusLike, calib: StereoCalibration,
                  projector_width: int = PROJECTOR_WIDTH, response_path: Path | None = None,
-                 worker_id: str | None = None) -> None:
+                 worker_id: str | None = None, settings: DecodeSettings | None = None) -> None:
         super().__init__(bus)
+        #: the decode settings of every scan (a cell's ``[scanner] decode_limits`` on top)
+        self.settings = settings or DecodeSettings()
         self.share = WorkShare(bus, "scan", worker_id)
         self.share.on_departure = self._take_over
         #: complete scans another live worker owns, by scan id, until their result is seen
@@ -353,7 +355,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
 
     def decoder(self, seq: FringeSequence) -> ScanDecoder:
         if seq not in self._decoders:
-            self._decoders[seq] = ScanDecoder(self.calib, seq, self.projector_width)
+            self._decoders[seq] = ScanDecoder(self.calib, seq, self.projector_width, self.settings)
         return self._decoders[seq]
 
     def process(self, scan: PendingScan) -> ScanResult | None:
