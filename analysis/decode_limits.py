@@ -22,9 +22,10 @@ Formulas (N steps, modulation B in DN):
   ``B_min = z · sqrt(r² · 2/N_c + 2/N_f) · σ_I / 2π``; never below ``z · σ_I`` (a fringe
   weaker than the noise's z-sigma is not a fringe);
 - **bend limit** (per pixel): the second difference of the coordinate between neighbouring
-  camera pixels of a smooth surface is noise, ``sqrt(6) σ_x``; a larger bend is a pixel that
-  mixes two surfaces through the lens blur: ``bend ≤ z · sqrt(6) · σ_x``, never below
-  ``BEND_FLOOR_PX`` (the curvature a smooth part shows at the pixel scale);
+  camera pixels is the surface's own curvature (as the step limit below takes its slope: up to
+  ``CURVATURE_FACTOR`` times the view's median bend) plus noise, ``sqrt(6) σ_x``; a larger bend
+  is a pixel that mixes two surfaces through the lens blur:
+  ``bend ≤ 3 · median bend + z · sqrt(6) · σ_x``, never below ``BEND_FLOOR_PX``;
 - **step limit** (per pixel): a neighbour's coordinate may differ by the surface's own slope,
   up to ``STEP_SLOPE_FACTOR`` times the view's median step (a surface tilted towards grazing),
   plus noise: ``step ≤ 3 · median step + z · sqrt(2) · σ_x``; depth edges jump far more;
@@ -35,6 +36,7 @@ Every limit can be set instead in the pattern spec's ``[limits]`` or the decode 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -44,7 +46,9 @@ ORDER_ALPHA = 1e-3
 #: the median neighbour step is the view's typical surface slope; a surface tilted towards
 #: grazing incidence shows up to this many times it
 STEP_SLOPE_FACTOR = 3.0
-#: second difference (projector px) a smooth surface's own curvature may show at the pixel scale
+#: a curved surface bends the coordinate up to this many times the view's median bend
+CURVATURE_FACTOR = 3.0
+#: the smallest bend limit (projector px), where the median bend and the noise are both tiny
 BEND_FLOOR_PX = 0.05
 #: phase roughness: the second difference of a linear phase is noise with variance 6 σ_φ²
 ROUGHNESS_VARIANCE = 6.0
@@ -109,6 +113,48 @@ def order_sigma_unit(noise_dn: float, ratio: float, steps_coarse: int, steps_fin
     return float(np.sqrt(ratio ** 2 * 2.0 / steps_coarse + 2.0 / steps_fine) * noise_dn / (2 * np.pi))
 
 
+def heterodyne_levels(periods: list[float]) -> list[list[float]]:
+    """Beat periods level by level, e.g. (70, 64, 59) -> [[70, 64, 59], [6, 5], [1]]."""
+    levels = [list(map(float, periods))]
+    while len(levels[-1]) > 1:
+        prev = levels[-1]
+        levels.append([prev[i] - prev[i + 1] for i in range(len(prev) - 1)])
+    return levels
+
+
+def order_units(periods: list[float], steps: list[int], method: str, noise: float = 1.0
+                ) -> list[float]:
+    """σ_o · B (fringes · DN) of every fringe-order decision of one axis's phase groups
+    (``periods`` across the projector, ``steps`` each) unwrapped by ``method``, for intensity
+    noise σ_I = ``noise`` (DN).
+
+    - heterodyne: a beat of two phases carries both their variances, so level l of the tree
+      carries 2^l phase variances; each level is unwrapped by its parent of p_child / p_parent
+      times fewer fringes (70, 64, 59: 6 and 5 by the 1-period beat, then 70, 64, 59 by 6, 5);
+    - hierarchical: each group by the next coarser one;
+    - gray: the code decides the finest group's order and adds no phase noise; coarser groups
+      are unwrapped by the finest."""
+    order = sorted(range(len(periods)), key=lambda i: periods[i])
+    if method == "heterodyne":
+        n = min(steps)
+        levels = heterodyne_levels(periods)
+        out = []
+        for lvl in range(len(levels) - 2, -1, -1):
+            parents = levels[lvl + 1]
+            for i, p in enumerate(levels[lvl]):
+                ratio = p / parents[min(i, len(parents) - 1)]
+                out.append(float(np.sqrt(ratio ** 2 * 2 ** (lvl + 1) + 2 ** lvl)
+                                 * np.sqrt(2.0 / n) * noise / (2 * np.pi)))
+        return out or [0.0]
+    if method == "gray":
+        fine = order[-1]
+        return [order_sigma_unit(noise, 0.0, 3, steps[fine])] + [
+            order_sigma_unit(noise, periods[i] / periods[fine], steps[fine], steps[i])
+            for i in reversed(order[:-1])]
+    return [order_sigma_unit(noise, periods[b] / periods[a], steps[a], steps[b])
+            for a, b in itertools.pairwise(order)] or [0.0]
+
+
 def min_modulation(noise_dn: float, z: float, worst_ratio: float, steps_coarse: int,
                    steps_fine: int) -> float:
     """B_min (DN): σ_o ≤ 1/z at the coarsest step, and at least z · σ_I."""
@@ -120,9 +166,10 @@ def margin_limit(order_sigma: np.ndarray) -> np.ndarray:
     return np.float32(0.5) - np.asarray(order_sigma, np.float32) ** 2 * np.float32(np.log(1 / ORDER_ALPHA))
 
 
-def bend_limit(coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
+def bend_limit(typical_bend_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
     """Largest second difference (px) per pixel."""
-    return np.maximum(np.float32(z * np.sqrt(6.0)) * coordinate_sigma, np.float32(BEND_FLOOR_PX))
+    return np.maximum(np.float32(CURVATURE_FACTOR * typical_bend_px)
+                      + np.float32(z * np.sqrt(6.0)) * coordinate_sigma, np.float32(BEND_FLOOR_PX))
 
 
 def step_limit(typical_step_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
@@ -179,6 +226,18 @@ def typical_step(coord: np.ndarray) -> float:
     return float(max(finite)) if finite else 1.0
 
 
+def typical_bend(coord: np.ndarray) -> float:
+    """Median absolute second difference of a coordinate map along both image axes (px): the
+    surface's own curvature at the pixel scale (noise included)."""
+    with np.errstate(invalid="ignore"):
+        bx = (np.nanmedian(np.abs(coord[::4, :-2] - 2 * coord[::4, 1:-1] + coord[::4, 2:]))
+              if coord.shape[1] > 2 else np.nan)
+        by = (np.nanmedian(np.abs(coord[:-2, ::4] - 2 * coord[1:-1, ::4] + coord[2:, ::4]))
+              if coord.shape[0] > 2 else np.nan)
+    finite = [v for v in (bx, by) if np.isfinite(v)]
+    return float(max(finite)) if finite else 0.0
+
+
 def discontinuity_limits(coord: np.ndarray, sigma: np.ndarray, limits: DecodeLimits
                          ) -> tuple[np.ndarray, np.ndarray]:
     """The per-pixel step and bend limits (px) of a coordinate map with noise ``sigma`` (px),
@@ -187,5 +246,5 @@ def discontinuity_limits(coord: np.ndarray, sigma: np.ndarray, limits: DecodeLim
     step = (np.float32(limits.step_limit_px) if limits.step_limit_px is not None
             else step_limit(typical_step(coord), sigma, z))
     bend = (np.float32(limits.bend_limit_px) if limits.bend_limit_px is not None
-            else bend_limit(sigma, z))
+            else bend_limit(typical_bend(coord), sigma, z))
     return step, bend

@@ -202,11 +202,12 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
 
 
 @numba.njit(parallel=True, cache=True)
-def mask_discontinuities(column: np.ndarray, max_step: float, max_bend: float, border: int,
-                         out: np.ndarray) -> None:
+def mask_discontinuities(column: np.ndarray, max_step: np.ndarray, max_bend: np.ndarray,
+                         border: int, out: np.ndarray) -> None:
     """Same rule as :func:`scancell.analysis.stereo.mask_discontinuities`, in one pass: NaN on
-    the border, next to a step > max_step, or within one pixel of a second difference
-    > max_bend (NaN neighbours never trigger either test)."""
+    the border, next to a step larger than the smaller of the two pixels' ``max_step``, or
+    within one pixel of a second difference larger than its centre's ``max_bend`` (both H x W;
+    NaN neighbours never trigger either test)."""
     h, w = column.shape
     for y in numba.prange(h):
         for x in range(w):
@@ -214,7 +215,8 @@ def mask_discontinuities(column: np.ndarray, max_step: float, max_bend: float, b
             bad = y < border or y >= h - border or x < border or x >= w - border
             for dy, dx in ((0, -1), (0, 1), (-1, 0), (1, 0)):
                 yn, xn = y + dy, x + dx
-                if 0 <= yn < h and 0 <= xn < w and abs(column[yn, xn] - v) > max_step:
+                if 0 <= yn < h and 0 <= xn < w and abs(column[yn, xn] - v) > min(
+                        max_step[y, x], max_step[yn, xn]):
                     bad = True
             for dy, dx in ((0, 1), (1, 0)):
                 for m in (-1, 0, 1):
@@ -222,7 +224,7 @@ def mask_discontinuities(column: np.ndarray, max_step: float, max_bend: float, b
                     ya, xa, yb, xb = yc - dy, xc - dx, yc + dy, xc + dx
                     if 0 <= ya and 0 <= xa and yb < h and xb < w:
                         bend = column[ya, xa] - 2.0 * column[yc, xc] + column[yb, xb]
-                        if abs(bend) > max_bend:
+                        if abs(bend) > max_bend[yc, xc]:
                             bad = True
             out[y, x] = np.nan if bad else v
 

@@ -23,7 +23,6 @@ DN means the same whatever the camera's bit depth.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -35,7 +34,6 @@ from scancell.analysis.phase import (
     DecodeError,
     PhaseMap,
     check_one_size,
-    heterodyne_tree,
     unwrap_heterodyne,
 )
 from scancell.analysis.phase_response import (
@@ -301,31 +299,8 @@ def decode_view(frames: Sequence[np.ndarray], spec: PatternSet, projector_size: 
 def order_units(spec: PatternSet, axis: str, size: int, noise: float) -> list[float]:
     """σ_o · B (fringes · DN) of every fringe-order decision of the axis, for noise σ_I (DN)."""
     groups = spec.phase_groups(axis)
-    periods = [g.periods_across(size) for g in groups]
-    method = spec.method(axis)
-    if method == "heterodyne":
-        # a beat of two phases carries both their variances: level l of the tree 2^l phase
-        # variances; each level is unwrapped by its parent of p_child / p_parent times fewer
-        # fringes (70, 64, 59: 6 and 5 by the 1-period beat, then 70, 64, 59 by 6 and 5)
-        n = min(g.steps for g in groups)
-        levels = heterodyne_tree(periods)
-        out = []
-        for lvl in range(len(levels) - 2, -1, -1):
-            parents = levels[lvl + 1]
-            for i, p in enumerate(levels[lvl]):
-                ratio = p / parents[min(i, len(parents) - 1)]
-                out.append(float(np.sqrt(ratio ** 2 * 2 ** (lvl + 1) + 2 ** lvl)
-                                 * np.sqrt(2.0 / n) * noise / (2 * np.pi)))
-        return out
-    order = sorted(range(len(groups)), key=lambda i: periods[i])
-    if method == "gray":  # the code decides the finest group's order; it adds no phase noise
-        out = [lim.order_sigma_unit(noise, 0.0, 3, groups[order[-1]].steps)]
-        for i in reversed(order[:-1]):
-            out.append(lim.order_sigma_unit(noise, periods[i] / periods[order[-1]],
-                                            groups[order[-1]].steps, groups[i].steps))
-        return out
-    return [lim.order_sigma_unit(noise, periods[b] / periods[a], groups[a].steps, groups[b].steps)
-            for a, b in itertools.pairwise(order)] or [0.0]
+    return lim.order_units([g.periods_across(size) for g in groups], [g.steps for g in groups],
+                           spec.method(axis), noise)
 
 
 def _order_check(orders: np.ndarray, sigma_unit: float, modulation: np.ndarray,

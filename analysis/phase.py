@@ -78,10 +78,13 @@ class DecodeSettings:
     #: "passive": estimate a nonlinear response's phase error from the fringes themselves and
     #: remove it (:mod:`scancell.analysis.phase_response`); "off": decode the phases as measured
     compensation: str = "passive"
-    #: the stereo matcher's masks (analysis.stereo.mask_discontinuities): largest bend (px),
-    #: largest step (px; None: 3 x the view's typical step), image border (px), depth range (mm)
-    bend_limit_px: float = 0.75
+    #: the stereo matcher's masks (analysis.stereo.mask_discontinuities): largest bend and step
+    #: (px; None: per pixel from the column's noise and the surface's own curvature and slope,
+    #: analysis.decode_limits), image border (px), depth range (mm)
+    bend_limit_px: float | None = None
     step_limit_px: float | None = None
+    #: z of the derived bend and step limits (analysis.decode_limits)
+    confidence_sigmas: float = 4.0
     border_px: int = 3
     z_min_mm: float = 50.0
     z_max_mm: float = 5000.0
@@ -89,7 +92,7 @@ class DecodeSettings:
     #: the decode limits (analysis.decode_limits.DecodeLimits, a cell's ``[scanner]
     #: decode_limits``) these settings take; the others are the pattern-set decoder's alone
     LIMITS_TAKEN = ("min_modulation_dn", "order_margin", "saturation_dn", "bend_limit_px",
-                    "step_limit_px", "border_px", "z_min_mm", "z_max_mm")
+                    "step_limit_px", "border_px", "z_min_mm", "z_max_mm", "confidence_sigmas")
 
     def with_limits(self, limits: dict[str, float]) -> DecodeSettings:
         """These settings with a limits table on top (keys outside LIMITS_TAKEN are left to

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scancell.analysis.decode_limits import DecodeLimits, discontinuity_limits
 from scancell.analysis.phase import DecodeError, DecodeSettings, PhaseMap, decode_exposures
 from scancell.analysis.stereo import Cloud, Rectification, reconstruct, rectify
 from scancell.analysis.stereo_calibration import StereoCalibration
@@ -97,9 +98,12 @@ class ScanDecoder:
                                    self.projector_width, self.noise) for pm in (pl, pr))
         steps: dict[str, float] = {}
         st = self.settings
-        cloud = reconstruct(self.calib, pl, pr, rect, st.step_limit_px, (st.z_min_mm, st.z_max_mm),
-                            steps, st.engine, sigma, bend_px=st.bend_limit_px,
-                            border_px=st.border_px)
+        limits = DecodeLimits(bend_limit_px=st.bend_limit_px, step_limit_px=st.step_limit_px,
+                              confidence_sigmas=st.confidence_sigmas)
+        edges = tuple(discontinuity_limits(pm.column, s, limits) for pm, s in zip((pl, pr), sigma,
+                                                                                  strict=True))
+        cloud = reconstruct(self.calib, pl, pr, rect, None, (st.z_min_mm, st.z_max_mm), steps,
+                            st.engine, sigma, edge_limits=edges, border_px=st.border_px)
         t3 = time.perf_counter()
         timings = {"rectify_maps": t1 - t0, "phase": t2 - t1, **steps, "total": t3 - t0}
         return ScanResult(cloud, pl, pr, timings)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -212,10 +213,11 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
     rect = rect or rectify(calib)
     if max_step_px is None:  # a few times the surface's own slope: depth edges jump far more
         max_step_px = 3.0 * typical_step(left.column)
-    if engine == "fast" and edge_limits is None:
-        return _reconstruct_fast(left, right, rect, float(max_step_px), z_range_mm, timings, t0,
-                                 sigma, float(bend_px), int(border_px))
-    (step_l, bend_l), (step_r, bend_r) = edge_limits or ((max_step_px, bend_px), (max_step_px, bend_px))
+    edges = edge_limits or ((max_step_px, bend_px), (max_step_px, bend_px))
+    if engine == "fast":
+        return _reconstruct_fast(left, right, rect, float(max_step_px), edges, z_range_mm,
+                                 timings, t0, sigma, int(border_px))
+    (step_l, bend_l), (step_r, bend_r) = edges
     col_l = _remap(mask_discontinuities(left.column, step_l, bend_l, border_px), rect.maps1)
     col_r = _remap(mask_discontinuities(right.column, step_r, bend_r, border_px), rect.maps2)
     t1 = clock()
@@ -247,17 +249,20 @@ def reconstruct(calib: StereoCalibration, left: PhaseMap, right: PhaseMap,
 
 
 def _reconstruct_fast(left: PhaseMap, right: PhaseMap, rect: Rectification, max_step: float,
+                      edges: tuple[tuple[Any, Any], tuple[Any, Any]],
                       z_range_mm: tuple[float, float], timings: dict[str, float] | None,
                       t0: float, sigma: tuple[np.ndarray, np.ndarray] | None,
-                      bend_px: float = 0.75, border_px: int = 3) -> Cloud:
+                      border_px: int = 3) -> Cloud:
     """The same reconstruction with the numba kernels (scancell.analysis.kernels)."""
     from scancell.analysis import kernels as k
 
     clock = time.perf_counter
     masked = []
-    for pm, maps in ((left, rect.maps1), (right, rect.maps2)):
+    for pm, maps, (step, bend) in ((left, rect.maps1, edges[0]), (right, rect.maps2, edges[1])):
         out = np.empty(pm.column.shape, np.float32)
-        k.mask_discontinuities(pm.column, max_step, bend_px, border_px, out)
+        step_map = np.broadcast_to(np.asarray(step, np.float32), pm.column.shape)
+        bend_map = np.broadcast_to(np.asarray(bend, np.float32), pm.column.shape)
+        k.mask_discontinuities(pm.column, step_map, bend_map, border_px, out)
         masked.append(_remap(out, maps))
     col_l, col_r = masked
     t1 = clock()
