@@ -107,8 +107,8 @@ def _camera_projector(args: argparse.Namespace, rig, t0: float) -> int:
                           f"the fringes, and is the pattern set right?")
     write_ply(args.out, cloud.points, {"quality": cloud.quality, "intensity": cloud.intensity,
                                         "uncertainty": cloud.uncertainty}, ascii=args.ascii,
-              comments=[f"frame: {FRAME}", f"scancell rig: camera_projector ({rig.source})",
-                        f"scancell patterns: {spec.name or args.patterns}",
+              comments=[f"frame: {FRAME}", _ascii(f"scancell rig: camera_projector ({rig.source})"),
+                        _ascii(f"scancell patterns: {spec.name or args.patterns}"),
                         f"scancell noise_dn: {view.noise_dn:.3f} min_modulation_dn: "
                         f"{view.min_modulation_dn:.2f}"])
     _summary(args.out, cloud, f"{view.valid_share:.1%} of the camera's pixels decoded; noise "
@@ -161,12 +161,17 @@ def _binocular_patterns(args: argparse.Namespace, rig, t0: float) -> int:
         raise DecodeError("no stereo matches: do both cameras see the same lit surface?")
     write_ply(args.out, cloud.points, {"quality": cloud.quality, "intensity": cloud.intensity},
               ascii=args.ascii, comments=[f"frame: {MCS_FRAME}",
-                                          f"scancell patterns: {spec.name or args.patterns}"])
+                                          _ascii(f"scancell patterns: {spec.name or args.patterns}")])
     _summary(args.out, cloud, f"left {views[0].valid_share:.1%} / right {views[1].valid_share:.1%} "
              f"of pixels decoded", [("left", views[0].response), ("right", views[1].response)],
              t_read, {"phase": t2 - t1 - t_read, **steps,
                       "total": time.perf_counter() - t1 - t_read}, t0)
     return 0
+
+
+def _ascii(text: str) -> str:
+    """A PLY header comment: one ASCII line (a path or a name with other letters escaped)."""
+    return " ".join(text.split()).encode("ascii", "backslashreplace").decode("ascii")
 
 
 MCS_FRAME = "MCS (the left camera's optical frame: x right, y down, z along the view; mm)"

@@ -257,6 +257,13 @@ def test_decode_cli_refuses_bad_input_and_writes_nothing(tmp_path):
     r = decode(good)
     assert r.returncode == 0, r.stderr
     assert out.exists()
+    # a rig in a folder whose name is not ASCII: its path goes into the PLY header escaped
+    other = tmp_path / "Prüfstand"
+    other.mkdir()
+    (other / "rig.yaml").write_text(rig.read_text())
+    r = decode(good, calib=other / "rig.yaml")
+    assert r.returncode == 0, r.stderr
+    assert b"Pr\\xfcfstand" in out.read_bytes()[:600]
 
 
 @pytest.mark.process
