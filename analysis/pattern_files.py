@@ -1,7 +1,7 @@
 """Pattern set specs and frame folders on disk.
 
-- :func:`load_pattern_set`: a preset name (``heterodyne-3x3``, ``slstudio-2x3``,
-  ``gray-phase``) or a ``.toml``/``.json`` spec file (:mod:`scancell.model.pattern_set`);
+- :func:`load_pattern_set`: a preset name (``model.pattern_set.PRESETS``) or a
+  ``.toml``/``.json`` spec file (:mod:`scancell.model.pattern_set`);
 - :func:`find_frames`: a view's frames in a folder: the spec's ``frames`` glob or list, or
   else every image file (BMP, PNG, TIFF, PGM) in natural name order (``f2`` before ``f10``);
 - :func:`read_frames`: the frames as they are (8, 12 or 16 bit, one channel).
@@ -17,7 +17,13 @@ from pathlib import Path
 
 import numpy as np
 from scancell.analysis.scanner import ImageSetError, read_image
-from scancell.model.pattern_set import PRESETS, PatternSet, PatternSpecError, preset
+from scancell.model.pattern_set import (
+    PRESETS,
+    PatternSet,
+    PatternSpecError,
+    preset,
+    presets_of_length,
+)
 
 FRAME_SUFFIXES = (".bmp", ".png", ".tif", ".tiff", ".pgm")
 
@@ -64,9 +70,11 @@ def find_frames(folder: str | Path, spec: PatternSet) -> list[Path]:
     if not paths:
         raise ImageSetError(f"{root}: no frames {how}")
     if len(paths) != len(spec):
+        fits = presets_of_length(len(paths))
+        hint = f"; presets of {len(paths)} frames: {', '.join(fits)}" if fits else ""
         raise ImageSetError(
             f"{root}: {len(paths)} frames {how}, but the pattern set {spec.name or ''} needs "
-            f"{len(spec)} (set 'frames' in the spec to pick them)".replace("  ", " "))
+            f"{len(spec)} (set 'frames' in the spec to pick them{hint})".replace("  ", " "))
     return paths
 
 

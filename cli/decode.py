@@ -266,9 +266,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "with left/ and right/ (one exposure), or exp_<µs>/left/… and "
                         "exp_<µs>/right/… (HDR, default patterns only)")
     p.add_argument("--patterns", default=None, metavar="SPEC",
-                   help="what was projected: a preset (heterodyne-3x3, the default; slstudio-2x3; "
-                        "gray-phase) or a pattern-set spec file (.toml or .json). Frames are the "
-                        "spec's 'frames' glob or list, else the folder's images in name order")
+                   help="what was projected: a preset (heterodyne-3x3, the default; slstudio-2x3, "
+                        "slstudio-2x3-xy; gray-phase, gray-phase-xy) or a pattern-set spec file "
+                        "(.toml or .json). Frames are the spec's 'frames' glob or list, else the "
+                        "folder's images in name order")
     p.add_argument("--config", default=None, metavar="CELL.toml",
                    help="take the decode limits from the cell's [scanner] decode_limits table "
                         "(--limit and --min-modulation over it)")

@@ -405,6 +405,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     "slstudio-2x3": {"name": "slstudio-2x3", "unwrap": "hierarchical", "groups": [
         {"kind": "phase_shift", "axis": "x", "periods": 16, "steps": 3},
         {"kind": "phase_shift", "axis": "x", "periods": 1, "steps": 3}]},
+    # SLStudio's CodecPhaseShift2x3 in both directions (CodecDirBoth): its 12-frame sequences,
+    # columns as above, then rows (16 periods across the rows, then the cue)
+    "slstudio-2x3-xy": {"name": "slstudio-2x3-xy", "unwrap": "hierarchical", "groups": [
+        {"kind": "phase_shift", "axis": "x", "periods": 16, "steps": 3},
+        {"kind": "phase_shift", "axis": "x", "periods": 1, "steps": 3},
+        {"kind": "phase_shift", "axis": "y", "periods": 16, "steps": 3},
+        {"kind": "phase_shift", "axis": "y", "periods": 1, "steps": 3}]},
     # Gray code + 4-step phase shift: 32 fringes numbered by a 6-bit complementary Gray code
     # (64 stripes of half a fringe), columns only
     "gray-phase": {"name": "gray-phase", "unwrap": "gray", "groups": [
@@ -419,6 +426,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         {"kind": "complementary_gray_code", "axis": "y", "bits": 6}]},
 }
 DEFAULT_PRESET = "heterodyne-3x3"
+
+
+def presets_of_length(frames: int) -> list[str]:
+    """The presets that take ``frames`` frames (for a message on a count that does not fit)."""
+    return [name for name in PRESETS if len(preset(name)) == frames]
 
 
 def preset(name: str) -> PatternSet:

@@ -129,6 +129,21 @@ def test_frames_are_found_by_glob_or_in_natural_name_order(tmp_path):
     (tmp_path / "f11.png").write_bytes(b"")
     with pytest.raises(ImageSetError, match=r"7 frames .* needs 6"):
         find_frames(tmp_path, spec)
+    for k in range(12, 17):
+        (tmp_path / f"f{k}.png").write_bytes(b"")
+    with pytest.raises(ImageSetError, match=r"12 frames .* presets of 12 frames: slstudio-2x3-xy"):
+        find_frames(tmp_path, spec)
     picked = PatternSet.from_dict({**spec.to_dict(), "frames": "f[0-4].png"})
     with pytest.raises(ImageSetError, match=r"5 frames matching 'f\[0-4\].png'"):
         find_frames(tmp_path, picked)
+
+
+def test_the_decode_help_names_every_preset():
+    import argparse
+
+    from scancell.cli import decode
+
+    parser = argparse.ArgumentParser()
+    decode.add_arguments(parser)
+    text = " ".join(next(a.help for a in parser._actions if a.dest == "patterns").split())
+    assert all(name in text for name in PRESETS), text

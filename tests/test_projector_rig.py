@@ -27,6 +27,7 @@ SHEET = Plane(board_pose(450.0, (12.0, -18.0)))
 
 SPECS = {
     "slstudio-2x3": preset("slstudio-2x3"),
+    "slstudio-2x3-xy": preset("slstudio-2x3-xy"),
     "heterodyne-3x3": preset("heterodyne-3x3"),
     "gray-phase": preset("gray-phase"),
     "gray-phase-xy": preset("gray-phase-xy"),
