@@ -38,11 +38,14 @@ MBOX_CONTROL = 0x1A33       # 1 byte: 0 close, 1 image LUT, 2 pattern LUT
 MBOX_DATA = 0x1A34          # variable: image indices (1 byte each) or LUT entries (3 bytes each)
 NUM_IMAGE_IN_FLASH = 0x1A42
 FIRMWARE_TAG = 0x1AFF       # read: up to 32 ASCII characters
-#: Display settings a scanner leaves alone but a client may set (1 byte each unless stated):
-#: DMD park, long/short-axis flip, buffer freeze, test pattern, pixel format, port clock, PWM
-#: invert, gamma, invert data, channel swap, TRIG_IN1 delay (4 bytes).
-SETTINGS = {0x0609: 1, 0x1008: 1, 0x1009: 1, 0x100A: 1, 0x1203: 1, 0x1A02: 1, 0x1A03: 1,
-            0x1A05: 1, 0x1A0E: 1, 0x1A30: 1, 0x1A37: 1, 0x1A35: 4}
+#: Display settings a scanner leaves alone but a client may set: command -> (name, data bytes).
+#: Names as TI's DLPC350 API (dlpc350_api.h, its CmdList) spells them.
+SETTING_NAMES: dict[int, tuple[str, int]] = {
+    0x0609: ("DMD_PARK", 1), 0x1008: ("FLIP_LONG", 1), 0x1009: ("FLIP_SHORT", 1),
+    0x100A: ("BUFFER_FREEZE", 1), 0x1203: ("TPG_SEL", 1), 0x1A02: ("PIXEL_FORMAT", 1),
+    0x1A03: ("CLK_SEL", 1), 0x1A05: ("PWM_INVERT", 1), 0x1A0E: ("GAMMA_CTL", 1),
+    0x1A30: ("INVERT_DATA", 1), 0x1A37: ("CHANNEL_SWAP", 1), 0x1A35: ("TRIG_IN1_DELAY", 4)}
+SETTINGS = {cmd: n for cmd, (_, n) in SETTING_NAMES.items()}
 
 NAMES = {
     POWER_CONTROL: "POWER_CONTROL", GET_VERSION: "GET_VERSION", SW_RESET: "SW_RESET",
@@ -53,6 +56,7 @@ NAMES = {
     PAT_START_STOP: "PAT_START_STOP", PAT_EXPO_PRD: "PAT_EXPO_PRD", PAT_CONFIG: "PAT_CONFIG",
     MBOX_ADDRESS: "MBOX_ADDRESS", MBOX_CONTROL: "MBOX_CONTROL", MBOX_DATA: "MBOX_DATA",
     NUM_IMAGE_IN_FLASH: "NUM_IMAGE_IN_FLASH", FIRMWARE_TAG: "FIRMWARE_TAG",
+    **{cmd: name for cmd, (name, _) in SETTING_NAMES.items()},
 }
 
 #: Data bytes of each write (None: variable). A write of another length is refused.
