@@ -71,6 +71,8 @@ READABLE = {POWER_CONTROL, GET_VERSION, LED_CURRENT, SOURCE_SEL, LED_ENABLE, STA
             PAT_TRIG_MODE, PAT_START_STOP, PAT_EXPO_PRD, PAT_CONFIG, NUM_IMAGE_IN_FLASH,
             FIRMWARE_TAG, *SETTINGS}
 
+#: entries of the pattern and image LUT mailboxes (MBOX_ADDRESS takes 0-127)
+LUT_ENTRIES = 128
 SOURCE_VIDEO = 0            # PAT_DISP_MODE value: patterns streamed through the video port
 SOURCE_FLASH = 3            # PAT_DISP_MODE value: patterns from the flash images
 TRIGGER_INTERNAL = 1        # PAT_TRIG_MODE 1: internal (or TRIG_IN) trigger
@@ -187,13 +189,13 @@ class PatternConfig:
         return cls(data[0] + 1, bool(data[1]), data[2] + 1, data[3] + 1)
 
 
-def validation_status(exposure_us: int, period_us: int, entries: list[LutEntry],
-                      image_lut: list[int], images_in_flash: int, config: PatternConfig,
+def validation_status(exposure_us: int, period_us: int, entries: list[LutEntry | None],
+                      image_lut: list[int | None], images_in_flash: int, config: PatternConfig,
                       source: int = SOURCE_FLASH) -> int:
     """The Validate Data status bits the controller reports for a pattern sequence (the image
-    LUT counts only for patterns from flash)."""
+    LUT counts only for patterns from flash); None: a LUT entry never written."""
     status = 0
-    depth = max((e.bit_depth for e in entries), default=1)
+    depth = max((e.bit_depth for e in entries if e is not None), default=1)
     dark = period_us - exposure_us
     if (dark < 0 or 0 < dark < MIN_DARK_US or exposure_us < MIN_EXPOSURE_US[depth - 1]
             or exposure_us <= 0):
@@ -202,10 +204,10 @@ def validation_status(exposure_us: int, period_us: int, entries: list[LutEntry],
         status |= VALID_PERIOD_DIFFERENCE
     flash = source == SOURCE_FLASH
     if (not entries or config.entries != len(entries)
-            or any(not 1 <= e.bit_depth <= 8 or e.pattern > max_pattern_number(e.bit_depth)
-                   for e in entries)
+            or any(e is None or not 1 <= e.bit_depth <= 8
+                   or e.pattern > max_pattern_number(e.bit_depth) for e in entries)
             or (flash and (config.images != len(image_lut)
-                          or any(not 0 <= i < images_in_flash for i in image_lut)
+                          or any(i is None or not 0 <= i < images_in_flash for i in image_lut)
                           or not entries[0].buffer_swap))):
         status |= VALID_PATTERN_NUMBER
     return status

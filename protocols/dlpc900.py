@@ -23,6 +23,7 @@ VID, PID = 0x0451, 0xC900
 READ_ERROR_CODE = 0x0100        # read: 1 byte, the last command's error code
 READ_ERROR_DESCRIPTION = 0x0101  # read: ASCII text of the last error
 POWER_MODE = 0x0200             # 1 byte: 0 normal, 1 standby, 2 reset
+DMD_IDLE = 0x0201               # 1 byte: 0 normal, 1 idle (DLPU018 2.3.1.2 DMD standby and idle)
 CURTAIN_COLOR = 0x1100          # 6 bytes: red, green, blue intensity (u16 each)
 STATUS_HW = 0x1A0A
 STATUS_SYS = 0x1A0B
@@ -38,17 +39,19 @@ MIN_EXPOSURE = 0x1A42           # read: minimum exposure (us) per bit depth: 8 x
 
 NAMES = {
     READ_ERROR_CODE: "READ_ERROR_CODE", READ_ERROR_DESCRIPTION: "READ_ERROR_DESCRIPTION",
-    POWER_MODE: "POWER_MODE", GET_VERSION: "GET_VERSION", CURTAIN_COLOR: "CURTAIN_COLOR",
+    POWER_MODE: "POWER_MODE", DMD_IDLE: "DMD_IDLE", GET_VERSION: "GET_VERSION",
+    CURTAIN_COLOR: "CURTAIN_COLOR",
     STATUS_HW: "STATUS_HW", STATUS_SYS: "STATUS_SYS", STATUS_MAIN: "STATUS_MAIN",
     DISP_MODE: "DISP_MODE", TRIG_OUT1_CTL: "TRIG_OUT1_CTL", TRIG_OUT2_CTL: "TRIG_OUT2_CTL",
     PAT_START_STOP: "PAT_START_STOP", BMP_LOAD_INIT: "BMP_LOAD_INIT", BMP_LOAD: "BMP_LOAD",
     LUT_CONFIG: "LUT_CONFIG", LUT_DEFINE: "LUT_DEFINE", MIN_EXPOSURE: "MIN_EXPOSURE",
 }
 WRITE_LENGTH: dict[int, int | None] = {
-    POWER_MODE: 1, CURTAIN_COLOR: 6, DISP_MODE: 1, TRIG_OUT1_CTL: 5, TRIG_OUT2_CTL: 5,
+    POWER_MODE: 1, DMD_IDLE: 1, CURTAIN_COLOR: 6, DISP_MODE: 1, TRIG_OUT1_CTL: 5, TRIG_OUT2_CTL: 5,
     PAT_START_STOP: 1, BMP_LOAD_INIT: 6, BMP_LOAD: None, LUT_CONFIG: 6, LUT_DEFINE: 12,
 }
-READABLE = {READ_ERROR_CODE, READ_ERROR_DESCRIPTION, POWER_MODE, GET_VERSION, CURTAIN_COLOR,
+READABLE = {READ_ERROR_CODE, READ_ERROR_DESCRIPTION, POWER_MODE, DMD_IDLE, GET_VERSION,
+            CURTAIN_COLOR,
             STATUS_HW, STATUS_SYS, STATUS_MAIN, DISP_MODE, TRIG_OUT1_CTL, TRIG_OUT2_CTL,
             LUT_CONFIG, MIN_EXPOSURE}
 
@@ -174,9 +177,11 @@ def exposure_problem(d: LutDefinition) -> tuple[int, str] | None:
     if not lo <= d.exposure_us <= MAX_EXPOSURE_US:
         return ERR_EXPOSURE, (f"pattern {d.index}: exposure {d.exposure_us} us outside "
                               f"{lo} ... {MAX_EXPOSURE_US} us for {d.bit_depth}-bit patterns")
-    if d.bit_position + d.bit_depth > 24 or d.bit_position % d.bit_depth:
-        return ERR_BIT_NUMBER, (f"pattern {d.index}: bit position {d.bit_position} is not a "
-                                f"{d.bit_depth}-bit plane of a 24-bit image")
+    # DLPU018's own pattern-on-the-fly example defines a 2-bit pattern at bit position 1: a
+    # pattern may start at any bit that leaves its depth inside the 24-bit image
+    if d.bit_position + d.bit_depth > 24:
+        return ERR_BIT_NUMBER, (f"pattern {d.index}: bits {d.bit_position} ... "
+                                f"{d.bit_position + d.bit_depth - 1} pass the 24-bit image")
     return None
 
 

@@ -114,8 +114,8 @@ class Dlpc350Firmware(Firmware):
         self.config = c350.PatternConfig(1, False, 1, 1)
         self.mailbox = 0
         self.address = 0
-        self.lut: list[c350.LutEntry] = []
-        self.image_lut: list[int] = []
+        self.lut: list[c350.LutEntry | None] = []  # memory: None where nothing was written
+        self.image_lut: list[int | None] = []
         self.status = 0
         self.validated = False
         self.trig_out1 = bytes([0, 0xBB, 0xBB])
@@ -165,7 +165,7 @@ class Dlpc350Firmware(Firmware):
 
     def write(self, command: int, data: bytes) -> None:
         c = c350
-        name = c.NAMES[command]
+        name = dlp_hid.command_name(self.names, command)
         if command == c.POWER_CONTROL:
             self.standby = bool(data[0])
         elif command == c.PAT_START_STOP:
@@ -214,9 +214,10 @@ class Dlpc350Firmware(Firmware):
             self._mailbox_data(data)
         elif command == c.LUT_VALID:
             self._needs_stop(name)
+            lut, image_lut = self.configured()
             self.status = self.forced_validation or c.validation_status(
-                self.exposure_us, self.period_us, self.lut, self.image_lut, len(self.flash),
-                self.config, self.source)
+                self.exposure_us, self.period_us, lut, image_lut, len(self.flash), self.config,
+                self.source)
             self.forced_validation = 0
             self.validated = True
         elif command in self.settings:
@@ -225,28 +226,44 @@ class Dlpc350Firmware(Firmware):
             pass
 
     def _mailbox_data(self, data: bytes) -> None:
+        # The mailboxes are memory (DLPC350_MailboxSetAddr: an offset 0-127 into a LUT that
+        # keeps its other entries); the sequence uses the first PAT_CONFIG entries of each.
         if self.mailbox == c350.MAILBOX_PATTERN:
             try:
                 entries = c350.unpack_lut(data)
             except ValueError as exc:
                 raise FirmwareError(f"MBOX_DATA: {exc}") from None
-            self.lut[self.address:] = entries
+            self._store(self.lut, entries, c350.LUT_ENTRIES, "pattern LUT")
         elif self.mailbox == c350.MAILBOX_IMAGE:
             lut = list(data[::-1] if len(data) == 2 else data)  # the API's 2-entry swap
-            self.image_lut[self.address:] = lut
+            self._store(self.image_lut, lut, c350.LUT_ENTRIES, "image LUT")
         else:
             raise FirmwareError("MBOX_DATA: no mailbox is open (MBOX_CONTROL 1 or 2 first)",
                                 c900.ERR_NOT_ALLOWED)
         self.validated = False
 
+    def _store(self, memory: list, values: list, size: int, what: str) -> None:
+        end = self.address + len(values)
+        if end > size:
+            raise FirmwareError(f"MBOX_DATA: {len(values)} entries at offset {self.address} pass "
+                                f"the {what}'s {size}")
+        if len(memory) < end:
+            memory.extend([None] * (end - len(memory)))
+        memory[self.address:end] = values
+
+    def configured(self) -> tuple[list[c350.LutEntry | None], list[int | None]]:
+        """The pattern and image LUT entries the sequence uses (PAT_CONFIG's counts)."""
+        return self.lut[:self.config.entries], self.image_lut[:self.config.images]
+
     def images(self) -> list[np.ndarray]:
         if self.source != c350.SOURCE_FLASH:
             return []  # the video port: no signal reaches an emulator
         out, image = [], -1
-        for e in self.lut:
+        lut, image_lut = self.configured()
+        for e in lut:
             if e.buffer_swap:
                 image += 1
-            planes = self.flash[self.image_lut[image]]
+            planes = self.flash[image_lut[image]]
             out.append(planes[e.pattern])
         return out
 
@@ -267,6 +284,7 @@ class Dlpc900Firmware(Firmware):
         self.upload: tuple[int, int, bytearray] | None = None
         self.error = (0, "")
         self.curtain = bytes(6)
+        self.idle = False  # DMD_IDLE: the mirrors at a 50 % duty cycle, nothing shown
         self.trig_out1 = bytes(5)
         self.trig_out2 = bytes(5)
 
@@ -297,6 +315,8 @@ class Dlpc900Firmware(Firmware):
             return bytes([c.MAIN_SEQUENCE_RUNNING if self.running else 0])
         if command == c.POWER_MODE:
             return bytes([int(self.standby)])
+        if command == c.DMD_IDLE:
+            return bytes([int(self.idle)])
         if command == c.DISP_MODE:
             return bytes([self.mode])
         if command == c.CURTAIN_COLOR:
@@ -313,6 +333,11 @@ class Dlpc900Firmware(Firmware):
         c = c900
         if command == c.POWER_MODE:
             self.standby = data[0] == 1
+        elif command == c.DMD_IDLE:
+            if data[0] > 1:
+                raise FirmwareError(f"DMD_IDLE {data[0]} is not 0 (normal) or 1 (idle)",
+                                    c900.ERR_INVALID_PARAMETER)
+            self.idle = data[0] == 1
         elif command == c.CURTAIN_COLOR:
             self.curtain = data
         elif command == c.DISP_MODE:
@@ -327,10 +352,12 @@ class Dlpc900Firmware(Firmware):
             else:
                 self.trig_out2 = data
         elif self.mode != c.MODE_ON_THE_FLY:
-            raise FirmwareError(f"{c.NAMES[command]}: only in pattern-on-the-fly mode "
+            raise FirmwareError(f"{dlp_hid.command_name(self.names, command)}: only in "
+                                f"pattern-on-the-fly mode "
                                 f"(DISP_MODE 3)", c.ERR_NOT_ALLOWED)
         elif self.running:
-            raise FirmwareError(f"{c.NAMES[command]}: stop the pattern sequence first",
+            raise FirmwareError(f"{dlp_hid.command_name(self.names, command)}: stop the pattern "
+                                f"sequence first",
                                 c.ERR_NOT_ALLOWED)
         elif command == c.LUT_DEFINE:
             d = c.LutDefinition.unpack(data)
@@ -522,12 +549,20 @@ class DlpEmulatorServer:
             return
         flags = req.flags
         was_running = self.firmware.running
+        name = dlp_hid.command_name(self.firmware.names, req.command)
         try:
             data = self.firmware.handle(req)
         except FirmwareError as exc:
             self.bad_reports += 1
-            log.info("%s emulator: %s refused: %s", self.model,
-                     dlp_hid.command_name(self.firmware.names, req.command), exc)
+            log.info("%s emulator: %s refused: %s", self.model, name, exc)
+            if req.reply or req.read:
+                await self._send(writer, dlp_hid.Reply(flags | dlp_hid.FLAG_ERROR, req.seq))
+            return
+        except Exception as exc:  # a fault of the emulator itself: an error reply, the link stays
+            self.bad_reports += 1
+            log.exception("%s emulator: %s failed inside the emulator", self.model, name)
+            if isinstance(self.firmware, Dlpc900Firmware):
+                self.firmware.error = (c900.ERR_INVALID_COMMAND, f"{name}: internal error: {exc}")
             if req.reply or req.read:
                 await self._send(writer, dlp_hid.Reply(flags | dlp_hid.FLAG_ERROR, req.seq))
             return

@@ -476,3 +476,125 @@ def test_dlpc350_flash_holds_pattern_sets_and_the_driver_finds_them() -> None:
     spec = preset("slstudio-2x3")
     for k, (img, plane) in enumerate(where):
         np.testing.assert_array_equal(planes[img][plane], spec.image(k, 64, 40))
+
+
+class RawClient:
+    """Reports as TI's guides and pycrafter4500 / Pycrafter6500 build them: every write asks
+    for a reply; ``cmd`` returns (refused, data)."""
+
+    def __init__(self, port: int) -> None:
+        self.s = socket.create_connection(("127.0.0.1", port), timeout=2)
+
+    def cmd(self, mode: str, cmd2: int, cmd3: int, data: list[int] | bytes = ()) -> tuple[bool, bytes]:
+        flags = 0xC0 if mode == "r" else 0x40
+        n = len(data) + 2
+        self.s.sendall(bytes([flags, 0, n & 0xFF, n >> 8, cmd3, cmd2, *data]).ljust(64, b"\0"))
+        reply = self.s.recv(64)
+        return bool(reply[0] & 0x20), reply[4:4 + (reply[2] | reply[3] << 8)]
+
+    def close(self) -> None:
+        self.s.close()
+
+
+def test_dlpc350_display_settings_are_answered_and_read_back() -> None:
+    """pycrafter4500's gamma (0x1A0E), DMD park (0x0609) and buffer freeze (0x100A) and the
+    other settings: each write gets its reply, each reads back (they had dropped the link)."""
+    emu = EmulatorThread("dlpc350")
+    client = RawClient(emu.server.port)
+    try:
+        for command, (name, size) in c350.SETTING_NAMES.items():
+            value = [0x80] + [i + 1 for i in range(size - 1)]
+            refused, _ = client.cmd("w", command >> 8, command & 0xFF, value)
+            assert not refused, name
+            refused, data = client.cmd("r", command >> 8, command & 0xFF)
+            assert not refused and list(data[:size]) == value, name
+            assert c350.NAMES[command] == name
+        assert not client.cmd("r", 0x02, 0x05)[0]  # the link still serves
+    finally:
+        client.close()
+        emu.stop()
+
+
+def test_an_emulator_fault_is_an_error_reply_and_the_link_stays(monkeypatch) -> None:
+    for model in ("dlpc350", "dlpc900"):
+        emu = EmulatorThread(model)
+        client = RawClient(emu.server.port)
+        try:
+            def broken(command: int, data: bytes) -> None:
+                raise RuntimeError("a bug in the emulator")
+
+            monkeypatch.setattr(emu.server.firmware, "write", broken)
+            refused, _ = client.cmd("w", 0x1A, 0x1B, [1])  # DISP_MODE
+            assert refused
+            monkeypatch.undo()
+            if model == "dlpc900":  # the last error, as a client asks right after the refusal
+                refused, text = client.cmd("r", 0x01, 0x01)  # READ_ERROR_DESCRIPTION
+                assert b"internal error: a bug in the emulator" in text
+            refused, version = client.cmd("r", 0x02, 0x05)  # GET_VERSION still answered
+            assert not refused and len(version) == 16
+        finally:
+            client.close()
+            emu.stop()
+
+
+def test_dlpc350_pattern_lut_is_memory_addressed_by_the_mailbox() -> None:
+    """DLPC350_MailboxSetAddr sets an offset into a LUT that keeps its other entries:
+    rewriting entry 0 of a valid 3-entry LUT leaves it valid (it was cut to one entry)."""
+    emu = EmulatorThread("dlpc350")
+    client = RawClient(emu.server.port)
+
+    def ok(*args) -> bytes:
+        refused, data = client.cmd(*args)
+        assert not refused, args
+        return data
+
+    try:
+        ok("w", 0x1A, 0x24, [0])
+        ok("w", 0x1A, 0x1B, [1])
+        ok("w", 0x1A, 0x22, [0])                      # the video port: no image LUT
+        ok("w", 0x1A, 0x31, [2, 1, 2, 0])             # 3 entries
+        ok("w", 0x1A, 0x23, [0])
+        ok("w", 0x1A, 0x29, list((4504).to_bytes(4, "little")) * 2)
+        words = [(1 if i == 0 else 3) | i << 2 | 7 << 8 | 7 << 12 for i in range(3)]
+        ok("w", 0x1A, 0x33, [2])
+        ok("w", 0x1A, 0x32, [0])
+        ok("w", 0x1A, 0x34, b"".join(w.to_bytes(3, "little") for w in words))
+        ok("w", 0x1A, 0x33, [0])
+        ok("w", 0x1A, 0x1A, [0])
+        assert ok("r", 0x1A, 0x1A)[0] & 0x1F == 0
+        ok("w", 0x1A, 0x33, [2])                      # rewrite entry 0 only
+        ok("w", 0x1A, 0x32, [0])
+        ok("w", 0x1A, 0x34, list(words[0].to_bytes(3, "little")))
+        ok("w", 0x1A, 0x33, [0])
+        ok("w", 0x1A, 0x1A, [0])
+        assert ok("r", 0x1A, 0x1A)[0] & 0x1F == 0
+        assert len(emu.server.firmware.configured()[0]) == 3
+        ok("w", 0x1A, 0x24, [2])                      # start accepted
+        assert ok("r", 0x1A, 0x0C)[0] & 0x02
+        ok("w", 0x1A, 0x24, [0])
+        ok("w", 0x1A, 0x33, [2])                      # past the 128 entries: refused
+        ok("w", 0x1A, 0x32, [127])
+        assert client.cmd("w", 0x1A, 0x34, b"".join(w.to_bytes(3, "little") for w in words))[0]
+    finally:
+        client.close()
+        emu.stop()
+
+
+def test_dlpc900_dmd_idle_mode_and_the_guides_bit_positions() -> None:
+    emu = EmulatorThread("dlpc900")
+    client = RawClient(emu.server.port)
+    try:
+        assert not client.cmd("w", 0x02, 0x01, [1])[0]       # DMD idle (DLPU018 2.3.1.2)
+        assert client.cmd("r", 0x02, 0x01) == (False, b"\x01")
+        assert not client.cmd("w", 0x02, 0x01, [0])[0]
+        assert client.cmd("w", 0x02, 0x01, [2])[0]           # neither normal nor idle
+    finally:
+        client.close()
+        emu.stop()
+    # DLPU018's pattern-on-the-fly example, step 3: a 2-bit pattern at bit position 1
+    example = c900.LutDefinition.unpack(bytes.fromhex("010090010023000000000008"))
+    assert (example.bit_depth, example.bit_position) == (2, 1)
+    assert c900.exposure_problem(example) is None
+    beyond = c900.LutDefinition(index=0, exposure_us=example.exposure_us, bit_depth=2,
+                                bit_position=23)
+    assert c900.exposure_problem(beyond)[0] == c900.ERR_BIT_NUMBER
