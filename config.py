@@ -172,8 +172,12 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
     except ValueError as exc:
         raise err("[cell] name", str(exc)) from None
 
+    bus_t = dict(_table(raw, "bus", err))
+    if isinstance(bus_t.get("password_file"), str):  # relative to the cell config, as its paths
+        bus_t["password_file"] = str(((path.parent if path else Path()) / bus_t["password_file"])
+                                     .resolve())
     try:
-        bus = BusConfig.from_mapping(_table(raw, "bus", err))
+        bus = BusConfig.from_mapping(bus_t)
     except (ValueError, TypeError) as exc:
         raise err("[bus]", str(exc)) from None
 

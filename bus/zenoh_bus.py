@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -100,7 +101,7 @@ class BusConfig:
     @classmethod
     def from_mapping(cls, m: dict[str, Any]) -> BusConfig:
         known = {"mode", "listen", "connect", "multicast_scouting", "tls", "user", "password",
-                 "shared_memory_mb"}
+                 "password_file", "shared_memory_mb"}
         for key in m:
             if key not in known:
                 raise ValueError(f"unknown key {key!r}; expected one of {sorted(known)}")
@@ -115,12 +116,21 @@ class BusConfig:
         bad = set(tls) - set(_TLS_KEYS)
         if bad:
             raise ValueError(f"tls: unknown key {sorted(bad)[0]!r}; expected one of {_TLS_KEYS}")
-        if ("user" in m) != ("password" in m):
-            raise ValueError("give both user and password, or neither")
+        if "password" in m and "password_file" in m:
+            raise ValueError("give password or password_file, not both")
+        password = m.get("password")
+        if "password_file" in m:  # the daemon's secret out of the cell config (0600, as the
+            # clients' --password-file)
+            try:
+                password = Path(str(m["password_file"])).read_text().strip()
+            except OSError as exc:
+                raise ValueError(f"password_file {m['password_file']}: cannot read the password: "
+                                 f"{exc.strerror or exc}") from None
+        if ("user" in m) != (password is not None):
+            raise ValueError("give both user and password (or password_file), or neither")
         return cls(mode, tuple(m.get("listen", [])), tuple(m.get("connect", [])),
                    bool(m.get("multicast_scouting", False)), dict(tls), m.get("user"),
-                   m.get("password"), shm_mb(m.get("shared_memory_mb", DEFAULT_SHM_MB),
-                                             "shared_memory_mb"))
+                   password, shm_mb(m.get("shared_memory_mb", DEFAULT_SHM_MB), "shared_memory_mb"))
 
     @classmethod
     def for_client(cls, connect: str | list[str] | None = None, user: str | None = None,

@@ -67,7 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='override a key, e.g. --set listen/endpoints=["tls/0.0.0.0:7447"]')
     p.add_argument("--cells", default=None, metavar="A,B,...",
                    help="several cells on this router: the ACL per cell, users <role>@<cell> "
-                        "(monitor stays plant-wide)")
+                        "(monitor@<cell> a read-only view of one cell; the plain monitor stays "
+                        "plant-wide)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resulting config as JSON (for zenohd -c) and exit")
 

@@ -45,8 +45,10 @@ def test_the_guides_tls_step_runs_as_written_and_the_cell_behind_it_works(tmp_pa
         "transport/link/tls/listen_private_key": str(tls / "router.key"),
         "transport/auth/usrpwd/dictionary_file": str(tmp_path / "credentials.txt")}))
     endpoint = f"tls/localhost:{port}"
+    # the daemon's password from its file, as docs/commissioning.md step 3 writes the [bus] table
     daemon = DaemonThread(MOCK_CELL, cell, endpoint, bus={
-        "mode": "client", "connect": [endpoint], "user": "daemon", "password": users["daemon"],
+        "mode": "client", "connect": [endpoint], "user": "daemon",
+        "password_file": str(tmp_path / "daemon.password"),
         "tls": {"root_ca_certificate": str(tls / "ca.pem")}})
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell,
                SCANCELL_CA=str(tls / "ca.pem"), SCANCELL_USER="controller",

@@ -351,3 +351,54 @@ def test_two_cells_on_one_router_each_sees_and_commands_only_its_own(tmp_path):
         for d in daemons:
             d.stop()
         router.close()
+
+
+def _replies(bus: Bus, key: str) -> list[bytes]:
+    """The payloads of every reply to a plain query on ``key`` through the router."""
+    out = []
+    for reply in bus.session.get(key, payload=b'{"worker": "w1"}', timeout=2.0):
+        if reply.ok is not None:
+            out.append(reply.ok.payload.to_bytes())
+    return out
+
+
+@pytest.mark.process
+def test_a_monitor_cannot_claim_reprocess_work_a_service_can(secured_cell):
+    """Least privilege (issue 39, 5): a claim hands out a task and its recording's path."""
+    engineer = secured_cell("engineer")  # runs the batch: answers its claims
+    key = f"scancell/{secured_cell.cell}/reprocess/b1/claim"
+
+    def on_query(query) -> None:
+        query.reply(key, b'{"task": "t1", "recording": "/var/lib/scancell/recordings/j1.mcap"}')
+        query.drop()
+
+    queryable = engineer.session.declare_queryable(key, on_query)
+    try:
+        service = secured_cell("service")
+        assert wait_until(lambda: _replies(service, key), 15, what="a service's claim")
+        monitor = secured_cell("monitor")
+        assert _replies(monitor, key) == []
+        assert monitor.call("status", timeout_s=5.0)["cell"]  # its status queries still work
+    finally:
+        queryable.undeclare()
+
+
+@pytest.mark.process
+def test_the_daemon_role_sends_no_command(secured_cell):
+    """Least privilege (issue 39, 6): the daemon answers commands; its credentials send none,
+    motion least of all, but still fetch the latched calibrations."""
+    controller = secured_cell("controller")
+    wait_until(lambda: controller.call("status", timeout_s=5.0), 20, what="daemon behind the router")
+    as_daemon = secured_cell("daemon")
+    with pytest.raises(NoDaemon):
+        as_daemon.call("status", timeout_s=3.0, connect_wait_s=1.0)
+    with pytest.raises(NoDaemon):
+        _move(as_daemon, 25.0)
+    key = f"scancell/{secured_cell.cell}/calib/stereo"
+    service = secured_cell("service")  # a worker serves a latched calibration
+    queryable = service.session.declare_queryable(
+        key, lambda q: (q.reply(key, b'{"image_width": 1}'), q.drop()))
+    try:
+        assert wait_until(lambda: _replies(as_daemon, key), 15, what="the daemon's calibration")
+    finally:
+        queryable.undeclare()
