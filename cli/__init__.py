@@ -97,3 +97,25 @@ def main(argv: list[str] | None = None) -> int:
         return int(command_module(args.command).main(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except ImportError as exc:
+        missing = missing_system_library(exc)
+        if missing is None:
+            raise
+        print(f"scancell {args.command}: {missing}", file=sys.stderr)
+        return 2
+
+
+#: system libraries a Python package loads at import, and the Debian package that brings each
+#: (deploy/install-system-deps.sh installs them; `make setup` runs it)
+SYSTEM_LIBRARIES = {"libusb-1.0.so": ("libusb-1.0-0", "Open3D")}
+
+
+def missing_system_library(exc: ImportError) -> str | None:
+    """What to install for an ImportError that names a missing system library, or None."""
+    text = str(exc)
+    for lib, (package, who) in SYSTEM_LIBRARIES.items():
+        if lib in text:
+            return (f"the system library {lib} is missing ({who} loads it: {text}); install it "
+                    f"with `apt-get install {package}` (or `sh deploy/install-system-deps.sh`, "
+                    f"as `make setup` does)")
+    return None

@@ -43,3 +43,31 @@ def test_help_lists_subcommands():
     assert out.returncode == 0
     for cmd in ("daemon", "ctl", "demo", "drivers"):
         assert cmd in out.stdout
+
+
+@pytest.mark.unit
+def test_a_missing_libusb_is_named_with_what_to_install(monkeypatch, capsys):
+    """Open3D loads libusb-1.0 at import: on a machine without it every simulated-cell command
+    ended in a bare ImportError (issue 39, 17)."""
+    from scancell import cli
+
+    def broken(args):
+        raise ImportError("libusb-1.0.so.0: cannot open shared object file: No such file")
+
+    from scancell.cli import decode
+
+    class Module:
+        add_arguments = staticmethod(decode.add_arguments)
+        main = staticmethod(broken)
+
+    monkeypatch.setattr(cli, "command_module", lambda name: Module)
+    assert cli.main(["decode", "--calib", "x", "--images", "y", "--out", "z"]) == 2
+    err = capsys.readouterr().err
+    assert "apt-get install libusb-1.0-0" in err and "Open3D" in err
+
+    def other(args):
+        raise ImportError("No module named 'nothing_here'")
+
+    Module.main = staticmethod(other)
+    with pytest.raises(ImportError, match="nothing_here"):
+        cli.main(["decode", "--calib", "x", "--images", "y", "--out", "z"])
