@@ -161,7 +161,7 @@ class Daemon:
              "job/two_face": CellVerb(self._cmd_two_face),
              "home": CellVerb(lambda r: self.jobs.start("home", r)),
              "estop": CellVerb(self._cmd_estop, timeout_s=5.0),
-             "job/abort": CellVerb(self.jobs.abort, timeout_s=10.0),
+             "job/abort": CellVerb(self.jobs.abort, timeout_s=65.0),  # > its timeout_s (≤ 60)
              "job/confirm": CellVerb(self.jobs.confirm),
              "job/status": CellVerb(self.jobs.status)},
             self.cfg.daemon.timeouts,

@@ -267,3 +267,52 @@ def test_an_abort_that_arrives_with_a_device_reply_is_not_swallowed():
     answers, last = asyncio.run(main())
     assert last["state"] == "aborted" and last["aborted"] == last["job_id"]
     assert answers == []  # the reply is dropped with the job, which asks for nothing more
+
+
+def test_an_abort_waits_for_the_clean_up_a_bounded_time_and_says_what_was_left():
+    """``job/abort`` (issue 39, 19): a job whose clean-up hangs gets an answer within the bound
+    naming where its clean-up was; the clean-up goes on and the job ends aborted after it."""
+    import asyncio
+
+    from scancell.bus.local import LocalBus
+    from scancell.daemon.jobs.runner import JobRunner
+
+    released = []
+
+    async def park_the_robot() -> None:  # a clean-up step that takes its time
+        await asyncio.sleep(0.8)
+        released.append(True)
+
+    async def slow(ctx) -> dict:
+        try:
+            await asyncio.sleep(60)
+        finally:
+            await park_the_robot()
+
+    async def quick(ctx) -> dict:
+        await asyncio.sleep(60)
+
+    async def main() -> tuple[dict, dict, dict]:
+        bus = LocalBus("t-abort-bound")
+        events = []
+        bus.subscribe(bus.keys.job_event("*"), lambda s: events.append(s))
+        runner = JobRunner(bus, {"slow": slow, "quick": quick})
+        await runner.start("slow", {})
+        await asyncio.sleep(0.05)
+        t0 = time.monotonic()
+        first = await runner.abort({"timeout_s": 0.2})
+        assert time.monotonic() - t0 < 0.6  # answered within its bound
+        assert runner.busy()  # the clean-up still runs: no new job meanwhile
+        while runner.busy():
+            await asyncio.sleep(0.05)
+        last = dict(runner.last)
+        await runner.start("quick", {})
+        await asyncio.sleep(0.05)
+        second = await runner.abort({})
+        return first, last, second
+
+    first, last, second = asyncio.run(main())
+    assert first["cleaned_up"] is False and first["waited_s"] < 0.5
+    assert "park_the_robot" in first["left_undone"] and "slow" in first["left_undone"]
+    assert last["state"] == "aborted" and released == [True]
+    assert second["cleaned_up"] is True and second["aborted"].startswith("quick-")

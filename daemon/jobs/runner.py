@@ -57,6 +57,26 @@ class JobContext:
         return await self._confirm.get()
 
 
+#: how long ``job/abort`` waits for a job's clean-up by default (s): a robot stop and a projector
+#: stop take well under a second on a healthy cell; the rest is margin for a slow link
+ABORT_CLEANUP_S = 8.0
+
+
+def unfinished_steps(task: asyncio.Task) -> str:
+    """Where a task is waiting: the chain of coroutines it awaits (``cr_await``), outermost
+    first, each as function (file:line). (``Task.get_stack`` gives only the outermost.)"""
+    steps = []
+    coro: Any = task.get_coro()
+    while coro is not None and len(steps) < 16:
+        frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
+        if frame is None:
+            break
+        steps.append(f"{frame.f_code.co_name} ({frame.f_code.co_filename.rsplit('/', 1)[-1]}:"
+                     f"{frame.f_lineno})")
+        coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
+    return " > ".join(steps) or "(no frame)"
+
+
 class JobRunner:
     def __init__(self, bus: BusLike, jobs: dict[str, JobBody]) -> None:
         self.bus = bus
@@ -96,12 +116,28 @@ class JobRunner:
                          **where}
 
     async def abort(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Cancel the running job and wait for its clean-up (its ``finally`` blocks: stop the
+        projector, park the devices) at most ``timeout_s`` (default ABORT_CLEANUP_S). A
+        clean-up still running then goes on; the reply says so and where it was."""
         if not self.busy():
             return {"aborted": None}
         ctx, task = self.current  # type: ignore[misc]
+        bound = float(request.get("timeout_s", ABORT_CLEANUP_S))
+        t0 = time.monotonic()
         task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
-        return {"aborted": ctx.job_id}
+        # asyncio.wait neither cancels the task again on its timeout nor passes a cancellation
+        # of this command on to it: the clean-up is never interrupted here
+        await asyncio.wait({task}, timeout=bound)
+        waited = round(time.monotonic() - t0, 3)
+        if task.done():
+            return {"aborted": ctx.job_id, "cleaned_up": True, "waited_s": waited}
+        left = unfinished_steps(task)
+        log.warning("job %s: its clean-up still runs %.1f s after the abort: %s", ctx.job_id,
+                    waited, left)
+        ctx.event("running", "abort_cleanup", f"{ctx.kind}: clean-up unfinished after {waited:g} s: "
+                  f"{left}", left_undone=left)
+        return {"aborted": ctx.job_id, "cleaned_up": False, "waited_s": waited,
+                "left_undone": left}
 
     def cancel_now(self) -> str | None:
         """Cancel the running job without waiting for it (estop); returns its id."""
