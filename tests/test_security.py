@@ -402,3 +402,31 @@ def test_the_daemon_role_sends_no_command(secured_cell):
         assert wait_until(lambda: _replies(as_daemon, key), 15, what="the daemon's calibration")
     finally:
         queryable.undeclare()
+
+
+@pytest.mark.process
+def test_a_service_publishes_its_results_not_the_daemons_measurements(secured_cell):
+    """Least privilege (issue 39, 7): a worker could spoof robot joints or tracker points."""
+    controller = secured_cell("controller")
+    wait_until(lambda: controller.call("status", timeout_s=5.0), 20, what="daemon behind the router")
+    got: dict[str, list] = {"result": [], "joints": []}
+    result_key = controller.keys.scan_result("s1")
+    joints_key = controller.keys.dev("robot", "joints")
+    # plain zenoh subscribers, as any client of the router: raw samples are what is checked
+    subs = [controller.session.declare_subscriber(result_key,
+                                                  lambda s: got["result"].append(1)),
+            controller.session.declare_subscriber(
+                joints_key, lambda s: s.payload.to_bytes() == b"spoofed" and got["joints"].append(1))]
+    service = secured_cell("service")
+    time.sleep(0.5)
+    for _ in range(5):
+        service.session.put(result_key, b'{"ok": true}')
+        service.session.put(joints_key, b"spoofed")
+        time.sleep(0.1)
+    try:
+        assert wait_until(lambda: got["result"], 10, what="a service's scan result")
+        time.sleep(0.5)
+        assert got["joints"] == []  # the router dropped the spoofed measurement
+    finally:
+        for sub in subs:
+            sub.undeclare()
