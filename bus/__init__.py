@@ -5,6 +5,7 @@ from scancell.bus.protocol import BusLike, BusSample, Latched, Subscription
 from scancell.bus.zenoh_bus import (
     DEFAULT_ENDPOINT,
     ENV_CONNECT,
+    AccessDenied,
     Bus,
     BusConfig,
     LatchedPublisher,
@@ -13,5 +14,6 @@ from scancell.bus.zenoh_bus import (
     sample_from_zenoh,
 )
 
-__all__ = ["DEFAULT_ENDPOINT", "ENV_CONNECT", "Bus", "BusConfig", "BusLike", "BusSample", "Latched",
-           "LatchedPublisher", "NoDaemon", "Subscription", "open_session", "sample_from_zenoh"]
+__all__ = ["DEFAULT_ENDPOINT", "ENV_CONNECT", "AccessDenied", "Bus", "BusConfig", "BusLike",
+           "BusSample", "Latched", "LatchedPublisher", "NoDaemon", "Subscription", "open_session",
+           "sample_from_zenoh"]

@@ -252,9 +252,9 @@ class Bus:
                 if cfg.mode != "client":
                     raise
                 if time.monotonic() >= deadline:
-                    raise NoDaemon(f"no daemon reachable at {', '.join(cfg.connect)} for cell "
-                                   f"{cell!r} after {wait_s:g} s (is `scancell daemon` running "
-                                   f"there?): {exc}") from None
+                    why = diagnose_connect(cfg)
+                    raise NoDaemon(f"cannot join cell {cell!r} at {', '.join(cfg.connect)} after "
+                                   f"{wait_s:g} s: {why} (zenoh: {exc})") from None
                 time.sleep(0.2)
 
     # ---- publish
@@ -349,11 +349,29 @@ class Bus:
             if reply is not None:
                 return unwrap_reply(reply)
             if time.monotonic() - t0 > 1.0 or time.monotonic() > deadline:
+                alive = self._daemon_alive()
+                if alive and self.config is not None and self.config.user is not None:
+                    raise AccessDenied(
+                        f"access denied: the daemon of cell {self.keys.cell!r} is up ({alive} "
+                        f"device(s) alive) but {key} got no answer: the router's ACL does not let "
+                        f"user {self.config.user!r} send it (the roles: docs/commissioning.md)")
+                if alive:
+                    raise NoDaemon(f"the daemon of cell {self.keys.cell!r} is up ({alive} device(s) "
+                                   f"alive) but did not answer {key} within {timeout_s:g} s")
                 raise NoDaemon(
                     f"no daemon answered {key}: is `scancell daemon` running for cell "
                     f"{self.keys.cell!r} and reachable (connect={self._endpoints()})?"
                 )
             time.sleep(0.1)
+
+    def _daemon_alive(self) -> int:
+        """How many of the cell's devices hold their liveliness token (``alive/*``): the daemon
+        is up when any does. Any role may ask (the ACL lets everyone see liveliness)."""
+        try:
+            replies = self.session.liveliness().get(f"{self.keys.prefix}/alive/*", timeout=1.0)
+            return sum(1 for r in replies if r.ok is not None)
+        except zenoh.ZError:
+            return 0
 
     def _endpoints(self) -> list[str]:
         return list(self.config.connect) if self.config else []
@@ -479,9 +497,56 @@ class LatchedPublisher:
         self._queryable.undeclare()
 
 
+def diagnose_connect(cfg: BusConfig) -> str:
+    """Why a client session could not join: zenoh says "unable to connect" whatever the cause,
+    so each endpoint is probed: the CA file, a TCP connection, a TLS handshake with the same CA
+    (Python's ssl), and if all of that works, the router refused the session itself: the user
+    and password."""
+    import socket
+    import ssl
+
+    ca = cfg.tls.get("root_ca_certificate")
+    if ca and not Path(str(ca)).is_file():
+        return f"TLS: the CA file {ca} does not exist"
+    reasons = []
+    for endpoint in cfg.connect:
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.partition("#")[0].rpartition(":")
+        host = host.strip("[]")
+        try:
+            sock = socket.create_connection((host, int(port)), timeout=2.0)
+        except (OSError, ValueError) as exc:
+            reasons.append(f"{endpoint}: nothing answers there ({getattr(exc, 'strerror', None) or exc}"
+                           f"): is the router (or the daemon) running?")
+            continue
+        with sock:
+            if proto == "tls":
+                try:
+                    context = ssl.create_default_context(cafile=str(ca) if ca else None)
+                    with context.wrap_socket(sock, server_hostname=host):
+                        pass
+                except (ssl.SSLError, ssl.CertificateError, OSError) as exc:
+                    reasons.append(f"{endpoint}: TLS handshake failed ({getattr(exc, 'reason', None) or exc})"
+                                   f": is {ca or 'the system CA store'} the CA that signed the "
+                                   f"router's certificate, for the name {host!r}?")
+                    continue
+        if cfg.user is not None:
+            reasons.append(f"{endpoint}: the router took the connection but refused the session: "
+                           f"authentication failed for user {cfg.user!r} (wrong user or password?)")
+        else:
+            reasons.append(f"{endpoint}: the router took the connection but refused the session "
+                           f"(does it ask for a user and password?)")
+    return "; ".join(reasons) or "no endpoint to connect to"
+
+
 class NoDaemon(ConnectionError):
-    """Nobody answered a command: the daemon is not running or not reachable."""
+    """Nobody answered a command, or the session could not join: the message says why (no
+    daemon, no router, the TLS handshake, the authentication)."""
 
 
-__all__ = ["REPLY_SCHEMA", "Bus", "BusConfig", "BusSample", "LatchedPublisher", "NoDaemon",
-           "open_session"]
+class AccessDenied(NoDaemon):
+    """The daemon is up, but the router's ACL dropped the command for this user."""
+
+
+__all__ = ["REPLY_SCHEMA", "AccessDenied", "Bus", "BusConfig", "BusSample", "LatchedPublisher",
+           "NoDaemon", "open_session"]

@@ -430,3 +430,51 @@ def test_a_service_publishes_its_results_not_the_daemons_measurements(secured_ce
     finally:
         for sub in subs:
             sub.undeclare()
+
+
+@pytest.mark.process
+def test_ctl_names_the_cause_tls_authentication_access_or_no_daemon(secured_cell, tmp_path):
+    """`scancell ctl` (issue 39, 8): a missing CA, a CA that did not sign the router, a wrong
+    password, an ACL refusal and a router that is not there each get their own message; all
+    exit 3, as "no daemon" did."""
+    import os
+    import subprocess
+    import sys
+
+    controller = secured_cell("controller")
+    wait_until(lambda: controller.call("status", timeout_s=5.0), 20, what="daemon behind the router")
+    other = tmp_path / "other"
+    other.mkdir()
+    wrong_ca = _certs(other)["ca"]
+    for name, pw in (("controller", PASSWORDS["controller"]), ("monitor", PASSWORDS["monitor"]),
+                     ("wrong", "bad-pw")):
+        (tmp_path / f"{name}.pw").write_text(pw)
+
+    def ctl(*args: str, user: str = "controller", pw: str = "controller", ca: str | None = None,
+            endpoint: str | None = None) -> subprocess.CompletedProcess:
+        env = dict(os.environ, SCANCELL_CONNECT=endpoint or secured_cell.endpoint,
+                   SCANCELL_CELL=secured_cell.cell, SCANCELL_CA=ca or secured_cell.ca,
+                   SCANCELL_USER=user, SCANCELL_PASSWORD_FILE=str(tmp_path / f"{pw}.pw"))
+        return subprocess.run([sys.executable, "-m", "scancell", "ctl", "--timeout", "5", *args],
+                              env=env, capture_output=True, text=True, timeout=90)
+
+    r = ctl("status", ca=str(tmp_path / "missing.pem"))  # --ca / $SCANCELL_CA: checked at once
+    assert r.returncode == 2 and "missing.pem: no such CA certificate" in r.stderr
+    bus_file = tmp_path / "bus.toml"  # the same in a [bus] table: found when joining
+    bus_file.write_text(f'[bus]\nmode = "client"\nconnect = ["{secured_cell.endpoint}"]\n'
+                        f'user = "controller"\npassword = "{PASSWORDS["controller"]}"\n'
+                        f'[bus.tls]\nroot_ca_certificate = "{tmp_path / "missing.pem"}"\n')
+    r = subprocess.run([sys.executable, "-m", "scancell", "ctl", "--timeout", "5", "status"],
+                       env=dict(os.environ, SCANCELL_BUS_CONFIG=str(bus_file),
+                                SCANCELL_CELL=secured_cell.cell),
+                       capture_output=True, text=True, timeout=90)
+    assert r.returncode == 3 and "the CA file" in r.stderr and "does not exist" in r.stderr
+    r = ctl("status", ca=str(wrong_ca))
+    assert r.returncode == 3 and "TLS handshake failed" in r.stderr
+    r = ctl("status", pw="wrong")
+    assert r.returncode == 3 and "authentication failed for user 'controller'" in r.stderr
+    r = ctl("estop", user="monitor", pw="monitor")
+    assert r.returncode == 3 and "access denied" in r.stderr and "'monitor'" in r.stderr
+    r = ctl("status", endpoint=f"tls/localhost:{free_port()}")
+    assert r.returncode == 3 and "nothing answers there" in r.stderr
+    assert ctl("status").returncode == 0
