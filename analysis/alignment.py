@@ -26,6 +26,10 @@ from scipy.spatial.transform import Rotation
 #: points a best fit uses: its statistical error is noise / sqrt(n), 0.0001 mm for 0.02 mm noise
 FIT_SAMPLE = 100_000
 MIN_USED_FRACTION = 0.2
+#: how near the surface a roughly placed cloud of the part lies: 5 mm, or 0.2 % of the part's
+#: diagonal for a large one (a body panel's form errors stay within a few mm)
+MATCH_FLOOR_MM = 5.0
+MATCH_RELATIVE = 0.002
 
 
 class AlignmentError(ValueError):
@@ -93,8 +97,9 @@ def _iterate(nominal: Nominal, pts: np.ndarray, T: np.ndarray, select, max_itera
         cp = closest_points(nominal, p)
         used = select(cp)
         if used.sum() < 6:
-            raise AlignmentError(f"bestfit: only {used.sum()} points usable at iteration {it}; "
-                                 f"the cloud does not match the nominal")
+            raise AlignmentError(f"bestfit: no overlap between the cloud and the nominal: only "
+                                 f"{used.sum()} points usable at iteration {it} (the cloud does "
+                                 f"not match the nominal)")
         step = _step(p[used], cp.points[used], cp.normals[used])
         T = step @ T
         moved = float(np.max(np.linalg.norm(apply(step, p[used]) - p[used], axis=1)))
@@ -125,6 +130,16 @@ def best_fit(nominal: Nominal, points: np.ndarray, initial: np.ndarray | None = 
                              f"give an initial transform or check the files")
     coarse = pts[:: max(1, len(pts) // 20_000)]
     T, it1, _, ok, moved = _iterate(nominal, coarse, T, lambda cp: cp.distance < gate, 50, 1e-3)
+    # A cloud of this part lies on its surface once roughly placed: most points within a few mm
+    # (its form errors and the scanner's noise). A sheet over the part or another shape of the
+    # same size passes the gate above but not this, and would only make the fine fit wander.
+    match_mm = max(MATCH_FLOOR_MM, MATCH_RELATIVE * nominal.diagonal_mm)
+    on_surface = float((closest_points(nominal, apply(T, coarse)).distance < match_mm).mean())
+    if on_surface < MIN_USED_FRACTION:
+        raise AlignmentError(f"bestfit: no overlap between the cloud and the nominal: after a "
+                             f"coarse fit only {on_surface:.1%} of the points lie within "
+                             f"{match_mm:.1f} mm of its surface; the cloud's shape is not this "
+                             f"part's (another part, or the wrong nominal?)")
     sigma = 0.0
 
     def trimmed(cp) -> np.ndarray:

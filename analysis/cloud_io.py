@@ -64,6 +64,45 @@ def write_ply(path: str | Path, points: np.ndarray, fields: dict[str, np.ndarray
         tmp.unlink(missing_ok=True)
 
 
+#: bytes of each PLY property type
+_PLY_TYPE_SIZE = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+                  "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+                  "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def check_ply_length(p: Path) -> None:
+    """CloudFileError if a binary PLY holds fewer bytes than its header announces (a file cut
+    short in a copy or a full disk: a reader would fill the rest with garbage). Only files
+    whose elements all have fixed-size properties (no lists) are checked; ASCII files are
+    left to the reader."""
+    with open(p, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return
+    lines = head[:end].decode("ascii", "replace").splitlines()
+    if not any(line.startswith("format binary") for line in lines):
+        return
+    body = end + len(b"end_header") + (2 if head[end + 10:end + 12] == b"\r\n" else 1)
+    need, count, row = 0, 0, 0
+    for line in lines:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "element":
+            need += count * row
+            count, row = int(words[2]), 0
+        elif words[0] == "property":
+            if words[1] == "list" or words[1] not in _PLY_TYPE_SIZE:
+                return
+            row += _PLY_TYPE_SIZE[words[1]]
+    need += count * row
+    have = p.stat().st_size - body
+    if have < need:
+        raise CloudFileError(f"{p}: truncated: its header announces {need} bytes of data, the file "
+                             f"holds {have} ({have / need:.1%}); copy it again")
+
+
 def read_ply(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(points (N, 3) float64, extra scalar fields) of a PLY file."""
     import open3d as o3d
@@ -71,6 +110,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     p = Path(path)
     if not p.is_file():
         raise CloudFileError(f"{p}: no such file")
+    check_ply_length(p)
     cloud = o3d.t.io.read_point_cloud(str(p))
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         raise CloudFileError(f"{p}: no points (not a point cloud PLY, or empty)")

@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+#: the smallest chordal tolerance relative to the part's diagonal (see _tessellate_step)
+RELATIVE_CHORDAL = 2e-6
 #: mm per unit
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "inch": 25.4, "ft": 304.8}
 STEP_SUFFIXES = (".step", ".stp")
@@ -101,8 +103,11 @@ class Nominal:
 
 
 def load_nominal(path: str | Path, unit: str | None = None,
-                 chordal_tolerance_mm: float = DEFAULT_CHORDAL_MM) -> Nominal:
-    """A STEP (unit read from the file) or a mesh (``unit`` given, default mm)."""
+                 chordal_tolerance_mm: float = DEFAULT_CHORDAL_MM,
+                 measured: np.ndarray | None = None) -> Nominal:
+    """A STEP (unit read from the file) or a mesh (``unit`` given, default mm). With the
+    ``measured`` cloud, a STEP whose size contradicts it is refused before it is tessellated
+    (:func:`check_scale`)."""
     p = Path(path)
     if not p.is_file():
         raise NominalError(f"{p}: no such file")
@@ -112,7 +117,7 @@ def load_nominal(path: str | Path, unit: str | None = None,
     if suffix in STEP_SUFFIXES:
         if not chordal_tolerance_mm > 0:
             raise NominalError(f"chordal tolerance must be > 0 mm, got {chordal_tolerance_mm}")
-        nominal = _load_step(p, chordal_tolerance_mm)
+        nominal = _load_step(p, chordal_tolerance_mm, measured)
         if unit is not None and UNITS_MM[unit] != UNITS_MM.get(nominal.unit, -1):
             raise NominalError(f"{p}: the STEP file states its unit as {nominal.unit!r}; "
                                f"the given unit {unit!r} contradicts it")
@@ -160,7 +165,7 @@ def _step_unit(reader) -> str:
             "foot": "ft"}.get(names[0] if names else "", names[0] if names else "mm")
 
 
-def _load_step(p: Path, chordal_mm: float) -> Nominal:
+def _load_step(p: Path, chordal_mm: float, measured: np.ndarray | None = None) -> Nominal:
     from scancell.analysis import tessellation_cache
 
     try:
@@ -169,10 +174,13 @@ def _load_step(p: Path, chordal_mm: float) -> Nominal:
         raise NominalError(f"{p}: cannot read it ({exc.strerror or exc})") from None
     cached = tessellation_cache.read(key)
     if cached is not None:
-        return Nominal(cached["vertices"], cached["triangles"], cached["face_of_triangle"],
-                       [str(n) for n in cached["face_names"]], str(p), str(cached["unit"]),
-                       chordal_mm)
-    nominal = _tessellate_step(p, chordal_mm)
+        nominal = Nominal(cached["vertices"], cached["triangles"], cached["face_of_triangle"],
+                          [str(n) for n in cached["face_names"]], str(p), str(cached["unit"]),
+                          chordal_mm)
+        if measured is not None:
+            check_scale(nominal, measured)
+        return nominal
+    nominal = _tessellate_step(p, chordal_mm, measured)
     tessellation_cache.write(key, vertices=nominal.vertices, triangles=nominal.triangles,
                              face_of_triangle=nominal.face_of_triangle,
                              face_names=np.asarray(nominal.face_names, str),
@@ -180,8 +188,10 @@ def _load_step(p: Path, chordal_mm: float) -> Nominal:
     return nominal
 
 
-def _tessellate_step(p: Path, chordal_mm: float) -> Nominal:
+def _tessellate_step(p: Path, chordal_mm: float, measured: np.ndarray | None = None) -> Nominal:
+    from OCP.Bnd import Bnd_Box
     from OCP.BRep import BRep_Tool
+    from OCP.BRepBndLib import BRepBndLib
     from OCP.BRepMesh import BRepMesh_IncrementalMesh
     from OCP.IFSelect import IFSelect_ReturnStatus
     from OCP.STEPControl import STEPControl_Reader
@@ -198,6 +208,18 @@ def _tessellate_step(p: Path, chordal_mm: float) -> Nominal:
     if reader.TransferRoots() == 0:
         raise NominalError(f"{p}: the STEP file has no shape OpenCASCADE can transfer")
     shape = reader.OneShape()
+    box = Bnd_Box()
+    BRepBndLib.Add_s(shape, box)
+    if box.IsVoid():
+        raise NominalError(f"{p}: the STEP file's shape is empty")
+    lo, hi = box.CornerMin(), box.CornerMax()
+    diagonal = float(np.linalg.norm([hi.X() - lo.X(), hi.Y() - lo.Y(), hi.Z() - lo.Z()]))
+    if measured is not None:  # before the tessellation, which a wrong unit makes endless
+        check_scale_of(diagonal, str(p), measured)
+    # A smooth surface of curvature radius R tessellated at chordal tolerance c has of the order
+    # of area / (R c) triangles: a tolerance that grows with the part (2 ppm of its diagonal)
+    # keeps that count from growing with the part's scale; a 2.5 m car rear keeps 0.01 mm
+    chordal_mm = max(chordal_mm, RELATIVE_CHORDAL * diagonal)
     BRepMesh_IncrementalMesh(shape, chordal_mm, False, DEFAULT_ANGULAR_RAD, True)
     transfer = reader.WS().TransferReader()
     verts, tris, faces, names = [], [], [], []
@@ -234,9 +256,17 @@ def check_scale(nominal: Nominal, points: np.ndarray) -> None:
     """A nominal in the wrong unit: the measured cloud is far larger (or smaller) than the part.
     A cloud may cover a small detail of a large part, so only a 5x larger cloud or a 200x
     smaller one is refused."""
+    check_scale_of(nominal.diagonal_mm, nominal.source, points)
+
+
+def check_scale_of(diagonal_mm: float, source: str, points: np.ndarray) -> None:
+    """:func:`check_scale` for a nominal of ``diagonal_mm`` across (mm)."""
     pts = np.asarray(points, float)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 2:
+        return
     lo, hi = np.percentile(pts, [1, 99], axis=0)
-    ratio = float(np.linalg.norm(hi - lo)) / max(nominal.diagonal_mm, 1e-12)
+    ratio = float(np.linalg.norm(hi - lo)) / max(diagonal_mm, 1e-12)
     if 1 / 200 <= ratio <= 5:
         return
     times = max(ratio, 1 / ratio)
@@ -244,6 +274,6 @@ def check_scale(nominal: Nominal, points: np.ndarray) -> None:
     hint = {1000.0: "metres", 25.4: "inches", 10.0: "centimetres"}[factor]
     where = (f"is the nominal in {hint}? give its unit" if ratio > 1
              else f"was the nominal's unit given right, or is the cloud in {hint}?")
-    raise NominalError(f"{nominal.source}: the nominal ({nominal.diagonal_mm:.4g} mm across) is "
+    raise NominalError(f"{source}: the nominal ({diagonal_mm:.4g} mm across) is "
                        f"{times:.0f}x {'smaller' if ratio > 1 else 'larger'} than the measured "
                        f"cloud: a wrong unit ({where}); no inspection made")

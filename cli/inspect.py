@@ -140,7 +140,7 @@ def main(args: argparse.Namespace) -> int:
         if args.align == "rps" and not rps:
             raise ValueError("--align rps needs --rps RPS.toml")
         measured, source = load_measured(args.measured)
-        nominal = load_nominal(args.nominal, args.unit, args.chordal)
+        nominal = load_nominal(args.nominal, args.unit, args.chordal, measured)
         print(f"nominal {args.nominal}: {len(nominal.triangles)} triangles; measured {source}: "
               f"{len(measured)} points", file=sys.stderr)
         settings = InspectionSettings(args.align, transform, rps, spec, args.max_distance,

@@ -404,3 +404,77 @@ def test_a_scan_of_the_dented_part_through_the_simulator_shows_the_dent(cad):
     near = np.hypot(y - dent.at_mm[1], z - dent.at_mm[2]) < 5
     assert near.sum() > 200
     assert abs(result.deviation[near].mean() - dent.deviation_mm) < 0.03
+
+
+def test_a_cloud_of_another_shape_is_no_overlap_within_seconds(cad):
+    """A sheet over the part or a sphere of its size (issue 39, 15): the documented "no
+    overlap" error, after the coarse pass, not a fit wandering for a minute."""
+    import time
+
+    nominal = load_nominal(cad["stl"])
+    lo, hi = nominal.vertices.min(axis=0), nominal.vertices.max(axis=0)
+    centre, size = (lo + hi) / 2, hi - lo
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-0.5, 0.5, (20_000, 2))
+    sheet = np.column_stack([centre[0] + uv[:, 0] * size[0], centre[1] + uv[:, 1] * size[1],
+                             np.full(len(uv), hi[2] + 30.0)])
+    ball = rng.normal(size=(20_000, 3))
+    ball = centre + 0.5 * size.min() * ball / np.linalg.norm(ball, axis=1, keepdims=True)
+    for cloud in (sheet, ball):
+        t0 = time.perf_counter()
+        with pytest.raises(al.AlignmentError, match=r"no overlap between the cloud and the nominal"):
+            inspect_cloud(cloud, nominal)
+        assert time.perf_counter() - t0 < 15.0
+    inspect_cloud(sample((), 30_000, 0.015, seed=5), nominal)  # the part's own cloud fits
+
+
+def test_a_truncated_ply_is_named_as_truncated(tmp_path):
+    from scancell.analysis.cloud_io import CloudFileError, read_ply
+
+    ply = tmp_path / "cloud.ply"
+    write_ply(ply, np.random.default_rng(0).normal(size=(1000, 3)), {"quality": np.ones(1000)})
+    read_ply(ply)
+    data = ply.read_bytes()
+    ply.write_bytes(data[:len(data) - 1000])
+    with pytest.raises(CloudFileError, match=r"cloud.ply: truncated: .* holds \d+ "):
+        read_ply(ply)
+    r = cli_main(["inspect", str(ply), "--nominal", str(tmp_path / "x.stl")])
+    assert r == 2
+
+
+def test_a_step_that_claims_metres_is_refused_before_its_tessellation(tmp_path, monkeypatch):
+    """Unit sanity before the mesh (issue 39, 14): 680 m of part at 0.01 mm took 13.5 min."""
+    import OCP.BRepMesh
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
+    from OCP.Interface import Interface_Static
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
+    from scancell.analysis import nominal as nominal_module
+
+    monkeypatch.setenv("SCANCELL_CACHE_DIR", str(tmp_path / "cache"))
+    step = tmp_path / "plate_in_metres.step"
+    Interface_Static.SetCVal_s("write.step.unit", "M")
+    try:  # the numbers of a 680 x 400 x 100 mm plate, written as metres
+        writer = STEPControl_Writer()
+        writer.Transfer(BRepPrimAPI_MakeBox(680_000.0, 400_000.0, 100_000.0).Shape(),
+                        STEPControl_AsIs)
+        writer.Write(str(step))
+    finally:
+        Interface_Static.SetCVal_s("write.step.unit", "MM")
+    cloud = np.random.default_rng(1).uniform([0, 0, 0], [680, 400, 100], (5000, 3))
+
+    def no_mesh(*args, **kwargs):
+        raise AssertionError("tessellated before the unit was checked")
+
+    monkeypatch.setattr(OCP.BRepMesh, "BRepMesh_IncrementalMesh", no_mesh)
+    with pytest.raises(NominalError, match=r"larger than the measured cloud: a wrong unit"):
+        load_nominal(step, measured=cloud)
+    monkeypatch.undo()
+    monkeypatch.setenv("SCANCELL_CACHE_DIR", str(tmp_path / "cache"))
+    # without a cloud to compare with, the tolerance grows with the part: 2 ppm of 810 m
+    import time
+
+    t0 = time.perf_counter()
+    part = load_nominal(step)
+    assert part.unit == "m" and time.perf_counter() - t0 < 30.0
+    assert len(part.triangles) < 10_000
+    assert nominal_module.RELATIVE_CHORDAL * part.diagonal_mm > 1.0

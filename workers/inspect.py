@@ -71,11 +71,14 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
             return
         self.submit((str(meta.get("job_id", "?")), pts, meta.get("nominal")))
 
-    def _nominal(self, path: str):
+    def _nominal(self, path: str, measured: np.ndarray | None = None):
+        """The nominal at ``path`` (loaded once); the first cloud checks its size before the
+        tessellation."""
         from scancell.analysis.nominal import load_nominal
 
         if path not in self._nominals:
-            self._nominals[path] = load_nominal(path, self.settings.unit, self.settings.chordal_mm)
+            self._nominals[path] = load_nominal(path, self.settings.unit, self.settings.chordal_mm,
+                                                measured)
         return self._nominals[path]
 
     def handle(self, item: tuple[str, np.ndarray | None, str | None]) -> None:
@@ -103,7 +106,7 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
             return None
         log.info("job %s: inspecting %d points against %s", job_id, len(points), path)
         try:
-            result = inspect_cloud(points, self._nominal(path), self.settings.inspection,
+            result = inspect_cloud(points, self._nominal(path, points), self.settings.inspection,
                                    progress=lambda m: log.info("job %s: %s", job_id, m))
             body: dict[str, Any] = {"job_id": job_id, "measured": f"fusion/cloud of {job_id}",
                                     **result.to_json()}
