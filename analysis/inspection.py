@@ -16,7 +16,7 @@ import numpy as np
 from scancell.analysis import alignment as al
 from scancell.analysis.deviation import ClosestPoints, Coverage, closest_points, coverage
 from scancell.analysis.nominal import Nominal, check_scale
-from scancell.analysis.tolerance import ToleranceSpec, judge
+from scancell.analysis.tolerance import ToleranceSpec, judge, point_spacing_mm
 
 ALIGNMENTS = ("asmeasured", "bestfit", "rps")
 
@@ -194,17 +194,22 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
 
 def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: np.ndarray,
               spec: ToleranceSpec) -> dict[str, Any]:
-    out: dict[str, Any] = {"allowed_out_share": spec.allowed_out_share, "overall": None,
+    out: dict[str, Any] = {"allowed_out_share": spec.allowed_out_share,
+                           "defect_area_mm2": spec.defect_area_mm2, "overall": None,
                            "regions": []}
     d = cp.deviation
+    spacing = point_spacing_mm(part[in_range]) if (spec.overall or spec.regions) else 0.0
+    out["point_spacing_mm"] = round(spacing, 4)
     if spec.overall is not None:
-        out["overall"] = judge(d[in_range], spec.overall, spec.allowed_out_share)
+        out["overall"] = judge(d[in_range], spec.overall, spec.allowed_out_share,
+                               part[in_range], spacing, spec.defect_area_mm2)
     faces = nominal.face_of_triangle[cp.triangle]
     for region in spec.regions:
         inside = region.contains(part, faces, nominal) & in_range
         out["regions"].append({"name": region.name, "kind": region.kind,
                                "where": region.describe(),
-                               **judge(d[inside], region.tolerance, spec.allowed_out_share)})
+                               **judge(d[inside], region.tolerance, spec.allowed_out_share,
+                                       part[inside], spacing, spec.defect_area_mm2)})
     verdicts = [r["pass"] for r in [out["overall"], *out["regions"]] if r and r["pass"] is not None]
     out["pass"] = all(verdicts) if verdicts else None
     return out

@@ -276,7 +276,15 @@ def coverage_figure(inspection: Inspection) -> bytes:
 
 # ----------------------------------------------------------------------------- tables
 REGION_COLUMNS = ["name", "kind", "where", "points", "lower_mm", "upper_mm", "mean_mm", "std_mm",
-                  "min_mm", "max_mm", "below_share", "above_share", "out_share", "pass"]
+                  "min_mm", "max_mm", "below_share", "above_share", "out_share", "defect_count",
+                  "pass"]
+DEFECT_COLUMNS = ["region", "side", "centre_mm", "size_mm", "area_mm2", "points", "extreme_mm"]
+
+
+def defect_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every listed defect with its region's name."""
+    return [{"region": r["name"], **dfx} for r in region_rows(report)
+            for dfx in r.get("defects") or []]
 
 
 def region_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
@@ -343,6 +351,8 @@ def write_report(inspection: Inspection, folder: str | Path, title: str,
              "sections_csv": str(out / "sections.csv"), "json": str(out / "inspection.json")}
     rows = region_rows(report)
     write_csv(Path(files["regions_csv"]), rows, REGION_COLUMNS)
+    files["defects_csv"] = str(out / "defects.csv")
+    write_csv(Path(files["defects_csv"]), defect_rows(report), DEFECT_COLUMNS)
     write_csv(Path(files["sections_csv"]), report["sections"],
               ["axis", "offset_mm", "points", "mean_mm", "min_mm", "max_mm"])
     Path(files["json"]).write_text(json.dumps({**report, "files": files}, indent=2))
@@ -376,7 +386,10 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
              + (_table(region_rows(report), REGION_COLUMNS) if region_rows(report)
                 else "<p>No tolerance given.</p>")
              + f"<p>A region passes while at most {report['tolerances']['allowed_out_share']:.1%} "
-               "of its points lie outside its tolerance.</p>",
+               "of its points lie outside its tolerance and no connected patch of them covers more "
+               f"than {report['tolerances'].get('defect_area_mm2', 0):g} mm² (a defect).</p>"
+             + ("<h3>Defects</h3>" + _table(defect_rows(report), DEFECT_COLUMNS)
+                if defect_rows(report) else ""),
              "<h2>Colour maps</h2>",
              *(_img(png, f"{name} view") for name, png in view_maps(inspection)),
              "<h2>Histogram</h2>", _img(histogram(inspection), "deviation histogram"),

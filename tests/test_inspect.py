@@ -478,3 +478,36 @@ def test_a_step_that_claims_metres_is_refused_before_its_tessellation(tmp_path, 
     assert part.unit == "m" and time.perf_counter() - t0 < 30.0
     assert len(part.triangles) < 10_000
     assert nominal_module.RELATIVE_CHORDAL * part.diagonal_mm > 1.0
+
+
+def test_a_dent_fails_its_tolerance_as_a_defect_whatever_its_share(cad, tmp_path):
+    """Issue 39, 13: a 0.5 mm dent against +-0.2 mm holds well under 1 % of the points, so the
+    share alone passed it. A connected out-of-tolerance patch above the defect area fails the
+    region and is listed (where, how large, how deep); scattered noise spikes are no defect."""
+    nominal = load_nominal(cad["stl"])
+    spec = parse_spec({"tolerance_mm": 0.2})
+    settings = InspectionSettings("asmeasured", np.eye(4), None, spec)
+    dented = inspect_cloud(sample(("dent",), 250_000, seed=8), nominal, settings)
+    overall = dented.tolerances["overall"]
+    assert overall["out_share"] < 0.01  # the share alone would pass it
+    assert overall["pass"] is False and overall["defect_count"] >= 1
+    dent = overall["defects"][0]
+    assert dent["side"] == "below" and dent["extreme_mm"] < -0.4
+    assert np.hypot(dent["centre_mm"][1] - parts.DENT_YZ[0],
+                    dent["centre_mm"][2] - parts.DENT_YZ[1]) < 10.0
+    assert dent["area_mm2"] > 1000  # a disc of about 34 mm radius lies beyond -0.2 mm
+    # the same surface with 0.5 % of its points thrown out singly: noise, not a defect
+    clean = sample((), 250_000, seed=9)
+    spikes = np.random.default_rng(2).choice(len(clean), len(clean) // 200, replace=False)
+    clean[spikes, 0] += 0.6
+    spiky = inspect_cloud(clean, nominal, settings).tolerances["overall"]
+    assert spiky["defect_count"] == 0 and spiky["pass"] is True
+    files = cli_report(dented, tmp_path)
+    assert "Defects" in Path(files["html"]).read_text()
+    assert "below" in Path(files["defects_csv"]).read_text()
+
+
+def cli_report(result, folder: Path) -> dict:
+    from scancell.analysis.inspection_report import write_report
+
+    return write_report(result, folder, "dent", "test")
