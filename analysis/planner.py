@@ -289,6 +289,7 @@ class Planner:
         :attr:`seen_in_beam_by` record what the views see at all and, per tracker station,
         where it would see the SMR (the unmeasured surface's reasons)."""
         g = self.g
+        self.too_near = 0  # views dropped for a cell object within the clearance
         self.seen_by_view = np.zeros(len(self.points), bool)
         self.seen_in_beam_by: dict[str, np.ndarray] = {}
         step = (1.0 - overlap) * min(g.field_mm)
@@ -314,6 +315,10 @@ class Planner:
                     tried += 1
                     continue
                 tracker, T, smrs, sign = found
+                if g.clearance_problem(T) is not None:  # a bar, a nest, a fixture too near
+                    self.too_near += 1
+                    tried += 1
+                    continue
                 if smrs:
                     sees = self.seen(T)  # the roll turns the field about the view
                 self.seen_in_beam_by.setdefault(tracker, np.zeros(len(self.points), bool))

@@ -24,6 +24,45 @@ class GeometryError(ValueError):
     """A ``[planner]`` table is missing a key or has a malformed value."""
 
 
+#: the default clearance (mm) between the scanner's optical centres and any cell object: the
+#: simulated scanner's housing reaches 60 mm around its cameras and projector, and 40 mm more
+#: covers the arm's path deviation between taught poses at speed
+DEFAULT_CLEARANCE_MM = 100.0
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A cell object the scanner must keep clear of: a capsule from ``a`` to ``b`` of
+    ``radius`` (world mm; a sphere when ``a`` equals ``b``): a ball bar, a nest and its stand,
+    a fixture's post."""
+
+    name: str
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (mm) of world points from the object's surface (negative inside)."""
+        p = np.atleast_2d(np.asarray(points, float))
+        ab = self.b - self.a
+        L2 = float(ab @ ab)
+        t = np.clip(((p - self.a) @ ab) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(p))
+        return np.linalg.norm(p - (self.a + t[:, None] * ab), axis=1) - self.radius
+
+    @classmethod
+    def from_table(cls, t: dict[str, Any], where: str) -> Obstacle:
+        name = str(t.get("name") or where)
+        if "sphere" in t:
+            c = np.asarray(t["sphere"]["centre"], float).reshape(3)
+            return cls(name, c, c, float(t["sphere"]["radius"]))
+        if "capsule" in t:
+            c = t["capsule"]
+            return cls(name, np.asarray(c["a"], float).reshape(3),
+                       np.asarray(c["b"], float).reshape(3), float(c["radius"]))
+        raise GeometryError(f"{where}: give a sphere = {{centre, radius}} or a capsule = "
+                            f"{{a, b, radius}} (world mm)")
+
+
 @dataclass(frozen=True)
 class CellGeometry:
     """What the planner needs to know of the cell (mm, frames as in README "Units and frames")."""
@@ -53,6 +92,28 @@ class CellGeometry:
     #: opening direction in mcs). Where the job points the tracker; the hand-eye job measures
     #: their true positions (the cluster calibration).
     smr_cluster: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    #: cell objects the scanner keeps ``clearance_mm`` from (the part: its standoff)
+    obstacles: tuple[Obstacle, ...] = ()
+    clearance_mm: float = DEFAULT_CLEARANCE_MM
+
+    def optical_centres_in_flange(self) -> np.ndarray:
+        """(3, 3) the left camera (MCS origin), the rig midpoint (the projector sits near it)
+        and the right camera (mirrored about the midpoint), in the flange frame (mm)."""
+        left = np.asarray(self.T_flange_from_mcs, float)[:3, 3]
+        mid = np.asarray(self.rig_mid_in_flange, float)
+        return np.stack([left, mid, 2 * mid - left])
+
+    def clearance_problem(self, T_world_from_flange: np.ndarray) -> str | None:
+        """Why the scanner at this flange pose is too near a cell object, or None."""
+        if not self.obstacles:
+            return None
+        T = np.asarray(T_world_from_flange, float)
+        pts = self.optical_centres_in_flange() @ T[:3, :3].T + T[:3, 3]
+        worst = min((float(o.distance(pts).min()), o.name) for o in self.obstacles)
+        if worst[0] >= self.clearance_mm:
+            return None
+        return (f"the scanner passes {worst[0]:.0f} mm from {worst[1]} (clearance "
+                f"{self.clearance_mm:g} mm)")
 
     def cluster_nominal(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Every SMR on the scanner as drawn: the rear SMR (``rear``, the paper's) and the
@@ -127,11 +188,16 @@ class CellGeometry:
                     rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
                     rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())),
                     rail_speed_mm_s=float(t.get("rail_speed_mm_s", 250.0)),
-                    smr_cluster=_cluster(t.get("smr_cluster", {})))
+                    smr_cluster=_cluster(t.get("smr_cluster", {})),
+                    obstacles=tuple(Obstacle.from_table(o, f"obstacles[{i}]")
+                                    for i, o in enumerate(t.get("obstacles", []))),
+                    clearance_mm=float(t.get("clearance_mm", DEFAULT_CLEARANCE_MM)))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:
             raise GeometryError(f"missing key {exc}") from None
+        if not g.clearance_mm >= 0:
+            raise GeometryError(f"clearance_mm must be >= 0 mm, got {g.clearance_mm}")
         if not g.rail_speed_mm_s > 0:
             raise GeometryError(f"rail_speed_mm_s must be > 0 mm/s, got {g.rail_speed_mm_s}")
         return g

@@ -416,7 +416,22 @@ class SimCell:
                 "rail_speed_mm_s": 250.0,
                 # as drawn: the true nests sit where the housing's machining put them
                 "smr_cluster": {n: {"mcs_mm": list(c), "opening": list(o)}
-                                for n, (c, o) in self.cfg.smr_cluster.items()}}
+                                for n, (c, o) in self.cfg.smr_cluster.items()},
+                # the objects the scanner keeps clear of: the scanner-check bar (its spheres'
+                # radius around its axis) and the reference nests (a 1.5" SMR's nest, 25 mm)
+                "clearance_mm": 100.0,
+                "obstacles": self._obstacles_table()}
+
+    def _obstacles_table(self) -> list[dict]:
+        out = []
+        if self.cfg.check_bar_world is not None:
+            a, b = self.check_bar_ends_world()
+            out.append({"name": "scanner-check bar",
+                        "capsule": {"a": list(map(float, a)), "b": list(map(float, b)),
+                                    "radius": 15.0}})
+        out += [{"name": f"nest {n}", "sphere": {"centre": [float(v) for v in c], "radius": 25.0}}
+                for n, c in self.cfg.nests_world_mm.items()]
+        return out
 
     def part_mesh_world(self) -> o3d.geometry.TriangleMesh:
         """The part's true surface in ``world`` (mm)."""

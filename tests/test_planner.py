@@ -252,3 +252,36 @@ def test_a_rail_that_does_not_move_is_refused_by_name():
     table = {**SimCell(SimCellConfig(camera_scale=8)).planner_table(), "rail_speed_mm_s": 0}
     with pytest.raises(GeometryError, match="rail_speed_mm_s"):
         CellGeometry.from_table(table)
+
+
+@pytest.mark.unit
+def test_plans_keep_their_clearance_from_the_cells_objects_or_are_refused_by_station(planned):
+    """Issue 39, 12: a station once passed the scanner 53 mm from the scanner-check bar."""
+    from dataclasses import replace
+
+    from scancell.daemon.jobs.scan_part import check_clearance
+    from scancell.model.cell_geometry import Obstacle
+    from scancell.protocols.commands import CommandError
+
+    cell, g, planner, plan, report = planned
+    names = {o.name for o in g.obstacles}
+    assert "scanner-check bar" in names and any(n.startswith("nest") for n in names)
+    for st in plan.stations:  # the simulated cell's own objects: every planned station clear
+        T = g.base_at(st.axis_mm) @ g.robot.fk(np.radians(st.joints_deg))
+        assert g.clearance_problem(T) is None, st.name
+    # an object where the first station's scanner is: the job refuses the plan by station
+    st = plan.stations[0]
+    T = g.base_at(st.axis_mm) @ g.robot.fk(np.radians(st.joints_deg))
+    mid = T[:3, :3] @ g.rig_mid_in_flange + T[:3, 3]
+    crowded = replace(g, obstacles=(*g.obstacles, Obstacle("fixture post", mid + [0, 0, 80.0],
+                                                           mid + [0, 0, 400.0], 20.0)))
+    with pytest.raises(CommandError, match=rf"station {st.name}: the scanner passes \d+ mm from "
+                                           rf"fixture post \(clearance 100 mm\)"):
+        check_clearance(plan, crowded)
+    # and a new plan around it keeps its distance
+    again = Planner(cell.part_mesh_world(), crowded, samples=2000)
+    plan2, _ = again.plan(coverage=0.9, overlap=0.25)
+    assert again.too_near > 0
+    for s2 in plan2.stations:
+        T2 = crowded.base_at(s2.axis_mm) @ crowded.robot.fk(np.radians(s2.joints_deg))
+        assert crowded.clearance_problem(T2) is None, s2.name

@@ -128,10 +128,23 @@ def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
                                                    f"outside [{lo}, {hi}] mm")
 
 
+def check_clearance(plan: Plan, geometry: CellGeometry | None) -> None:
+    """Refuse the plan if a station brings the scanner nearer a cell object than the cell's
+    clearance (``[planner] obstacles``, by the robot model), naming the station."""
+    if geometry is None or not geometry.obstacles:
+        return
+    for s in plan.stations:
+        T = geometry.base_at(s.axis_mm) @ geometry.robot.fk(np.radians(s.joints_deg))
+        problem = geometry.clearance_problem(T)
+        if problem:
+            raise CommandError("out_of_range", f"plan {plan.name!r}, station {s.name}: {problem}")
+
+
 def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
              geometry: CellGeometry | None = None) -> None:
     """Refuse a bad plan when the job is asked for, not once it runs."""
     plan = plan_from_request(req, geometry)
+    check_clearance(plan, geometry)
     robot = serving_device(supervisors, req.get("robot"), Robot, VERB).device
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
     axis = serving_device(supervisors, req.get("axis"), Axis, VERB).device if needs_axis else None
