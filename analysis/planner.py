@@ -113,6 +113,27 @@ MOVE_DISCOUNT = 0.5
 FACING_MARGIN_DEG = 3.0
 
 
+def _segment_distance(p0: np.ndarray, p1: np.ndarray, a: np.ndarray, b: np.ndarray
+                      ) -> np.ndarray:
+    """Shortest distance (mm) between segments p0[i]-p1[i] (N, 3) and the segment a-b."""
+    d1 = p1 - p0
+    d2 = b - a
+    r = p0 - a
+    aa = np.einsum("ij,ij->i", d1, d1)
+    ee = float(d2 @ d2)
+    ff = r @ d2
+    c = np.einsum("ij,ij->i", d1, r)
+    bb = d1 @ d2
+    denom = aa * ee - bb * bb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 1e-12, np.clip((bb * ff - c * ee) / denom, 0, 1), 0.0)
+        t = (bb * s + ff) / ee if ee > 0 else np.zeros_like(s)
+    t = np.clip(t, 0, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(aa > 0, np.clip((bb * t - c) / aa, 0, 1), 0.0)
+    return np.linalg.norm(p0 + d1 * s[:, None] - (a + d2 * t[:, None]), axis=1)
+
+
 class Planner:
     """Stations for a part. ``ecs = "j6"``: the tracker must see the rear SMR at the view and
     at both J6 turns (the paper's); ``"cluster"``: >= 3 SMRs of the scanner, not on a line,
@@ -143,6 +164,7 @@ class Planner:
         self.normals = n
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+
         self.nests = {n: np.asarray(p, float) for n, p in (nests_world or {}).items()}
         #: tracker station -> its head in world (mm); home first
         self.trackers: dict[str, np.ndarray] = {HOME_TRACKER: np.asarray(geometry.tracker_world_mm,
@@ -177,11 +199,17 @@ class Planner:
 
     # ------------------------------------------------------------------ checks
     def _clear(self, origins: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Which beams from ``origins`` reach ``ends`` past the part and the cell's objects
+        (an object a beam starts or ends in, its target's own nest, does not count)."""
         d = ends - origins
         dist = np.linalg.norm(d, axis=1)
         rays = np.hstack([origins, d / dist[:, None]]).astype(np.float32)
         hit = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        return hit >= dist - 1.0
+        clear = hit >= dist - 1.0
+        for o in self.g.obstacles:
+            own = (o.distance(ends) < 1.0) | (o.distance(origins) < 1.0)
+            clear &= own | (_segment_distance(origins, ends, o.a, o.b) > o.radius)
+        return clear
 
     def tracker_sees_smr(self, q: np.ndarray, base: np.ndarray) -> bool:
         """At joints ``q`` on a robot base at ``base``, from home."""

@@ -93,13 +93,23 @@ def test_tracker_moves_recover_what_the_beam_loses_from_home(planned):
     assert plan_from_text(plan.to_toml(), "plan.toml")["tracker"].keys() == plan.trackers.keys()
     trackers = [s.tracker for s in plan.stations]
     assert trackers == sorted(trackers, key=lambda t: (t != "home", trackers.index(t)))
+    from scancell.sim.tracker_model import BeamBreak
+
     try:
         for name, station in plan.trackers.items():
             T = np.eye(4)
             T[:3, 3] = station.position_mm
             cell.move_tracker(T)
+            # the nests as the job locates the moved tracker: the arm still at the last station
+            # may hide one; the job measures what it sees and needs 4 (the planner's minimum)
+            seen = 0
             for nest in DEFAULT_NESTS:
-                cell.beam_check(f"nest:{nest}")
+                try:
+                    cell.beam_check(f"nest:{nest}")
+                    seen += 1
+                except BeamBreak:
+                    pass
+            assert seen >= 4, (name, seen)
             for st in (s for s in plan.stations if s.tracker == name):
                 q = np.radians(st.joints_deg)
                 cell.rail_mm = st.axis_mm or 0.0
@@ -263,7 +273,7 @@ def test_plans_keep_their_clearance_from_the_cells_objects_or_are_refused_by_sta
     from scancell.model.cell_geometry import Obstacle
     from scancell.protocols.commands import CommandError
 
-    cell, g, planner, plan, report = planned
+    cell, g, _, plan, _ = planned
     names = {o.name for o in g.obstacles}
     assert "scanner-check bar" in names and any(n.startswith("nest") for n in names)
     for st in plan.stations:  # the simulated cell's own objects: every planned station clear
@@ -273,8 +283,9 @@ def test_plans_keep_their_clearance_from_the_cells_objects_or_are_refused_by_sta
     st = plan.stations[0]
     T = g.base_at(st.axis_mm) @ g.robot.fk(np.radians(st.joints_deg))
     mid = T[:3, :3] @ g.rig_mid_in_flange + T[:3, 3]
-    crowded = replace(g, obstacles=(*g.obstacles, Obstacle("fixture post", mid + [0, 0, 80.0],
-                                                           mid + [0, 0, 400.0], 20.0)))
+    post = Obstacle("fixture post", mid + np.array([0, 0, 80.0]), mid + np.array([0, 0, 400.0]),
+                    20.0)
+    crowded = replace(g, obstacles=(*g.obstacles, post))
     with pytest.raises(CommandError, match=rf"station {st.name}: the scanner passes \d+ mm from "
                                            rf"fixture post \(clearance 100 mm\)"):
         check_clearance(plan, crowded)
