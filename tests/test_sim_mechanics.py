@@ -110,6 +110,21 @@ def test_nest_fit_relocates_and_names_a_knocked_nest():
         fit_nests(line, line)
 
 
+def test_a_far_nest_is_held_to_the_tracker_noise_at_its_range_not_below_it():
+    dc = DriftControl(None, MetrologySettings(nest_fit_tolerance_mm=0.05), {})
+    near, far = np.array([1000.0, 0.0, 0.0]), np.array([0.0, 6255.0, 0.0])
+    assert dc.knock_limit_mm(near) == 0.05
+    # transverse 1-sigma at 6.255 m: 7.5 + 3 x 6.255 = 26.3 um; k = sqrt(2 ln 1000) = 3.72
+    assert dc.knock_limit_mm(far) == pytest.approx(3.717 * 0.02627, rel=1e-3)
+    # 0.056 mm at 6.3 m is the tracker's noise; 0.06 mm at 1 m, or 0.3 mm anywhere, is a knock
+    _, off, limit = dc._worst_fit({"far": (0.056, far), "near": (0.04, near)})
+    assert off <= limit
+    key, off, limit = dc._worst_fit({"far": (0.056, far), "near": (0.06, near)})
+    assert key == "near" and off > limit
+    key, off, limit = dc._worst_fit({"far": (0.3, far), "near": (0.04, near)})
+    assert key == "far" and off > limit
+
+
 def test_metrology_table_is_checked():
     assert check_table({}) is None
     assert "air_pressure_hpa" in check_table({"weather": "config", "air_temperature_c": 20.0})

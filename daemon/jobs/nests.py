@@ -20,6 +20,13 @@ from scancell.devices.base import Tracker
 from scancell.devices.errors import BeamBroken, DeviceError
 from scancell.protocols.commands import CommandError
 
+#: the chance a nest that did not move is called knocked, per reading
+KNOCK_FALSE_ALARM = 1e-3
+#: the residual of a nest that did not move is about Rayleigh-distributed in the plane across
+#: the beam (the transverse sigma dominates the ADM's): P(r > k sigma) = exp(-k^2 / 2), so
+#: k = sqrt(2 ln(1 / p))
+KNOCK_SIGMAS = float(np.sqrt(2.0 * np.log(1.0 / KNOCK_FALSE_ALARM)))
+
 
 class NestCheckFailed(CommandError):
     def __init__(self, message: str) -> None:
@@ -38,6 +45,7 @@ class DriftControl:
         self.meta = meta
         self.survey = {n: np.asarray(p, float) for n, p in settings.nests.items()}
         self.T_world_from_tracker = np.eye(4)
+        self.sigma = TrackerSigma()
         self.checks: list[dict[str, Any]] = []
         #: the tracker's set-ups in this job, in order (the first is where it stood at the
         #: start: the bundle's datum), each with the nests last measured from it (its frame)
@@ -128,11 +136,12 @@ class DriftControl:
             fit = fit_nests(self.survey, measured)
         except NestGeometryError as exc:
             raise NestCheckFailed(f"nest check {label}: {exc}") from None
-        worst, off = fit.worst
-        if off > s.nest_fit_tolerance_mm:
+        worst, off, limit = self._worst_fit(
+            {n: (r, measured[n]) for n, r in fit.residual_mm.items()})
+        if off > limit:
             raise NestCheckFailed(
                 f"nest check {label}: the nests disagree: {worst} is {off:.3f} mm off the others' "
-                f"best fit (tolerance {s.nest_fit_tolerance_mm:g} mm); was it knocked, or did "
+                f"best fit (limit {limit:.3f} mm at its range); was it knocked, or did "
                 f"the tracker move?")
         drift = nest_drift(self.survey, measured, self.T_world_from_tracker)
         relocated = max(drift.values()) > s.drift_tolerance_mm
@@ -146,6 +155,22 @@ class DriftControl:
                   "T_world_from_tracker": self.T_world_from_tracker.tolist()}
         self.checks.append(record)
         return record
+
+    def knock_limit_mm(self, p_tracker: np.ndarray) -> float:
+        """How far (mm) a nest read at ``p_tracker`` (tracker frame, mm) may sit off the fit
+        before it is called knocked: ``nest_fit_tolerance_mm``, or the tracker's own noise at
+        that range (KNOCK_SIGMAS x its transverse 1-sigma) where that is larger; a far nest
+        cannot be held to a tolerance the tracker cannot resolve there."""
+        _, s_t = self.sigma.sigmas_mm(float(np.linalg.norm(p_tracker)))
+        return max(self.settings.nest_fit_tolerance_mm, KNOCK_SIGMAS * s_t)
+
+    def _worst_fit(self, residuals: dict[Any, tuple[float, np.ndarray]]
+                   ) -> tuple[Any, float, float]:
+        """(key, residual mm, limit mm) of the reading furthest past its limit, from
+        ``key -> (residual mm, reading in the tracker frame mm)``."""
+        key = max(residuals, key=lambda k: residuals[k][0] / self.knock_limit_mm(residuals[k][1]))
+        off, p = residuals[key]
+        return key, off, self.knock_limit_mm(p)
 
     async def locate(self, setup: str, T_rough: np.ndarray, label: str,
                      return_to_mm: np.ndarray | None = None) -> dict[str, Any]:
@@ -161,19 +186,18 @@ class DriftControl:
         self.setup = setup
         self.T_world_from_tracker = np.asarray(T_rough, float)
         measured, missing = await self._measure_all(label, return_to_mm)
-        s = self.settings
         order = list(self.setups)
         try:
             net = solve_network(self.setups, TrackerSigma(), order)
         except NetworkError as exc:
             raise NestCheckFailed(f"nest check {label}: {exc}") from None
-        (worst_setup, worst_nest), _ = net.worst()
-        off = net.residual_mm[(worst_setup, worst_nest)]
-        if off > s.nest_fit_tolerance_mm:
+        (worst_setup, worst_nest), off, limit = self._worst_fit(
+            {(st, n): (r, self.setups[st][n]) for (st, n), r in net.residual_mm.items()})
+        if off > limit:
             raise NestCheckFailed(
                 f"nest check {label}: nest {worst_nest} does not fit the tracker network: "
-                f"{off:.3f} mm off from set-up {worst_setup} (tolerance "
-                f"{s.nest_fit_tolerance_mm:g} mm); was it knocked?")
+                f"{off:.3f} mm off from set-up {worst_setup} (limit {limit:.3f} mm at its "
+                f"range); was it knocked?")
         self.T_world_from_tracker = self._T_world_from_home @ net.stations[setup]
         sig = net.station_sigma(setup)
         lever = float(np.mean([np.linalg.norm(p) for p in measured.values()]))
