@@ -178,8 +178,10 @@ def histogram(inspection: Inspection) -> bytes:
         for x in (tol.lower_mm, tol.upper_mm):
             ax.axvline(x, color="k", ls="--", lw=1)
     ax.axvline(float(d.mean()), color="tab:green", lw=1.5, label=f"mean {d.mean():+.4f} mm")
+    # log counts: the few points out of tolerance are the ones a reader looks for
+    ax.set_yscale("log")
     ax.set_xlabel("signed deviation (mm)")
-    ax.set_ylabel("points")
+    ax.set_ylabel("points (log scale)")
     ax.set_title(f"{d.size} points; std {d.std():.4f} mm"
                  + (f"; tolerance {tol.lower_mm:+g} / {tol.upper_mm:+g} mm" if tol else ""))
     ax.legend()
@@ -307,7 +309,8 @@ def write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> Non
 
 # ----------------------------------------------------------------------------- HTML
 CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1300px;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #bbb;padding:.25em .6em;
+table{border-collapse:collapse;margin:.5em 0 1.5em;display:block;max-width:100%;overflow-x:auto}
+td,th{border:1px solid #bbb;padding:.25em .6em;
 text-align:right}th{background:#eee}td:first-child,th:first-child{text-align:left}
 .pass{color:#fff;background:#2a2;padding:.1em .5em}.fail{color:#fff;background:#c22;padding:.1em .5em}
 .none{background:#999;color:#fff;padding:.1em .5em}img{max-width:100%}code{font-size:90%}"""
@@ -360,13 +363,33 @@ def write_report(inspection: Inspection, folder: str | Path, title: str,
     return files
 
 
+def _pose_rows(T: np.ndarray) -> list[dict[str, Any]]:
+    """The alignment as a reader checks it: the translation (mm) and the rotation as the angle
+    about one axis and as fixed-axis x-y-z angles (deg), each of the measured frame in the
+    part's."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_matrix(T[:3, :3])
+    rotvec = rot.as_rotvec()
+    angle = float(np.degrees(np.linalg.norm(rotvec)))
+    axis = rotvec / np.linalg.norm(rotvec) if angle > 0 else np.array([0.0, 0.0, 1.0])
+    rx, ry, rz = rot.as_euler("xyz", degrees=True)
+    tx, ty, tz = T[:3, 3]
+    return [{"": "translation x / y / z (mm)", "value": f"{tx:+.4f} / {ty:+.4f} / {tz:+.4f}"},
+            {"": "rotation (deg) about axis", "value": f"{angle:.5f} about ({axis[0]:+.4f}, "
+                                                       f"{axis[1]:+.4f}, {axis[2]:+.4f})"},
+            {"": "rotation x / y / z, fixed axes (deg)",
+             "value": f"{rx:+.5f} / {ry:+.5f} / {rz:+.5f}"}]
+
+
 def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
     a, d, cov = report["alignment"], report["deviation"], report["coverage"]
     nominal = report["nominal"]
     T = np.asarray(a["T_part_from_measured"])
     align_rows = [{"": "method", "value": a["method"]}, {"": "residual RMS (mm)", "value": a["rms_mm"]},
                   {"": "points used", "value": f"{a['used_fraction']:.1%}"},
-                  {"": "iterations", "value": a["iterations"]}]
+                  {"": "iterations", "value": a["iterations"]},
+                  *_pose_rows(T)]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(report['title'])}"
              f"</title><style>{CSS}</style></head><body>",
              f"<h1>{html.escape(report['title'])}</h1>",
@@ -401,15 +424,18 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
              f"within {cov['gap_threshold_mm']} mm; {cov['unmeasured_area_mm2'] / 100:.0f} cm² "
              "has none.</p>", _img(coverage_figure(inspection), "coverage"),
              "<h2>Alignment</h2>", _table(align_rows, ["", "value"]),
-             "<p>T_part_from_measured:</p><pre>" + html.escape(np.array2string(
-                 T, precision=6, suppress_small=True)) + "</pre>"]
+             "<details><summary>T_part_from_measured (4 x 4)</summary><pre>"
+             + html.escape(np.array2string(T, precision=6, suppress_small=True))
+             + "</pre></details>"]
     if a["method"] == "rps":
         parts.append(_table([{"name": p["name"], "lock": p["lock"], "feature": p["feature"],
                               **{f"d{k} (mm)": v for k, v in p["residual_mm"].items()}}
                              for p in a["points"]],
                             ["name", "lock", "feature", "dx (mm)", "dy (mm)", "dz (mm)"]))
-    parts.append(f"<p><small>Times (s): {html.escape(json.dumps(report['seconds']))}</small></p>"
-                 "</body></html>")
+    parts.append("<h2>Times</h2>" + _table(
+        [{"step": k, "seconds": float(v)} for k, v in report["seconds"].items()]
+        + [{"step": "total", "seconds": float(sum(report["seconds"].values()))}],
+        ["step", "seconds"]) + "</body></html>")
     return "\n".join(parts)
 
 

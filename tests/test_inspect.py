@@ -112,6 +112,9 @@ def test_inspect_cli_finds_each_defect_against_stl(cad, tmp_path):
     html = (tmp_path / "report" / "report.html").read_text()
     assert "FAIL" in html and html.count("data:image/png;base64,") >= 5
     assert "src=\"http" not in html  # self-contained
+    # the alignment as a translation and angles, the times as a table
+    assert "translation x / y / z (mm)" in html and "fixed axes (deg)" in html
+    assert "<h2>Times</h2>" in html and "<td>total</td>" in html
     rows = list(csv.DictReader(open(tmp_path / "report" / "regions.csv")))
     assert rows[0]["name"] == "whole part" and rows[0]["pass"] == "False"
 
@@ -511,3 +514,18 @@ def cli_report(result, folder: Path) -> dict:
     from scancell.analysis.inspection_report import write_report
 
     return write_report(result, folder, "dent", "test")
+
+
+def test_the_report_gives_the_alignment_as_translation_and_angles():
+    from scancell.analysis.inspection_report import _pose_rows
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [0.0, 0.0, 10.0], degrees=True).as_matrix()
+    T[:3, 3] = [1.0, -2.0, 3.5]
+    rows = {r[""]: r["value"] for r in _pose_rows(T)}
+    assert rows["translation x / y / z (mm)"] == "+1.0000 / -2.0000 / +3.5000"
+    assert rows["rotation (deg) about axis"] == "10.00000 about (+0.0000, +0.0000, +1.0000)"
+    assert rows["rotation x / y / z, fixed axes (deg)"] == "+0.00000 / +0.00000 / +10.00000"
+    assert "0.00000 about" in {r[""]: r["value"] for r in _pose_rows(np.eye(4))}[
+        "rotation (deg) about axis"]
