@@ -53,7 +53,8 @@ class InspectionSettings:
     #: points farther than this from the nominal are not part of it (fixtures, stray points)
     max_distance_mm: float = 5.0
     coverage_gap_mm: float = 2.0
-    #: (axis, offset mm) per section; None: three across the part's longest axis
+    #: (axis, offset mm) per section; None: three across the part's longest axis and one
+    #: through each of the three largest defects
     sections: list[tuple[str, float]] | None = None
     section_half_width_mm: float = 1.0
     trim_sigma: float = 3.0
@@ -136,6 +137,33 @@ def auto_sections(nominal: Nominal, count: int = 3) -> list[tuple[str, float]]:
             for i in range(count)]
 
 
+def defect_sections(nominal: Nominal, tolerances: dict[str, Any], count: int = 3,
+                    apart_mm: float = 5.0) -> list[tuple[str, float]]:
+    """Planes across the nominal's longest axis through the centres of the ``count`` largest
+    defects of ``tolerances`` (``judge_all``'s result), none nearer than ``apart_mm`` to
+    another: the sections a reader wants beside the evenly spaced ones."""
+    lo, hi = nominal.vertices.min(axis=0), nominal.vertices.max(axis=0)
+    a = int(np.argmax(hi - lo))
+    found = [d for r in [tolerances.get("overall"), *tolerances.get("regions", [])] if r
+             for d in r.get("defects") or []]
+    out: list[tuple[str, float]] = []
+    for d in sorted(found, key=lambda d: -d["area_mm2"]):
+        offset = float(d["centre_mm"][a])
+        if len(out) < count and all(abs(offset - o) > apart_mm for _, o in out):
+            out.append(("xyz"[a], offset))
+    return out
+
+
+def sections_with_defects(nominal: Nominal, tolerances: dict[str, Any],
+                          apart_mm: float = 5.0) -> list[tuple[str, float]]:
+    """The automatic sections: the evenly spaced ones, each replaced by the plane through a
+    defect within ``apart_mm`` of it, and the defects' other planes; in order of offset."""
+    through = defect_sections(nominal, tolerances, apart_mm=apart_mm)
+    even = [(a, o) for a, o in auto_sections(nominal)
+            if all(a != b or abs(o - q) > apart_mm for b, q in through)]
+    return sorted(even + through, key=lambda p: ("xyz".index(p[0]), p[1]))
+
+
 def cut(nominal: Nominal, axis: str, offset: float, points: np.ndarray, half_width: float
         ) -> Section:
     import trimesh
@@ -185,8 +213,8 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     # every k-th point, at most 1 M: their spacing stays far below the gap threshold
     measured = part[in_range]
     cov = coverage(nominal, measured[:: max(1, len(measured) // 1_000_000)], s.coverage_gap_mm)
-    sections = [cut(nominal, a, o, part, s.section_half_width_mm)
-                for a, o in (s.sections if s.sections is not None else auto_sections(nominal))]
+    planes = s.sections if s.sections is not None else sections_with_defects(nominal, tolerances)
+    sections = [cut(nominal, a, o, part, s.section_half_width_mm) for a, o in planes]
     seconds["analysis"] = time.perf_counter() - t
     return Inspection(nominal, s, alignment, part, cp, in_range, cov, sections, tolerances,
                       {k: round(v, 3) for k, v in seconds.items()})

@@ -51,7 +51,8 @@ def standard_views(nominal_normals: np.ndarray, areas: np.ndarray) -> list[View]
 
 def _scale(inspection: Inspection):
     """(colour map, norm, label) of the deviation maps: the overall tolerance when there is one,
-    else symmetric about zero at the 99th percentile of |deviation|."""
+    else symmetric about zero at the 99.9th percentile of |deviation|: only the most extreme
+    0.1 % of the points saturate, so a defect keeps its shades and the noise stays pale."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,7 +63,7 @@ def _scale(inspection: Inspection):
         lo, hi = tol.lower_mm, tol.upper_mm
     else:
         d = inspection.deviation[inspection.in_range]
-        hi = float(np.percentile(np.abs(d), 99)) if d.size else 1.0
+        hi = float(np.percentile(np.abs(d), 99.9)) if d.size else 1.0
         lo = -hi
     cmap = matplotlib.colormaps["RdBu_r"].with_extremes(over=OVER, under=UNDER)
     return cmap, colors.TwoSlopeNorm(0.0, min(lo, -1e-6), max(hi, 1e-6))
@@ -123,7 +124,9 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
         facing = n_pts @ view.towards_viewer > 0.1
         if facing.mean() < min_share:
             continue
-        R = np.stack([view.right, view.up, view.towards_viewer])
+        # the image's axes carry the part's own coordinates: along -x the axis runs backwards
+        sr, su = _axis_sign(view.right), _axis_sign(view.up)
+        R = np.stack([sr * view.right, su * view.up, view.towards_viewer])
         p = pts[facing] @ R.T
         s = cov.samples[cov.normals @ view.towards_viewer > 0.1] @ R.T
         both = np.concatenate([p, s])
@@ -147,14 +150,32 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
                        interpolation="nearest")
         ax.set_title(f"{view.name} view (from {_axis_name(view.towards_viewer)}): "
                      f"{facing.sum()} points")
-        ax.set_xlabel(f"{_axis_name(view.right)} (mm)")
-        ax.set_ylabel(f"{_axis_name(view.up)} (mm)")
-        ax.set_aspect("equal")
+        _part_axes(ax, sr * view.right, su * view.up, sr, su)
         fig.colorbar(im, ax=ax, extend="both", shrink=0.9,
                      label="deviation (mm); grey: not measured")
         fig.tight_layout()
         out.append((view.name, _png(fig)))
     return out
+
+
+def _axis_sign(vec: np.ndarray) -> float:
+    """+1 where the view's axis ``vec`` runs along its nearest part axis, -1 against it."""
+    return 1.0 if vec[int(np.argmax(np.abs(vec)))] > 0 else -1.0
+
+
+def _part_axes(ax, horizontal: np.ndarray, vertical: np.ndarray, sr: float, su: float) -> None:
+    """Label a view's axes with the part's axes (``horizontal``, ``vertical``: positive part
+    directions) and turn an axis around where the view looks along it backwards (``sr``,
+    ``su`` = -1): ticks read the part's coordinates, never negated ones."""
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"{'xyz'[int(np.argmax(np.abs(horizontal)))]} (mm)"
+                  + (", increasing to the left" if sr < 0 else ""))
+    ax.set_ylabel(f"{'xyz'[int(np.argmax(np.abs(vertical)))]} (mm)"
+                  + (", increasing downwards" if su < 0 else ""))
+    if sr < 0:
+        ax.invert_xaxis()
+    if su < 0:
+        ax.invert_yaxis()
 
 
 def _axis_name(vec: np.ndarray) -> str:
@@ -219,20 +240,24 @@ def sections_figure(inspection: Inspection, whiskers: int = 120) -> bytes | None
         a = "xyz".index(sec.axis)
         planes.append((sec, [k for k in range(3) if k != a]))
     span = np.ptp(np.concatenate([s.segments[:, :, ij].reshape(-1, 2) for s, ij in planes]), axis=0)
+    # one magnification for every section, so that their whiskers compare: the 99th percentile
+    # of |deviation| over all of them drawn at 8 % of the largest section's extent
+    extent = max(float(np.ptp(s.segments[:, :, ij].reshape(-1, 2), axis=0).max())
+                 for s, ij in planes) or 1.0
+    every = np.concatenate([s.points[inspection.in_range[s.points]] for s in secs])
+    gain = (0.08 * extent / max(float(np.percentile(np.abs(inspection.deviation[every]), 99)),
+                                1e-6) if every.size else 0.0)
     tall = span[1] > span[0]
     fig, axes = plt.subplots(1 if tall else len(secs), len(secs) if tall else 1, squeeze=False,
                              figsize=(4.5 * len(secs), 7) if tall else (11, 3.6 * len(secs)))
     for ax, (sec, (i, j)) in zip(axes.flat, planes, strict=True):
         seg = sec.segments[:, :, [i, j]]
         ax.add_collection(LineCollection(seg, colors="k", linewidths=1.0))
-        extent = float(np.ptp(seg.reshape(-1, 2), axis=0).max()) or 1.0
         idx = sec.points[inspection.in_range[sec.points]]
-        gain = 0.0
         if idx.size:
             q, n, d = _binned(inspection.closest.points[idx][:, [i, j]],
                               inspection.closest.normals[idx][:, [i, j]],
                               inspection.deviation[idx], extent / whiskers)
-            gain = 0.08 * extent / max(float(np.percentile(np.abs(d), 99)), 1e-6)
             tips = q + n * (d * gain)[:, None]
             ax.add_collection(LineCollection(np.stack([q, tips], axis=1), colors=cmap(norm(d)),
                                              linewidths=1.5))
@@ -242,7 +267,7 @@ def sections_figure(inspection: Inspection, whiskers: int = 120) -> bytes | None
         ax.set_xlabel(f"{'xyz'[i]} (mm)")
         ax.set_ylabel(f"{'xyz'[j]} (mm)")
         ax.set_title(f"{sec.axis} = {sec.offset_mm:.1f} mm"
-                     + (f"\n{idx.size} points, deviation x {gain:.0f}" if gain
+                     + (f"\n{idx.size} points, deviation x {gain:.0f}" if idx.size
                         else "\nno measured points"), fontsize=10)
     fig.tight_layout()
     return _png(fig)
@@ -257,7 +282,8 @@ def coverage_figure(inspection: Inspection) -> bytes:
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     view = standard_views(nom.triangle_normals, areas)[0]
     facing = cov.normals @ view.towards_viewer > 0.1
-    R = np.stack([view.right, view.up, view.towards_viewer])
+    sr, su = _axis_sign(view.right), _axis_sign(view.up)
+    R = np.stack([sr * view.right, su * view.up, view.towards_viewer])
     s = cov.samples[facing] @ R.T
     fig, ax = plt.subplots(figsize=(9, 4.5))
     if len(s):
@@ -267,11 +293,9 @@ def coverage_figure(inspection: Inspection) -> bytes:
         ax.imshow(img, origin="lower", cmap="RdYlGn_r", vmin=0, vmax=1, interpolation="nearest",
                   extent=(extent[0], extent[0] + img.shape[1] * cell, extent[2],
                           extent[2] + img.shape[0] * cell))
-    ax.set_aspect("equal")
+    _part_axes(ax, sr * view.right, su * view.up, sr, su)
     ax.set_title(f"nominal surface measured (green) and not (red, no point within "
                  f"{cov.threshold_mm:g} mm): {cov.covered_share:.1%} measured; {view.name} view")
-    ax.set_xlabel(f"{_axis_name(view.right)} (mm)")
-    ax.set_ylabel(f"{_axis_name(view.up)} (mm)")
     fig.tight_layout()
     return _png(fig)
 

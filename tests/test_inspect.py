@@ -505,6 +505,13 @@ def test_a_dent_fails_its_tolerance_as_a_defect_whatever_its_share(cad, tmp_path
     clean[spikes, 0] += 0.6
     spiky = inspect_cloud(clean, nominal, settings).tolerances["overall"]
     assert spiky["defect_count"] == 0 and spiky["pass"] is True
+    # issue 39, 16: an automatic section cuts through the dent, and shows it
+    through = [sec for sec in dented.sections
+               if abs(sec.offset_mm - dent["centre_mm"]["xyz".index(sec.axis)]) < 1e-6]
+    # (the even plane at y = -350 mm, 1.5 mm from it, gives way to it)
+    assert len(dented.sections) == 3 and len(through) == 1, [
+        (sec.axis, sec.offset_mm) for sec in dented.sections]
+    assert dented.deviation[through[0].points].min() < -0.4
     files = cli_report(dented, tmp_path)
     assert "Defects" in Path(files["html"]).read_text()
     assert "below" in Path(files["defects_csv"]).read_text()
@@ -529,3 +536,22 @@ def test_the_report_gives_the_alignment_as_translation_and_angles():
     assert rows["rotation x / y / z, fixed axes (deg)"] == "+0.00000 / +0.00000 / +10.00000"
     assert "0.00000 about" in {r[""]: r["value"] for r in _pose_rows(np.eye(4))}[
         "rotation (deg) about axis"]
+
+
+def test_a_view_from_behind_turns_its_axis_round_instead_of_negating_it():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scancell.analysis.inspection_report import _axis_sign, _part_axes, standard_views
+
+    views = {v.name: v for v in standard_views(np.array([[0, -1.0, 0]]), np.array([1.0]))}
+    back, bottom = views["back"], views["bottom"]
+    assert _axis_sign(back.right) == -1 and _axis_sign(bottom.up) == -1
+    fig, ax = plt.subplots()
+    ax.plot([0, 100], [0, 50])
+    sr, su = _axis_sign(back.right), _axis_sign(back.up)
+    _part_axes(ax, sr * back.right, su * back.up, sr, su)
+    assert ax.get_xlabel() == "x (mm), increasing to the left" and ax.get_ylabel() == "z (mm)"
+    assert ax.xaxis_inverted() and not ax.yaxis_inverted()
+    plt.close(fig)
