@@ -1,11 +1,12 @@
 #!/bin/sh
-# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d)
-# and openssl (the commissioning guide's certificates, checked by the tests), node and npm if
-# missing (tests/js);
+# Installs the system libraries scancell needs on Debian/Ubuntu: libusb-1.0-0 (loaded by open3d),
+# openssl (the commissioning guide's certificates, checked by the tests) and
+# chromium-headless-shell (the inspection report's test looks at it in a real browser), node and
+# npm if missing (tests/js);
 # with --bench also cloudcompare (the reference of benchmarks/bench_metrics.py).
 # As root it uses apt-get; otherwise sudo when available; otherwise it prints the exact command.
 set -eu
-PKGS="libusb-1.0-0 openssl"
+PKGS="libusb-1.0-0 openssl chromium-headless-shell"
 [ "${1:-}" = "--bench" ] && PKGS="cloudcompare"
 missing=""
 for p in $PKGS; do

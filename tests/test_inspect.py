@@ -555,3 +555,36 @@ def test_a_view_from_behind_turns_its_axis_round_instead_of_negating_it():
     assert ax.get_xlabel() == "x (mm), increasing to the left" and ax.get_ylabel() == "z (mm)"
     assert ax.xaxis_inverted() and not ax.yaxis_inverted()
     plt.close(fig)
+
+
+def test_the_report_in_a_real_browser(cad, tmp_path):
+    """Issue 39, 16: the report as headless Chromium draws it in a 1400 px window: the verdict
+    in its red badge, the dent in the maps' under-tolerance cyan, and nothing reaching into the
+    window's right margin (wide tables scroll inside the page)."""
+    import shutil
+    import subprocess
+
+    import cv2
+
+    browser = shutil.which("chromium-headless-shell") or shutil.which("chromium")
+    assert browser, "no headless Chromium: make setup installs chromium-headless-shell"
+    nominal = load_nominal(cad["stl"])
+    settings = InspectionSettings("asmeasured", np.eye(4), None, parse_spec({"tolerance_mm": 0.2}))
+    files = cli_report(inspect_cloud(sample(("dent",), 60_000, seed=8), nominal, settings),
+                       tmp_path)
+    shot = tmp_path / "shot.png"
+    run = subprocess.run([browser, "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                          f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1400,5000",
+                          f"--screenshot={shot}", Path(files["html"]).resolve().as_uri()],
+                         capture_output=True, text=True, timeout=120)
+    assert shot.exists(), run.stderr[-2000:]
+    rgb = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(int)
+    assert rgb.shape[1] == 1400
+
+    def near(colour, region):
+        return (np.abs(region - np.array(colour)).sum(axis=2) < 40).sum()
+
+    assert near((0xcc, 0x22, 0x22), rgb[:400]) > 200  # the FAIL badge, near the top
+    assert near((0x00, 0xa0, 0xc0), rgb) > 50  # the dent, beyond -0.2 mm
+    ink = (rgb < 200).any(axis=2)
+    assert not ink[:, 1370:].any(), "something reaches the window's right margin"
