@@ -102,6 +102,20 @@ def _mean_raster(u: np.ndarray, v: np.ndarray, values: np.ndarray,
         return (total / count).reshape(nv, nu)
 
 
+def _fill_holes(img: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """``img`` with its NaN cells inside ``area`` set to the mean of their finite 3 x 3
+    neighbours (a cell with none stays NaN)."""
+    from scipy import ndimage
+
+    ok = np.isfinite(img)
+    total = ndimage.uniform_filter(np.where(ok, img, 0.0), 3, mode="constant")
+    count = ndimage.uniform_filter(ok.astype(float), 3, mode="constant")
+    hole = area & ~ok & (count > 0)
+    out = img.copy()
+    out[hole] = total[hole] / count[hole]
+    return out
+
+
 def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str, bytes]]:
     """(view name, PNG) of the colour maps of the views that see at least ``min_share`` of the
     measured points."""
@@ -128,23 +142,27 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
         sr, su = _axis_sign(view.right), _axis_sign(view.up)
         R = np.stack([sr * view.right, su * view.up, view.towards_viewer])
         p = pts[facing] @ R.T
-        s = cov.samples[cov.normals @ view.towards_viewer > 0.1] @ R.T
+        toward = cov.normals @ view.towards_viewer > 0.1
+        s = cov.samples[toward] @ R.T
         both = np.concatenate([p, s])
         extent = (both[:, 0].min(), both[:, 0].max(), both[:, 1].min(), both[:, 1].max())
         cell = max(max(extent[1] - extent[0], extent[3] - extent[2]) / PIXELS, 1.5 * spacing)
-        # the nominal behind, the measured points 0.5 mm in front of it
-        u, w = np.concatenate([s[:, 0], p[:, 0]]), np.concatenate([s[:, 1], p[:, 1]])
-        depth = np.concatenate([s[:, 2], p[:, 2] + 0.5])
         img = _mean_raster(p[:, 0], p[:, 1], dev[facing], extent, cell)
-        seen = _raster(u, w, depth, np.concatenate([np.ones(len(s)), np.full(len(p), 2.0)]),
-                       extent, cell)
+        # grey is the nominal no measured point comes near (coverage's own test), nearest the
+        # viewer: a cell without a point of its own inside a measured area, or a steep wall
+        # seen edge on, is measured surface, not a gap
+        gap = _raster(s[:, 0], s[:, 1], s[:, 2], cov.uncovered[toward].astype(float), extent,
+                      cell)
         ext = (extent[0], extent[0] + img.shape[1] * cell, extent[2],
                extent[2] + img.shape[0] * cell)
         aspect = (ext[3] - ext[2]) / max(ext[1] - ext[0], 1e-9)
         fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 2.5, 9)) + 1.2))
-        # the nominal's samples are random: close the gaps between them
-        nominal_area = ndimage.binary_closing(np.isfinite(seen), iterations=2)
-        ax.imshow(np.where(nominal_area & ~(seen == 2.0), 1.0, np.nan), origin="lower",
+        # cells inside the measured area that no point fell in take their neighbours' mean;
+        # the nominal's samples are random too: close the gaps between them
+        measured_area = ndimage.binary_closing(np.isfinite(img), iterations=2)
+        img = _fill_holes(img, measured_area)
+        unmeasured = ndimage.binary_closing(gap == 1.0, iterations=2) & ~measured_area
+        ax.imshow(np.where(unmeasured, 1.0, np.nan), origin="lower",
                   extent=ext, cmap="Greys", vmin=0, vmax=5, interpolation="nearest")
         im = ax.imshow(img, origin="lower", extent=ext, cmap=cmap, norm=norm,
                        interpolation="nearest")

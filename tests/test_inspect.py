@@ -588,3 +588,24 @@ def test_the_report_in_a_real_browser(cad, tmp_path):
     assert near((0x00, 0xa0, 0xc0), rgb) > 50  # the dent, beyond -0.2 mm
     ink = (rgb < 200).any(axis=2)
     assert not ink[:, 1370:].any(), "something reaches the window's right margin"
+
+
+def test_grey_marks_only_the_surface_no_point_comes_near(cad):
+    """Issue 39, 16: the maps' grey ("not measured") showed as specks all over measured areas
+    (cells no point fell in, the far side's samples behind them). A part measured all over has
+    next to no grey; a 60 mm hole cut from the cloud is grey."""
+    import cv2
+    from scancell.analysis.inspection_report import view_maps
+
+    nominal = load_nominal(cad["stl"])
+    settings = InspectionSettings("asmeasured", np.eye(4), None, parse_spec({"tolerance_mm": 0.2}))
+    whole = sample((), 100_000, seed=3)
+    holed = whole[np.hypot(whole[:, 1] - 200.0, whole[:, 2]) > 60.0]
+
+    def grey_pixels(points: np.ndarray) -> int:
+        front = dict(view_maps(inspect_cloud(points, nominal, settings)))["front"]
+        rgb = cv2.imdecode(np.frombuffer(front, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        return int((np.abs(rgb - 226).max(axis=2) <= 2).sum())  # Greys(0.2), the grey layer
+
+    measured_all_over, with_hole = grey_pixels(whole), grey_pixels(holed)
+    assert measured_all_over < 0.1 * with_hole, (measured_all_over, with_hole)
