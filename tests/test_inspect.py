@@ -609,3 +609,17 @@ def test_grey_marks_only_the_surface_no_point_comes_near(cad):
 
     measured_all_over, with_hole = grey_pixels(whole), grey_pixels(holed)
     assert measured_all_over < 0.1 * with_hole, (measured_all_over, with_hole)
+
+
+def test_without_a_tolerance_the_colour_scale_keeps_a_dent_in_its_shades(cad):
+    """Issue 39, 16: at the 99th percentile of |deviation| the scale spanned the noise and the
+    dent saturated; at the 99.9th only the most extreme 0.1 % of the points saturate."""
+    from scancell.analysis.inspection_report import _scale
+
+    nominal = load_nominal(cad["stl"])
+    settings = InspectionSettings("asmeasured", np.eye(4), None, parse_spec({}))
+    result = inspect_cloud(sample(("dent",), 100_000, seed=8), nominal, settings)
+    _, norm = _scale(result)
+    d = result.deviation[result.in_range]
+    assert norm.vmin == -norm.vmax and norm.vmax > 0.2  # the noise is 0.015 mm; the dent 0.5
+    assert np.mean(np.abs(d) > norm.vmax) == pytest.approx(0.001, abs=2e-4)
