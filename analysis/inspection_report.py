@@ -428,6 +428,7 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
     a, d, cov = report["alignment"], report["deviation"], report["coverage"]
     nominal = report["nominal"]
     T = np.asarray(a["T_part_from_measured"])
+    regions, found = region_rows(report), defect_rows(report)
     align_rows = [{"": "method", "value": a["method"]}, {"": "residual RMS (mm)", "value": a["rms_mm"]},
                   {"": "points used", "value": f"{a['used_fraction']:.1%}"},
                   {"": "iterations", "value": a["iterations"]},
@@ -448,13 +449,12 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
              _table([{k: v for k, v in d.items() if k.endswith("_mm") or k == "points"}],
                     [k for k in d if k.endswith("_mm") or k == "points"]),
              "<h2>Tolerances</h2>"
-             + (_table(region_rows(report), REGION_COLUMNS) if region_rows(report)
+             + (_table(regions, REGION_COLUMNS) if regions
                 else "<p>No tolerance given.</p>")
              + f"<p>A region passes while at most {report['tolerances']['allowed_out_share']:.1%} "
                "of its points lie outside its tolerance and no connected patch of them covers more "
                f"than {report['tolerances'].get('defect_area_mm2', 0):g} mm² (a defect).</p>"
-             + ("<h3>Defects</h3>" + _table(defect_rows(report), DEFECT_COLUMNS)
-                if defect_rows(report) else ""),
+             + ("<h3>Defects</h3>" + _table(found, DEFECT_COLUMNS) if found else ""),
              "<h2>Colour maps</h2>",
              *(_img(png, f"{name} view") for name, png in view_maps(inspection)),
              "<h2>Histogram</h2>", _img(histogram(inspection), "deviation histogram"),

@@ -168,9 +168,9 @@ class DriftControl:
                    ) -> tuple[Any, float, float]:
         """(key, residual mm, limit mm) of the reading furthest past its limit, from
         ``key -> (residual mm, reading in the tracker frame mm)``."""
-        key = max(residuals, key=lambda k: residuals[k][0] / self.knock_limit_mm(residuals[k][1]))
-        off, p = residuals[key]
-        return key, off, self.knock_limit_mm(p)
+        limits = {k: self.knock_limit_mm(p) for k, (_, p) in residuals.items()}
+        key = max(residuals, key=lambda k: residuals[k][0] / limits[k])
+        return key, residuals[key][0], limits[key]
 
     async def locate(self, setup: str, T_rough: np.ndarray, label: str,
                      return_to_mm: np.ndarray | None = None) -> dict[str, Any]:
