@@ -21,6 +21,7 @@ Run: .venv/bin/python benchmarks/bench_real_captures.py  (or `make bench`)
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from pathlib import Path
@@ -35,7 +36,8 @@ from scancell.analysis.projector_scan import reconstruct
 from scancell.analysis.stereo_calibration import ChessboardSpec
 from scancell.model.pattern_set import preset
 
-DATA = Path(__file__).resolve().parent.parent.parent / "shared/data/realfringe/slstudio"
+DATA = Path(os.environ.get("SCANCELL_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+            ) / "realfringe" / "slstudio"
 BOARD = ChessboardSpec(13, 9, 10.0)
 POSES = ("calseq1", "calseq3", "calseq4", "calseq6")
 

@@ -28,6 +28,10 @@ from scancell.deploy import cell_config_path
 os.environ.setdefault("PYLON_CAMEMU", "2")
 
 REPO = Path(__file__).resolve().parent.parent
+#: SLStudio's real captures (GPLv3), read in place from ../shared/data beside the checkout, or
+#: from SCANCELL_SHARED_DATA where a machine keeps them elsewhere; never copied into the repo
+SLSTUDIO_DATA = Path(os.environ.get("SCANCELL_SHARED_DATA", REPO.parent / "shared" / "data")
+                     ) / "realfringe" / "slstudio"
 # One tessellation cache for the run's processes (xdist workers, daemons, CLIs), kept out of the
 # home directory: the car rear's STEP is tessellated once (analysis/tessellation_cache.py).
 os.environ.setdefault("SCANCELL_CACHE_DIR", str(REPO / ".pytest_cache" / "scancell-cache"))

@@ -22,6 +22,8 @@ from scancell.analysis.stereo_calibration import CalibrationError
 from scancell.model.pattern_set import PatternSet, preset
 from scancell.sim.projector_rig_sim import Plane, RigSimulator, board_pose, default_rig
 
+from .conftest import SLSTUDIO_DATA
+
 SCALE = 0.4  # 512 x 410 camera frames
 SHEET = Plane(board_pose(450.0, (12.0, -18.0)))
 
@@ -139,25 +141,21 @@ def test_response_compensation_only_where_the_histogram_supports_it():
 
 @pytest.mark.unit
 def test_slstudio_calibration_is_read_as_it_is(tmp_path):
-    if not _slstudio().exists():
-        pytest.skip("../shared/data/realfringe/slstudio is not beside this checkout")
-    rig = read_rig(_slstudio())
+    xml = SLSTUDIO_DATA / "calibration" / "calibration.xml"
+    if not xml.exists():
+        pytest.skip(f"{SLSTUDIO_DATA} is not beside this checkout (or SCANCELL_SHARED_DATA)")
+    rig = read_rig(xml)
     assert isinstance(rig, CameraProjectorRig)
     assert rig.image_size == (1688, 1352) and rig.projector_size == (1824, 1140)
     assert rig.K_cam[0, 0] == pytest.approx(2195.12036, rel=1e-6)
     assert rig.T == pytest.approx([-145.282562, -36.4983406, 67.9231644], rel=1e-6)
     # a camera-only file for a camera-projector rig
-    text = _slstudio().read_text()
+    text = xml.read_text()
     start, end = text.index("<Kp"), text.index("</Tp>") + len("</Tp>")
     broken = tmp_path / "camera_only.xml"
     broken.write_text(text[:start] + text[end:])
     with pytest.raises(CalibrationError, match=r"camera_only.xml: a camera-only calibration .*Kp"):
         read_rig(broken)
-
-
-def _slstudio() -> Path:
-    return (Path(__file__).resolve().parent.parent.parent
-            / "shared/data/realfringe/slstudio/calibration/calibration.xml")
 
 
 @pytest.mark.unit

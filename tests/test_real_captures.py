@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,11 +22,13 @@ from scancell.analysis.projector_scan import reconstruct
 from scancell.analysis.stereo_calibration import ChessboardSpec
 from scancell.model.pattern_set import preset
 
-DATA = Path(__file__).resolve().parent.parent.parent / "shared/data/realfringe/slstudio"
+from .conftest import SLSTUDIO_DATA as DATA
+
 BOARD = ChessboardSpec(13, 9, 10.0)
 POSES = ("calseq1", "calseq3", "calseq4", "calseq6")
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"{DATA} is not beside this checkout")
+pytestmark = pytest.mark.skipif(
+    not DATA.is_dir(), reason=f"{DATA} is not beside this checkout (or SCANCELL_SHARED_DATA)")
 
 
 @pytest.fixture(scope="module")
