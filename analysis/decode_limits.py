@@ -102,12 +102,6 @@ class DecodeLimits:
         return DecodeLimits.from_mapping(base)
 
 
-def phase_sigma(noise_dn: float, steps: int, modulation: np.ndarray) -> np.ndarray:
-    """σ_φ (rad) of N-step phase shifting at modulation B (DN)."""
-    with np.errstate(divide="ignore"):
-        return np.float32(np.sqrt(2.0 / steps) * noise_dn) / np.asarray(modulation, np.float32)
-
-
 def order_sigma_unit(noise_dn: float, ratio: float, steps_coarse: int, steps_fine: int) -> float:
     """σ_o · B (fringes · DN): the order noise of one unwrapping step at unit modulation."""
     return float(np.sqrt(ratio ** 2 * 2.0 / steps_coarse + 2.0 / steps_fine) * noise_dn / (2 * np.pi))
@@ -159,11 +153,6 @@ def min_modulation(noise_dn: float, z: float, worst_ratio: float, steps_coarse: 
                    steps_fine: int) -> float:
     """B_min (DN): σ_o ≤ 1/z at the coarsest step, and at least z · σ_I."""
     return max(z * order_sigma_unit(noise_dn, worst_ratio, steps_coarse, steps_fine), z * noise_dn)
-
-
-def margin_limit(order_sigma: np.ndarray) -> np.ndarray:
-    """Largest accepted rounding residual (fringes) per pixel for order noise σ_o."""
-    return np.float32(0.5) - np.asarray(order_sigma, np.float32) ** 2 * np.float32(np.log(1 / ORDER_ALPHA))
 
 
 def bend_limit(typical_bend_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
