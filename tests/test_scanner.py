@@ -147,6 +147,35 @@ def test_calibration_from_rendered_targets_is_close_to_the_truth(station):
     assert "RMS reprojection" in station["out"]
 
 
+@pytest.mark.unit
+def test_the_calibrated_frame_offset_against_its_stated_sigma(station, tmp_path):
+    """The MCS an estimated calibration defines sits off the true left camera by about its
+    principal point error over f; the calibration states that frame's sigma (jackknife) and a
+    written and reread file keeps it."""
+    from scancell.sim.calibration_truth import calibrated_frame_offset
+
+    cal = StereoCalibration.read(station["calib"])
+    rig = station["cell"].rig_cold
+    assert set(cal.sigma) == {"sigma_left_fx_px", "sigma_left_fy_px", "sigma_left_cx_px",
+                              "sigma_left_cy_px", "sigma_frame_arcsec"}
+    assert all(v > 0 for v in cal.sigma.values())
+    offset = calibrated_frame_offset(rig, cal)
+    dc = np.hypot(cal.K1[0, 2] - rig.left.K[0, 2], cal.K1[1, 2] - rig.left.K[1, 2])
+    expected = dc / rig.left.K[0, 0] * 206264.8
+    # the turn from the principal point; R and the right camera's errors add a part of it
+    assert 0.5 * expected - 30 < offset.rotation_arcsec < 1.5 * expected + 30
+    # a sigma that is not absurd against the error it states: within 5 of them
+    assert offset.rotation_arcsec < 5 * cal.sigma["sigma_frame_arcsec"]
+    cal.write(tmp_path / "again.yaml")
+    assert StereoCalibration.read(tmp_path / "again.yaml").sigma == pytest.approx(cal.sigma)
+    assert StereoCalibration.from_json(cal.to_json()).sigma == pytest.approx(cal.sigma)
+    # the true calibration defines the true frame
+    rig.write_opencv_yaml(tmp_path / "true.yaml")
+    exact = calibrated_frame_offset(rig, StereoCalibration.read(tmp_path / "true.yaml"))
+    assert exact.rotation_arcsec < 0.01 and exact.residual_rms_mm < 1e-6
+    assert "jackknife" in station["out"]
+
+
 @pytest.mark.process
 def test_decode_cli_matches_the_true_surface(station, tmp_path):
     root, cell = station["root"], station["cell"]
