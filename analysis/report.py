@@ -183,8 +183,8 @@ def budget_lines(b: dict[str, Any]) -> list[str]:
     lines.append("")
     if b.get("sources"):
         lines += ["Every modelled source drawn from its stated 1-sigma (Monte Carlo per station, "
-                  "docs/metrology.md): its share of the mean error along the view. A job-wide "
-                  "source moves every station alike and cancels in the overlaps.", "",
+                  "docs/metrology.md): its share of the mean error along the surface normal. A "
+                  "job-wide source moves every station alike and cancels in the overlaps.", "",
                   "| source | scope | true error share (mm) | overlap share (mm) |",
                   "|---|---|---|---|"]
         lines += [f"| {k} | {v['scope']} | {v['true_mm']:.4f} | {v['overlap_mm']:.4f} |"

@@ -1,7 +1,11 @@
 """Uncertainty of each station and each point by Monte Carlo over every modelled source, as
 SpatialAnalyzer's uncertainty field analysis does: draw each source from its stated 1-sigma,
 rebuild the station's transform ``T_world_from_mcs = ECS(P1..P3) · T_ecs_from_mcs`` and move its
-points; the spread of the points' displacement along the scanner's view is their uncertainty.
+points; the spread of the points' displacement along the surface normal is their uncertainty.
+That is the component a distance to the true surface (the true error) or to another station's
+surface (the overlap metric) sees: a point moved along the surface is not in error. The depth
+noise moves a point along its camera ray, which meets the surface at an angle: its normal
+component is the depth error times ``(c·n) / c_z`` for the point c and the normal n in MCS.
 
 Sources and where their 1-sigma comes from (docs/metrology.md, "Uncertainty"):
 
@@ -36,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scancell.analysis.metrics import mean_spacing, normals
 from scancell.analysis.station_pose import StationPose
 
 ARCSEC = np.pi / 180 / 3600
@@ -82,11 +87,11 @@ class StatedSources:
 
 @dataclass
 class StationUncertainty:
-    #: per source: mean |displacement along the view| over the points (mm), its share
+    #: per source: mean |displacement along the surface normal| over the points (mm), its share
     share_mm: dict[str, float]
     #: the station's mean |error| (mm) at 2.5 % and 97.5 % of the draws: the 95 % interval
     interval_mm: tuple[float, float]
-    #: per point: 1-sigma of the displacement along the view, all sources (mm)
+    #: per point: 1-sigma of the displacement along the surface normal, all sources (mm)
     point_sigma_mm: np.ndarray = field(repr=False)
     #: the stated sources drawn
     stated: StatedSources = field(default_factory=StatedSources, repr=False)
@@ -122,8 +127,10 @@ def _scanner_error(source: str, rng: np.random.Generator, T_em: np.ndarray, s: S
 
 
 def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud: np.ndarray,
-          noise: np.ndarray, view: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
-    """One draw of the given sources: each point's displacement along the view (mm)."""
+          noise: np.ndarray, normal: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
+    """One draw of the given sources: each point's displacement along its surface normal
+    (``normal``, world; mm). ``noise``: each point's depth noise already carried onto the
+    normal (mm)."""
     pts, sig, T_em = pose.points_mm, pose.sigma_mm, pose.T_ecs_from_mcs
     p = pts.copy()
     origin = np.asarray(s.tracker_origin_mm, float)
@@ -145,11 +152,44 @@ def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud:
     X = (cloud * scale) @ T[:3, :3].T + T[:3, 3]
     if "settling" in sources:
         X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
-    d = (X - X0) @ view
+    d = np.einsum("ij,ij->i", X - X0, normal)
     if "scanner_noise" in sources:
         k = max(0.0, 1.0 + rng.normal(0.0, s.scanner_noise_rel))
         d = d + rng.standard_normal(len(d)) * noise * k
     return d
+
+
+#: the points a sample's normals are fitted in: enough for a neighbourhood of ~28 at 6 x their
+#: spacing over a whole station
+NORMAL_POINTS = 100_000
+
+
+def sample_normals(cloud: np.ndarray, sample: int) -> tuple[np.ndarray, int]:
+    """Unit normals (MCS) of every ``step``-th point of ``cloud`` (MCS, mm) and the ``step``
+    (about ``len(cloud) / sample``): each the least-squares plane of its neighbours within 6 x
+    the spacing of a :data:`NORMAL_POINTS` subsample (the metric tool's construction), which
+    the sample is part of. Its sign is arbitrary."""
+    dense_step = max(1, len(cloud) // NORMAL_POINTS)
+    step = dense_step * max(1, len(cloud) // max(1, sample) // dense_step)
+    dense = cloud[::dense_step]
+    if len(dense) < 3:
+        return np.tile([0.0, 0.0, 1.0], (len(cloud[::step]), 1)), step
+    n = normals(dense, 6.0 * mean_spacing(dense))
+    return n[:: step // dense_step], step
+
+
+def sampled(pose: StationPose, cloud: np.ndarray, point_noise_mm: np.ndarray | float,
+            sample: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """What :func:`_draw` works on: the sampled points (MCS), their depth noise carried onto
+    the normal, their normals and positions in world, and the sampling step."""
+    noise = np.broadcast_to(np.asarray(point_noise_mm, float), (len(cloud),))
+    n_mcs, step = sample_normals(cloud, sample)
+    c = cloud[::step]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along_normal = np.abs(np.einsum("ij,ij->i", c, n_mcs) / c[:, 2])
+    n = np.nan_to_num(noise[::step]) * np.nan_to_num(along_normal, nan=1.0, posinf=1.0)
+    T0 = pose.T_world_from_mcs()
+    return c, n, n_mcs @ T0[:3, :3].T, c @ T0[:3, :3].T + T0[:3, 3], step
 
 
 def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
@@ -158,15 +198,10 @@ def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
                         ) -> StationUncertainty:
     """Monte Carlo of one station: its pose's tracker points (world, mm) with their 1-sigma,
     the hand-eye and cluster calibrations, the station's cloud (MCS, mm) and its per-point
-    depth noise (mm)."""
+    depth noise (mm, along the left camera's optical axis)."""
     cloud = np.asarray(cloud_mcs, float)
-    noise = np.broadcast_to(np.asarray(point_noise_mm, float), (len(cloud),))
-    step = max(1, len(cloud) // sample)
-    c, n = cloud[::step], np.nan_to_num(noise[::step])
-    T0 = pose.T_world_from_mcs()
-    X0 = c @ T0[:3, :3].T + T0[:3, 3]
-    view = T0[:3, 2]
-    args = (pose, c, n, view, stated, X0)
+    c, n, normal, X0, step = sampled(pose, cloud, point_noise_mm, sample)
+    args = (pose, c, n, normal, stated, X0)
     share = {}
     for k, src in enumerate(SCOPES):
         rng = np.random.default_rng([seed, k])

@@ -14,10 +14,10 @@ from scancell.analysis.station_uncertainty import (
     _draw,
     budget_by_source,
     coverage,
+    sampled,
     scanner_fixed_overlap,
     station_uncertainty,
 )
-from scancell.model.ecs import ecs_for_frame
 
 
 def j6_pose(pts, sig, j6, T_em) -> StationPose:
@@ -62,15 +62,12 @@ def test_every_source_has_a_share_and_the_budget_names_them():
 @pytest.mark.unit
 def test_the_95_percent_interval_covers_independent_draws():
     pts, sig, j6, T_em, cloud = station(3)
-    u = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, STATED, trials=200, seed=5)
+    pose = j6_pose(pts, sig, j6, T_em)
+    u = station_uncertainty(pose, cloud, 0.02, STATED, trials=200, seed=5)
     # "truths": the same sources drawn independently of the prediction's draws
-    T0 = ecs_for_frame(pts, j6, j6) @ T_em
-    step = max(1, len(cloud) // 2000)
-    c = cloud[::step]
-    X0 = c @ T0[:3, :3].T + T0[:3, 3]
+    c, noise, normal, X0, _ = sampled(pose, cloud, 0.02, 2000)
     rng = np.random.default_rng(1234)
-    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, j6_pose(pts, sig, j6, T_em), c,
-                                          np.full(len(c), 0.02), T0[:3, 2], STATED,
+    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, pose, c, noise, normal, STATED,
                                           X0)).mean()) for k in range(60)}
     cov = coverage({k: u.interval_mm for k in truths}, truths)
     assert cov["share"] >= 0.88, cov
@@ -86,12 +83,10 @@ def test_the_noise_models_own_accuracy_widens_the_interval_to_a_scanner_quieter_
     quiet = StatedSources(refraction_ppm=0.4, tracker_systematic_mm=0.002, location_mm=0.003,
                           settle_mm=0.003, scanner_scale_ppm=2.0, hand_eye_translation_mm=0.003,
                           hand_eye_rotation_arcsec=1.0)
-    T0 = ecs_for_frame(pts, j6, j6) @ T_em
-    c = cloud[:: max(1, len(cloud) // 2000)]
-    X0 = c @ T0[:3, :3].T + T0[:3, 3]
+    pose = j6_pose(pts, sig, j6, T_em)
+    c, noise, normal, X0, _ = sampled(pose, cloud, 0.85 * 0.02, 2000)
     rng = np.random.default_rng(99)
-    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, j6_pose(pts, sig, j6, T_em), c,
-                                          np.full(len(c), 0.85 * 0.02), T0[:3, 2], quiet,
+    truths = {f"d{k}": float(np.abs(_draw(set(SCOPES), rng, pose, c, noise, normal, quiet,
                                           X0)).mean()) for k in range(40)}
     exact = station_uncertainty(j6_pose(pts, sig, j6, T_em), cloud, 0.02, quiet, trials=200)
     assert coverage({k: exact.interval_mm for k in truths}, truths)["share"] < 0.2
@@ -100,6 +95,33 @@ def test_the_noise_models_own_accuracy_widens_the_interval_to_a_scanner_quieter_
     assert coverage({k: widened.interval_mm for k in truths}, truths)["share"] >= 0.9
     assert widened.share_mm["scanner_noise"] == pytest.approx(exact.share_mm["scanner_noise"],
                                                               rel=0.05)
+
+
+@pytest.mark.unit
+def test_the_error_is_the_distance_to_the_surface_not_the_shift_along_the_view():
+    """A point moved along its camera ray by the depth noise, or along the surface by the
+    pose, is off the surface by the normal component only: on a plane turned 60 deg from the
+    view the noise counts about half, and a shift within the plane not at all."""
+    pts, _, j6, T_em, _ = station(6)
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(-150, 150, (20000, 2))
+    frontal = np.column_stack([xy, np.full(len(xy), 650.0)])
+    a = np.radians(60.0)
+    turned = np.column_stack([xy[:, 0] * np.cos(a), xy[:, 1], 650.0 + xy[:, 0] * np.sin(a)])
+    noise_only = StatedSources(refraction_ppm=0.0)
+    quiet_sig = np.zeros((3, 3))
+    u = {name: station_uncertainty(j6_pose(pts, quiet_sig, j6, T_em), cloud, 0.02, noise_only,
+                                   trials=100)
+         for name, cloud in (("frontal", frontal), ("turned", turned))}
+    assert u["frontal"].share_mm["scanner_noise"] == pytest.approx(0.02 * np.sqrt(2 / np.pi),
+                                                                    rel=0.05)
+    ratio = u["turned"].share_mm["scanner_noise"] / u["frontal"].share_mm["scanner_noise"]
+    assert ratio == pytest.approx(0.5, abs=0.06)
+    # a settle shift drawn in 3-D: on the frontal plane only its z part counts
+    settle = StatedSources(refraction_ppm=0.0, settle_mm=0.03)
+    s = station_uncertainty(j6_pose(pts, quiet_sig, j6, T_em), frontal, 0.0, settle, trials=300)
+    assert s.share_mm["settling"] == pytest.approx(0.03 / np.sqrt(3) * np.sqrt(2 / np.pi),
+                                                   rel=0.15)
 
 
 def _turned(deg: float, about: np.ndarray) -> np.ndarray:
