@@ -187,8 +187,10 @@ def main(args: argparse.Namespace) -> int:
         nominal_dir = run_dir / "nominal"  # the part's CAD for the inspection, exported beside
         exported = background.submit(run, ["sim", "nominal", "--part", str(cfg.simulator.get(
             "part", "car_rear")), "--out", str(nominal_dir)], env, "exporting the part's CAD")
+        # the views are the cell's: another simulator seed, another set of board poses and noise
         print("   " + run(["sim", "targets", "--out", str(run_dir / "targets"), "--scale",
-                            str(scale), "--count", "12" if quick else "18"], env,
+                            str(scale), "--count", "12" if quick else "18", "--seed",
+                            str(int(cfg.simulator.get("seed", 0)))], env,
                            "rendering targets").strip())
         out = run(["calibrate", "cameras", "--images", str(run_dir / "targets"), "--out",
                    str(run_dir / "calibration" / "stereo.yaml")], env, "stereo calibration")
