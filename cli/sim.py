@@ -14,9 +14,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     rob.add_argument("--motion-port", type=int, default=11000)
     rob.add_argument("--state-port", type=int, default=11002)
     rob.add_argument("--byte-order", choices=["big", "little"], default="big")
-    trk = dev.add_parser("tracker", help="laser tracker speaking STLP over TCP or a pty")
-    trk.add_argument("--port", type=int, default=7000)
-    trk.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead")
+    trk = dev.add_parser("tracker", help="laser tracker speaking STLP (TCP or a pty) or "
+                                         "Leica emScon TPI (TCP)")
+    trk.add_argument("--protocol", choices=("stlp", "emscon"), default="stlp",
+                     help="stlp: protocols/TRACKER_PROTOCOL.md; emscon: a Leica emScon server "
+                          "(protocols/EMSCON.md; a real one listens on port 700)")
+    trk.add_argument("--port", type=int, default=None,
+                     help="TCP port (default 7000 for stlp, 700 for emscon)")
+    trk.add_argument("--pty", action="store_true",
+                     help="serve on a pseudo-terminal instead (stlp only)")
     axs = dev.add_parser("axis", help="CiA 402 rail drive (CANopen) served over socketcand/TCP")
     axs.add_argument("--port", type=int, default=29536)
     axs.add_argument("--node-id", type=int, default=5)

@@ -4,8 +4,8 @@ The byte stream opens through ``serial.serial_for_url``: ``socket://host:port``,
 port or pseudo-terminal path, or ``loop://`` all use this code. A garbage line is dropped and
 counted (the protocol resynchronises at the next line end); a dead link is ConnectionLost.
 
-A vendor tracker (e.g. a Leica emScon client) plugs in as another ``Tracker`` subclass
-registered under the ``scancell.devices`` entry point; it does not need this protocol.
+A vendor tracker plugs in as another ``Tracker`` subclass (Leica's emScon TPI:
+``devices/emscon_tracker.py``); it does not need this protocol.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "mock_axis": "scancell.devices.mock:MockAxis",
     "simple_message_robot": "scancell.devices.simple_message_robot:SimpleMessageRobot",
     "line_tracker": "scancell.devices.line_tracker:LineTracker",
+    "leica_emscon_tracker": "scancell.devices.emscon_tracker:EmsconTracker",
     "canopen_axis": "scancell.devices.canopen_axis:CanopenAxis",
     "opencv_camera": "scancell.devices.opencv_camera:OpenCVCamera",
     "basler_camera": "scancell.devices.basler_camera:BaslerCamera",

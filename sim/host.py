@@ -3,7 +3,7 @@
 A cell config's ``[simulator]`` table starts it inside the daemon before the devices connect:
 
 - ``[simulator.robot]``: the KAREL-style simple_message server (motion/state ports);
-- ``[simulator.tracker]``: the STLP tracker server on TCP;
+- ``[simulator.tracker]``: the tracker server on TCP (STLP, or emScon with ``protocol = "emscon"``);
 - ``[simulator.axis]``: the CiA 402 drive on a virtual CAN channel, served over socketcand;
 - ``[simulator.projector]``: a TI DLPC350 or DLPC900 emulator (USB HID reports on TCP) whose
   DMD is the world's projector and whose trigger out is the world's trigger line;
@@ -61,7 +61,7 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
             "byte_order": {"enum": ["big", "little"]},
             "state_hz": {"type": "number", "exclusiveMinimum": 0}}},
         "tracker": {"type": "object", "additionalProperties": False, "properties": {
-            "host": _HOST, "port": _PORT}},
+            "host": _HOST, "port": _PORT, "protocol": {"enum": ["stlp", "emscon"]}}},
         "projector": {"type": "object", "additionalProperties": False, "properties": {
             "host": _HOST, "port": _PORT, "model": {"enum": ["dlpc350", "dlpc900"]},
             "dmd": {"type": "array", "items": {"type": "integer", "minimum": 1},
@@ -270,10 +270,12 @@ class SimHost:
             self.endpoints["robot"] = {"motion_port": robot.motion_port,
                                        "state_port": robot.state_port}
         if "tracker" in o:
-            from scancell.sim.tracker_server import TcpTrackerServer
-
             t = o["tracker"]
-            tracker = TcpTrackerServer(world.cell, t.get("host", "127.0.0.1"), int(t.get("port", 7000)))
+            if t.get("protocol", "stlp") == "emscon":
+                from scancell.sim.emscon_server import EmsconServer as server_class
+            else:
+                from scancell.sim.tracker_server import TcpTrackerServer as server_class
+            tracker = server_class(world.cell, t.get("host", "127.0.0.1"), int(t.get("port", 7000)))
             await tracker.start()
             self._servers["tracker"] = tracker
             self.endpoints["tracker"] = {"port": tracker.port}

@@ -146,6 +146,18 @@ async def _serve(args: argparse.Namespace) -> int:
               f"{args.host}:{server.port}", flush=True)
         await stop.wait()
         await server.close()
+    elif args.protocol == "emscon":
+        if args.pty:
+            print("scancell sim serve tracker: --pty is for --protocol stlp; emScon runs on TCP",
+                  file=sys.stderr)
+            return 2
+        from scancell.sim.emscon_server import EmsconServer
+
+        server = EmsconServer(cell, args.host, 700 if args.port is None else args.port)
+        await server.start()
+        print(f"simulated Leica emScon tracker server on {args.host}:{server.port}", flush=True)
+        await stop.wait()
+        await server.close()
     elif args.pty:
         from scancell.sim.tracker_server import PtyTrackerServer
 
@@ -156,7 +168,7 @@ async def _serve(args: argparse.Namespace) -> int:
     else:
         from scancell.sim.tracker_server import TcpTrackerServer
 
-        server = TcpTrackerServer(cell, args.host, args.port)
+        server = TcpTrackerServer(cell, args.host, 7000 if args.port is None else args.port)
         await server.start()
         print(f"simulated tracker (STLP) on {args.host}:{server.port}", flush=True)
         await stop.wait()

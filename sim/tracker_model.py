@@ -84,6 +84,9 @@ class TrackerModel:
         self.seed = seed
         self.face = 1
         self.air_set: tuple[float, float, float] = self.mech.refraction_default
+        #: a refraction index the tracker was told directly (emScon SetRefractionParams), used
+        #: instead of the index of ``air_set`` until the air is set again
+        self.index_set: float | None = None
         drift = np.random.default_rng([seed, 7])
         d = drift.normal(size=3)
         self._drift_dir = d / np.linalg.norm(d)
@@ -102,7 +105,12 @@ class TrackerModel:
         the index of the air it was told, the beam travels through the true air."""
         if not self.mech.refraction:
             return 1.0
-        return mech.air_index(*mech.true_air(t_s, self.mech)) / mech.air_index(*self.air_set)
+        return mech.air_index(*mech.true_air(t_s, self.mech)) / self.index_in_use
+
+    @property
+    def index_in_use(self) -> float:
+        """The refraction index the tracker converts its optical path with."""
+        return self.index_set if self.index_set is not None else mech.air_index(*self.air_set)
 
     def move_to(self, T_world_from_base: np.ndarray) -> None:
         """Set the tracker up elsewhere: its base (head at the translation) at

@@ -20,8 +20,9 @@ from scancell.sim.cell import SimCell
 from scancell.sim.tracker_model import FIND_SEARCH_DEG, BeamBreak
 
 
-class TrackerProtocolHandler:
-    """Answers one line at a time; ``events()`` reports beam changes since the last call."""
+class SimTrackerHead:
+    """What a simulated tracker's protocol front end shares: the reflector it follows, an
+    injected fault (:data:`SIM_FAULTS`), its lock state and the time its last command took."""
 
     def __init__(self, cell: SimCell, serial_number: str = "SIM-0001") -> None:
         self.cell = cell
@@ -46,14 +47,24 @@ class TrackerProtocolHandler:
         except BeamBreak as exc:
             return False, str(exc)
 
-    def events(self) -> list[bytes]:
+    def lock_change(self) -> tuple[bool, str] | None:
+        """(locked, reason) when the lock state changed since the last call, else None."""
         locked, reason = self._lock_state()
-        out = []
-        if self._locked is not None and locked != self._locked:
-            name, arg = ("BeamLocked", "SMR1.5") if locked else ("BeamBroken", reason)
-            out.append(tl.format_response(tl.EVENT_TAG, "event", name, (arg,)))
+        changed = self._locked is not None and locked != self._locked
         self._locked = locked
-        return out
+        return (locked, reason) if changed else None
+
+
+class TrackerProtocolHandler(SimTrackerHead):
+    """Answers one line at a time; ``events()`` reports beam changes since the last call."""
+
+    def events(self) -> list[bytes]:
+        change = self.lock_change()
+        if change is None:
+            return []
+        locked, reason = change
+        name, arg = ("BeamLocked", "SMR1.5") if locked else ("BeamBroken", reason)
+        return [tl.format_response(tl.EVENT_TAG, "event", name, (arg,))]
 
     def handle(self, line: str | tl.LineError) -> list[bytes]:
         """The reply lines to one input line (or to a line the splitter refused); ``took_s``
@@ -109,6 +120,7 @@ class TrackerProtocolHandler:
             if problem:
                 return [tl.error_response(tag, 2002, problem)]
             self.cell.tracker.air_set = tuple(float(a) for a in args)
+            self.cell.tracker.index_set = None
             return [ack, tl.format_response(tag, "data", "Env", tuple(float(a) for a in args)),
                     done]
         if name == "Face":
