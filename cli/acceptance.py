@@ -30,6 +30,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--positions", default=None,
                    help="positions per artefact, e.g. sphere=3,ballbar=7,plane=6")
     p.add_argument("--json", default=None, metavar="OUT.json")
+    p.add_argument("--qif", default=None, metavar="OUT.qif",
+                   help="the figures as QIF 3.0 measured characteristics with their MPEs; "
+                        "validated against --qif-schemas or $SCANCELL_QIF_SCHEMAS")
+    p.add_argument("--qif-schemas", default=None, metavar="DIR",
+                   help="the QIF 3.0 XSDs (QIFApplications/, QIFLibrary/)")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="acceptance.json and acceptance.html")
     add_bus_arguments(p)
@@ -129,6 +134,16 @@ def main(args: argparse.Namespace) -> int:
         body["files"] = write_acceptance(Path(args.report), body)
     if args.json:
         Path(args.json).write_text(json.dumps(body, indent=2))
+    if args.qif:
+        from scancell.analysis import qif
+
+        try:
+            qif.write_checked(qif.acceptance_document(body["parameters"],
+                                                      job_id=body.get("job_id"),
+                                                      overall_pass=body.get("pass")),
+                              args.qif, args.qif_schemas)
+        except qif.QIFError as exc:
+            return fail("acceptance", f"--qif {args.qif}: {exc}")
     for p, v in body["parameters"].items():
         verdict = {True: "PASS", False: "FAIL", None: "-"}[v["pass"]]
         print(f"{p:2}  {v['figure_mm']:.4f} mm  MPE {v['mpe_mm']}  {verdict}  "

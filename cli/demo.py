@@ -356,6 +356,8 @@ def main(args: argparse.Namespace) -> int:
                 shutil.move(str(folder), run_dir / "acceptance" / name)
         for part in (summary.get("acceptance") or {}).values():
             part["report"] = f"acceptance/{part['report']}"
+            if part.get("qif"):
+                part["qif"] = f"acceptance/{part['qif']}"
         (run_dir / "fused").rmdir()
         summary["seconds"] = round(time.monotonic() - t_start, 1)
         summary["recordings"] = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
@@ -407,7 +409,9 @@ def run_acceptance(client: CellClient, quick: bool, prefix: str = "   ") -> dict
                        "positions": v["positions"]} for p, v in r["parameters"].items()}
         out[f"part{part}"] = {"parameters": figures, "pass": r["pass"], "errors": r["errors"],
                               "seconds": round(came - t0, 1),
-                              "report": f"{job}/acceptance.html"}
+                              "report": f"{job}/acceptance.html",
+                              "qif": f"{job}/acceptance.qif"
+                              if (r.get("files") or {}).get("qif") else None}
         print(f"{prefix}part {part}: " + ", ".join(
             f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']})" for p, v in figures.items())
             + f": {'PASS' if r['pass'] else 'FAIL'} ({out[f'part{part}']['seconds']:.0f} s "
@@ -432,7 +436,8 @@ def inspection_summary(r: dict[str, Any], waited_s: float) -> dict[str, Any]:
             "out_share": (r["tolerances"].get("overall") or {}).get("out_share"),
             "nominal_covered_share": r["coverage"]["nominal_covered_share"],
             "seconds": r["seconds"], "waited_after_fusion_s": round(waited_s, 1),
-            "report": "inspection/report.html" if (r.get("files") or {}).get("html") else None}
+            "report": "inspection/report.html" if (r.get("files") or {}).get("html") else None,
+            "qif": "inspection/inspection.qif" if (r.get("files") or {}).get("qif") else None}
 
 
 def sim_optics(simulator: dict[str, Any]):

@@ -48,6 +48,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="section planes, e.g. y=-350,y=0,z=100 (default: 3 across the longest "
                         "axis)")
     p.add_argument("--json", default=None, metavar="OUT.json", help="the results as JSON")
+    p.add_argument("--qif", default=None, metavar="OUT.qif",
+                   help="the results as a QIF 3.0 document (needs a tolerance); validated "
+                        "against the schemas in --qif-schemas or $SCANCELL_QIF_SCHEMAS")
+    p.add_argument("--qif-schemas", default=None, metavar="DIR",
+                   help="the QIF 3.0 XSDs (QIFApplications/, QIFLibrary/)")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="report folder: report.html, regions.csv, sections.csv, inspection.json")
     p.add_argument("--out-ply", default=None, metavar="OUT.ply",
@@ -157,6 +162,14 @@ def main(args: argparse.Namespace) -> int:
 
             files.update(write_report(result, args.report, f"Inspection of {Path(args.measured).name}",
                                       source))
+        if args.qif:
+            from scancell.analysis import qif
+
+            validated = qif.write_checked(qif.inspection_from_json(body), args.qif,
+                                          args.qif_schemas)
+            files["qif"] = args.qif
+            print(f"QIF 3.0 results -> {args.qif}"
+                  + ("" if validated else " (not validated: no schemas given)"), file=sys.stderr)
         body["files"] = files
         if args.json:
             Path(args.json).write_text(json.dumps(body, indent=2))

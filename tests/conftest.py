@@ -30,8 +30,13 @@ os.environ.setdefault("PYLON_CAMEMU", "2")
 REPO = Path(__file__).resolve().parent.parent
 #: SLStudio's real captures (GPLv3), read in place from ../shared/data beside the checkout, or
 #: from SCANCELL_SHARED_DATA where a machine keeps them elsewhere; never copied into the repo
-SLSTUDIO_DATA = Path(os.environ.get("SCANCELL_SHARED_DATA", REPO.parent / "shared" / "data")
-                     ) / "realfringe" / "slstudio"
+SHARED_DATA = Path(os.environ.get("SCANCELL_SHARED_DATA", REPO.parent / "shared" / "data"))
+SLSTUDIO_DATA = SHARED_DATA / "realfringe" / "slstudio"
+#: the official QIF 3.0 XSDs (Boost licence), read in place the same way; every process the
+#: tests start validates the QIF it writes against them (analysis/qif.py SCHEMAS_ENV)
+QIF_SCHEMAS = SHARED_DATA / "qif3"
+if (QIF_SCHEMAS / "QIFApplications" / "QIFDocument.xsd").is_file():
+    os.environ.setdefault("SCANCELL_QIF_SCHEMAS", str(QIF_SCHEMAS))
 # One tessellation cache for the run's processes (xdist workers, daemons, CLIs), kept out of the
 # home directory: the car rear's STEP is tessellated once (analysis/tessellation_cache.py).
 os.environ.setdefault("SCANCELL_CACHE_DIR", str(REPO / ".pytest_cache" / "scancell-cache"))

@@ -193,9 +193,13 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
     # the recording alone gives the same figures
     mcap = next((tmp_path / "rec").glob("acceptance-*.mcap"))
     out = subprocess.run([sys.executable, "-m", "scancell", "acceptance", str(mcap), "--json",
-                          str(tmp_path / "offline.json")], capture_output=True, text=True,
-                         timeout=120)
+                          str(tmp_path / "offline.json"), "--qif", str(tmp_path / "a.qif")],
+                         capture_output=True, text=True, timeout=120)
     assert out.returncode in (0, 1), out.stderr
+    from .test_inspect import qif_check
+
+    qif_check(tmp_path / "a.qif", None)  # the figures as QIF 3.0, valid against the XSDs
+    qif_check(tmp_path / "acc" / final["job_id"] / "acceptance.qif", None)  # the worker's
     offline = json.loads((tmp_path / "offline.json").read_text())
     if offline["errors"]:
         from scancell.recorder.reading import info

@@ -66,6 +66,14 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert sd3["positions"] == 1 and sd3["mpe_mm"] == 0.2 and sd3["figure_mm"] < 0.3, sd3
     for part in acc.values():
         assert (run / part["report"]).exists(), part["report"]
+    # both end in QIF 3.0 documents, valid against the official schemas when the tests have them
+    from .test_inspect import qif_check
+
+    qif_check(run / ins["qif"], ["FAIL" if ins["pass"] is False else "PASS"])
+    for part in acc.values():
+        qif_check(run / part["qif"], ["PASS" if part["pass"] else "FAIL"]
+                  * sum(p["positions"] for p in part["parameters"].values())
+                  if part["pass"] else None)
     for name in ("fused.ply", "fused.e57", "mesh.ply", "report/report.md", "plan.toml",
                  "calibration/stereo.yaml", "calibration/hand_eye/active.json",
                  "inspection/report.html", "inspection/inspected.ply", "nominal/car_rear.step",

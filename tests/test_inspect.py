@@ -93,8 +93,9 @@ def test_inspect_cli_finds_each_defect_against_stl(cad, tmp_path):
     code = cli_main(["inspect", str(tmp_path / "measured.ply"), "--nominal", cad["stl"],
                      "--align", "bestfit", "--json", str(tmp_path / "out.json"),
                      "--out-ply", str(tmp_path / "out.ply"), "--tolerance", "0.3",
-                     "--report", str(tmp_path / "report")])
+                     "--report", str(tmp_path / "report"), "--qif", str(tmp_path / "out.qif")])
     assert code == 1  # the dent and the flange are out of +-0.3 mm
+    qif_check(tmp_path / "out.qif", ["FAIL"])
     ply = o3d.t.io.read_point_cloud(str(tmp_path / "out.ply"))
     for name in ("deviation", "normals", "in_range"):  # nx, ny, nz: Open3D's normals
         assert name in ply.point, name
@@ -119,6 +120,19 @@ def test_inspect_cli_finds_each_defect_against_stl(cad, tmp_path):
     assert rows[0]["name"] == "whole part" and rows[0]["pass"] == "False"
 
 
+def qif_check(path, statuses: list[str] | None) -> None:
+    """``path`` is QIF 3.0 valid against the official XSDs (when the tests have them), and its
+    characteristic measurements have ``statuses`` in order (None: any)."""
+    from lxml import etree
+    from scancell.analysis import qif
+
+    doc = etree.parse(str(path))
+    if qif.schema_folder() is not None:
+        qif.validate(doc, qif.schema_folder())
+    got = [e.text for e in doc.getroot().iter(f"{{{qif.NS}}}CharacteristicStatusEnum")]
+    assert got and (statuses is None or got == statuses), got
+
+
 def test_inspect_against_step_with_face_regions(cad, tmp_path):
     truth = sample(("dent", "flange"), seed=4)
     measured, _ = moved(truth, seed=5)
@@ -131,6 +145,11 @@ def test_inspect_against_step_with_face_regions(cad, tmp_path):
     check_defects(truth, result.deviation, ("dent", "flange"))
     regions = {r["name"]: r for r in result.tolerances["regions"]}
     assert regions["plate"]["pass"] is True and regions["plate"]["points"] > 1000
+    # each region a surface-profile characteristic of QIF 3.0, with its own verdict
+    from scancell.analysis import qif
+
+    qif.write_checked(qif.inspection_from_json(result.to_json()), tmp_path / "r.qif")
+    qif_check(tmp_path / "r.qif", ["FAIL", "PASS", "FAIL", "PASS"])
     assert regions["dent zone"]["pass"] is False and regions["dent zone"]["min_mm"] < -0.3
     assert regions["flank"]["pass"] is True
     assert result.tolerances["pass"] is False

@@ -196,6 +196,7 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
     folder.mkdir(parents=True, exist_ok=True)
     files = {"json": str(folder / "acceptance.json"), "html": str(folder / "acceptance.html")}
     Path(files["json"]).write_text(json.dumps(body, indent=2))
+    files.update(write_acceptance_qif(body, folder / "acceptance.qif"))
     names = {"PF": "probing error, form (sphere)", "PS": "probing error, size (sphere)",
              "SD": "sphere-spacing error (ball bar)", "F": "flatness error (plane)",
              "SD3": "sphere-spacing error across robot stations, fused through the tracker "
@@ -222,3 +223,22 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
         f"<th>positions</th><th>values (mm)</th></tr>{''.join(rows)}</table>"
         + (f"<h2>Not evaluated</h2><ul>{errors}</ul>" if errors else "") + "</body></html>")
     return files
+
+
+def write_acceptance_qif(body: dict[str, Any], path: Path,
+                         schemas: str | None = None) -> dict[str, str]:
+    """The acceptance figures as QIF 3.0 ({"qif": path}), or {} with the reason logged."""
+    from scancell.analysis import qif
+
+    if not body.get("parameters"):
+        return {}
+    try:
+        doc = qif.acceptance_document(body["parameters"], job_id=body.get("job_id"),
+                                      overall_pass=body.get("pass"))
+        validated = qif.write_checked(doc, path, schemas)
+    except qif.QIFError as exc:
+        log.warning("acceptance %s: no QIF results: %s", body.get("job_id"), exc)
+        return {}
+    log.info("acceptance %s: QIF 3.0 results -> %s%s", body.get("job_id"), path,
+             "" if validated else " (not validated: $SCANCELL_QIF_SCHEMAS not set)")
+    return {"qif": str(path)}

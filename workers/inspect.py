@@ -135,6 +135,7 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
                              f"fusion/cloud of job {job_id}")
         files["ply"] = str(folder / "inspected.ply")
         result.write_ply(files["ply"])
+        files.update(write_qif(result.to_json(), folder / "inspection.qif", job_id))
         return files
 
     def _publish_cloud(self, result: Any, job_id: str) -> None:
@@ -152,3 +153,19 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
             {"deviation": result.deviation[keep], "red": rgba[:, 0], "green": rgba[:, 1],
              "blue": rgba[:, 2], "alpha": rgba[:, 3]})),
             Attachment(now, 0, None, {"job_id": job_id}))
+
+
+def write_qif(body: dict[str, Any], path: Path, job_id: str) -> dict[str, str]:
+    """The inspection as QIF 3.0 beside its report ({"qif": path}), or {} with the reason
+    logged when QIF cannot hold it (no tolerance) or the schemas refuse it."""
+    from scancell.analysis import qif
+
+    try:
+        doc = qif.inspection_from_json(body, qif.Traceability(job_id=job_id))
+        validated = qif.write_checked(doc, path)
+    except qif.QIFError as exc:
+        log.warning("job %s: no QIF results: %s", job_id, exc)
+        return {}
+    log.info("job %s: QIF 3.0 results -> %s%s", job_id, path,
+             "" if validated else " (not validated: $SCANCELL_QIF_SCHEMAS not set)")
+    return {"qif": str(path)}
