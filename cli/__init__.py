@@ -39,6 +39,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reprocess": ("run the analysis workers on a recording, without a bus", "reprocess"),
     "monitor": ("the cell live in the Foxglove app (WebSocket, decimated)", "monitor"),
     "router": ("a zenoh router with TLS, users and the cell's ACL (deploy/zenoh)", "router"),
+    "opcua": ("serve the cell on OPC UA for a PLC or MES: status, job progress, start/abort",
+              "opcua"),
     "demo": ("run the main job on the embedded simulated cell", "demo"),
 }
 
