@@ -40,7 +40,7 @@ def write_plan(path: Path, cell, name: str) -> None:
     centre = cell.cfg.T_world_from_part[:3, 3]
     lines = [f'[plan]\nname = "{name}"\nspeed = 0.5\ntracker_repeats = 1\n']
     for i, dy in enumerate((-80.0, 80.0)):
-        q = np.degrees(cell.ik_for_mcs(cell.mcs_pose_looking_at(centre + [0.0, dy, 0.0])))
+        q = np.degrees(cell.ik_for_mcs(cell.mcs_pose_looking_at(centre + np.array([0.0, dy, 0.0]))))
         lines.append(f'[[station]]\nname = "s{i + 1:02d}"\njoints_deg = '
                      f'[{", ".join(f"{v:.4f}" for v in q)}]\n')
     path.write_text("\n".join(lines))
