@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -42,7 +43,7 @@ def cell_config(seed: int, folder: Path) -> Path:
     return path
 
 
-def run_seed(seed: int, folder: Path, quick: bool) -> dict:
+def run_seed(seed: int, folder: Path, quick: bool, keep: Path | None = None) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     config = cell_config(seed, folder)
     t0 = time.monotonic()
@@ -58,6 +59,10 @@ def run_seed(seed: int, folder: Path, quick: bool) -> dict:
         return {"error": (out.stdout + out.stderr)[-600:], "seconds": seconds}
     run = next((folder / "runs").iterdir())
     s = json.loads((run / "summary.json").read_text())
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+        shutil.copy(run / "summary.json", keep / f"summary-seed{seed}.json")
+    shutil.rmtree(run / "recordings", ignore_errors=True)  # 11 GB a full demo
     stations = {n: v for n, v in (s.get("uncertainty") or {}).items()
                 if isinstance(v, dict) and "true_error_mm" in v}
     below = sorted(n for n, v in stations.items() if v["true_error_mm"] < v["interval95_mm"][0])
@@ -77,11 +82,14 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, default=5, help="simulator seeds 0..N-1")
     p.add_argument("--quick", action="store_true", help="the quick demo (1/4 size, 5 stations)")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--keep", default=None, metavar="DIR", help="copy each seed's summary.json here")
     args = p.parse_args()
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(args.seeds):
-            r = run_seed(seed, Path(tmp) / f"seed{seed}", args.quick)
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            r = run_seed(seed, Path(tmp) / f"seed{seed}", args.quick,
+                         Path(args.keep) if args.keep else None)
             results.append((seed, r))
             print(f"seed {seed}: {r}", flush=True)
     ok = [r for _, r in results if "error" not in r]

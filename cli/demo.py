@@ -128,6 +128,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "surface the cell can measure: the fused model fills a little less than "
                         "the plan sees) or j6 (the paper's J6 turns with its one SMR, on the "
                         "stations the tracker sees it from home)")
+    p.add_argument("--tracker", choices=("stlp", "emscon"), default="stlp",
+                   help="the protocol between the tracker driver and the simulated tracker: "
+                        "stlp (protocols/TRACKER_PROTOCOL.md) or emscon (Leica's TPI, "
+                        "protocols/EMSCON.md, with the leica_emscon_tracker driver)")
     p.add_argument("--compare-ecs", action="store_true",
                    help="the scanner carries the SMR cluster; every station measures its pose "
                         "by the cluster and by the paper's J6 turns, and the summary compares "
@@ -162,6 +166,9 @@ def main(args: argparse.Namespace) -> int:
     cluster = args.compare_ecs or ecs == "cluster"
     if cluster:
         sets.append("simulator.smr_cluster=housing")
+    if args.tracker == "emscon":
+        sets += ["simulator.tracker.protocol=emscon",
+                 "devices.tracker.driver=leica_emscon_tracker"]
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
     stage = Stage(10)
     procs = Processes(run_dir / "logs")
@@ -171,7 +178,9 @@ def main(args: argparse.Namespace) -> int:
     ok = False
     client: CellClient | None = None
     try:
-        stage(f"daemon on {config} (cameras 1/{scale}), recorder -> {run_dir}/recordings")
+        stage(f"daemon on {config} (cameras 1/{scale}, tracker on {args.tracker.upper()}), "
+              f"recorder -> {run_dir}/recordings")
+        summary["tracker_protocol"] = args.tracker
         procs.start("daemon", ["daemon", "--config", str(config), "--listen", endpoint,
                                *[a for s in sets for a in ("--set", s)]], env)
         from scancell.bus import BusConfig
