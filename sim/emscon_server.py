@@ -14,13 +14,13 @@ Faults are injected from the test side (``handler.fault``: :data:`SIM_FAULTS`;
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from typing import Any
 
 import numpy as np
 from scancell.protocols import emscon as es
 from scancell.sim.cell import SimCell
+from scancell.sim.tcp_service import TcpService
 from scancell.sim.tracker_model import BeamBreak
 from scancell.sim.tracker_server import SIM_FAULTS, SimTrackerHead
 
@@ -337,87 +337,45 @@ class EmsconHandler(SimTrackerHead):
                                        temperature=t, pressure=pr, humidity=h)]
 
 
-class EmsconServer:
+class EmsconServer(TcpService):
     """The emulator on TCP (a real server listens on port 700)."""
 
     def __init__(self, cell: SimCell, host: str = "127.0.0.1", port: int = 0,
                  event_period_s: float = 0.1) -> None:
+        super().__init__(host, port)
         self.handler = EmsconHandler(cell)
-        self.host, self._port = host, port
         self.event_period_s = event_period_s
-        self._server: asyncio.base_events.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
-        self._tasks: set[asyncio.Task] = set()
         self.errors_sent = 0
 
-    @property
-    def port(self) -> int:
-        return self._server.sockets[0].getsockname()[1] if self._server else self._port
+    async def _tick(self) -> float:
+        self.broadcast(self.handler.events())
+        if self.handler.streaming is None:
+            return self.event_period_s
+        sep = (self.handler.continuous_time["time_separation_ms"] / 1000.0
+               if self.handler.meas_mode == es.MeasMode.CONTINUOUS_TIME else 0.01)
+        self.broadcast(self.handler.stream_step())
+        return min(1.0, sep * POINTS_PER_PACKET)
 
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(self._client, self.host, self._port)
-        self._tasks.add(asyncio.create_task(self._event_loop()))
-
-    async def close(self) -> None:
-        for t in self._tasks:
-            t.cancel()
-        if self._server:
-            self._server.close()
-        self.drop_clients()
-        if self._server:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(1.0):
-                    await self._server.wait_closed()
-
-    def drop_clients(self) -> None:
-        """Close every client's connection (a cable pulled, a server restarted)."""
-        for w in list(self._writers):
-            w.close()
-
-    def _broadcast(self, packets: list[bytes]) -> None:
-        for w in list(self._writers):
-            for p in packets:
-                w.write(p)
-
-    async def _event_loop(self) -> None:
-        while True:
-            self._broadcast(self.handler.events())
-            if self.handler.streaming is not None:
-                sep = (self.handler.continuous_time["time_separation_ms"] / 1000.0
-                       if self.handler.meas_mode == es.MeasMode.CONTINUOUS_TIME else 0.01)
-                self._broadcast(self.handler.stream_step())
-                await asyncio.sleep(min(1.0, sep * POINTS_PER_PACKET))
-                continue
-            await asyncio.sleep(self.event_period_s)
-
-    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._writers.add(writer)
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         splitter = es.PacketSplitter()
-        try:
-            while data := await reader.read(65536):
-                try:
-                    packets = splitter.feed(data)
-                except es.PacketError as exc:
-                    # no frame left to read the rest by: say why, then end this connection
-                    writer.write(es.encode_error(0, exc.status))
-                    self.errors_sent += 1
-                    await writer.drain()
-                    break
-                for packet in packets:
-                    t0 = time.monotonic()
-                    replies = self.handler.handle(packet)
-                    self.errors_sent += sum(es.HEADER.unpack_from(r)[1] == es.DataType.ERROR
-                                            for r in replies)
-                    await asyncio.sleep(max(0.0, self.handler.took_s
-                                            - (time.monotonic() - t0)))
-                    for out in replies:
-                        writer.write(out)
+        while data := await reader.read(65536):
+            try:
+                packets = splitter.feed(data)
+            except es.PacketError as exc:
+                # no frame left to read the rest by: say why, then end this connection
+                writer.write(es.encode_error(0, exc.status))
+                self.errors_sent += 1
                 await writer.drain()
-        except (ConnectionError, asyncio.CancelledError):
-            pass
-        finally:
-            self._writers.discard(writer)
-            writer.close()
+                return
+            for packet in packets:
+                t0 = time.monotonic()
+                replies = self.handler.handle(packet)
+                self.errors_sent += sum(es.HEADER.unpack_from(r)[1] == es.DataType.ERROR
+                                        for r in replies)
+                await asyncio.sleep(max(0.0, self.handler.took_s - (time.monotonic() - t0)))
+                for out in replies:
+                    writer.write(out)
+            await writer.drain()
 
 
 __all__ = ["SIM_FAULTS", "EmsconHandler", "EmsconServer"]

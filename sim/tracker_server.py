@@ -17,6 +17,7 @@ import tty
 import numpy as np
 from scancell.protocols import tracker_line as tl
 from scancell.sim.cell import SimCell
+from scancell.sim.tcp_service import TcpService
 from scancell.sim.tracker_model import FIND_SEARCH_DEG, BeamBreak
 
 
@@ -156,66 +157,33 @@ class TrackerProtocolHandler(SimTrackerHead):
 SIM_FAULTS = ("beam_break", "reflector_lost", "busy")
 
 
-class TcpTrackerServer:
+class TcpTrackerServer(TcpService):
     def __init__(self, cell: SimCell, host: str = "127.0.0.1", port: int = 0,
                  event_period_s: float = 0.1) -> None:
+        super().__init__(host, port)
         self.handler = TrackerProtocolHandler(cell)
-        self.host, self._port = host, port
         self.event_period_s = event_period_s
-        self._server: asyncio.base_events.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
-        self._events: asyncio.Task | None = None
         self.stall = False  # tests: accept commands, never answer
-
-    @property
-    def port(self) -> int:
-        return self._server.sockets[0].getsockname()[1] if self._server else self._port
-
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(self._client, self.host, self._port)
-        self._events = asyncio.create_task(self._event_loop())
-
-    async def close(self) -> None:
-        if self._events:
-            self._events.cancel()
-        if self._server:
-            self._server.close()
-        for w in list(self._writers):
-            w.close()
-        if self._server:
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(1.0):
-                    await self._server.wait_closed()
 
     def inject(self, raw: bytes) -> None:
         """Tests: write raw bytes to every client."""
-        for w in self._writers:
-            w.write(raw)
+        self.broadcast([raw])
 
-    async def _event_loop(self) -> None:
-        while True:
-            for line in self.handler.events():
-                self.inject(line)
-            await asyncio.sleep(self.event_period_s)
+    async def _tick(self) -> float:
+        self.broadcast(self.handler.events())
+        return self.event_period_s
 
-    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._writers.add(writer)
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         splitter = tl.LineSplitter()
-        try:
-            while data := await reader.read(4096):
-                for line in splitter.feed(data):
-                    if self.stall:
-                        continue
-                    replies = self.handler.handle(line)
-                    await asyncio.sleep(self.handler.took_s)  # a real tracker's shot takes time
-                    for out in replies:
-                        writer.write(out)
-                await writer.drain()
-        except (ConnectionError, asyncio.CancelledError):
-            pass
-        finally:
-            self._writers.discard(writer)
-            writer.close()
+        while data := await reader.read(4096):
+            for line in splitter.feed(data):
+                if self.stall:
+                    continue
+                replies = self.handler.handle(line)
+                await asyncio.sleep(self.handler.took_s)  # a real tracker's shot takes time
+                for out in replies:
+                    writer.write(out)
+            await writer.drain()
 
 
 class PtyTrackerServer:

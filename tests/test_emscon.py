@@ -208,7 +208,7 @@ def test_injected_faults_end_every_command_and_none_hangs():
             await trk.connect()
             assert (await trk.measure()).point_mm.shape == (3,)
             # a stray result nobody asked for is dropped and counted
-            server._broadcast([es.encode_single_result(
+            server.broadcast([es.encode_single_result(
                 **{n: 0.0 for n in es.SINGLE_RESULT[1]})])
             await asyncio.sleep(0.1)
             assert trk.bad_packets >= 1
