@@ -16,10 +16,11 @@ from scancell.devices.errors import BadReply, BeamBroken, ConnectionLost, Device
 from scancell.model.transforms import make_T
 from scancell.protocols import emscon as es
 from scancell.sim import parts
-from scancell.sim.cell import SimCell, SimCellConfig
+from scancell.sim.cell import SimCell
 from scancell.sim.emscon_server import EmsconServer
-from scancell.sim.mechanics import mechanics_profile
 from scancell.sim.scene import SceneObject
+
+from .test_tracker_line import _cell, run
 
 C, RS = es.Command, es.ResultStatus
 
@@ -112,16 +113,6 @@ def test_fuzz_decoders_raise_only_packet_errors(data):
         es.PacketSplitter().feed(data)
     except es.PacketError:
         pass
-
-
-def _cell() -> SimCell:
-    c = SimCell(SimCellConfig(camera_scale=16, seed=4, mechanics=mechanics_profile("ideal")))
-    c.move_joints(c.ik_for_mcs(c.mcs_pose_looking_at(c.cfg.T_world_from_part[:3, 3])))
-    return c
-
-
-def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 90))
 
 
 async def _started(cell: SimCell) -> tuple[EmsconServer, EmsconTracker]:
