@@ -46,6 +46,9 @@ class StationPose:
     cluster_mcs: np.ndarray | None = None
     cluster_sigma_mm: np.ndarray | None = None
     T_world_from_tracker: np.ndarray | None = None
+    #: cluster: joint draws of the calibration (draws x n x 3, deviations in mcs, mm), from
+    #: ``smr_cluster_draws`` of the hand-eye; None: its SMRs are drawn one by one
+    cluster_draws: np.ndarray | None = None
 
     def T_world_from_mcs(self, points_mm: np.ndarray | None = None,
                          T_ecs_from_mcs: np.ndarray | None = None,
@@ -68,6 +71,16 @@ class StationPose:
                                     dict(zip(self.names, p, strict=True)), TrackerSigma(),
                                     self.T_world_from_tracker).T_world_from_mcs
         return kabsch(c, p)
+
+
+def cluster_draws(draws: list[dict[str, Any]] | None, names: tuple[str, ...]
+                  ) -> np.ndarray | None:
+    """The joint draws of the cluster calibration for ``names`` (draws x n x 3, mm), or None
+    when the hand-eye has none (an SMR a draw lacks deviates by 0 in it)."""
+    if not draws:
+        return None
+    zero = [0.0, 0.0, 0.0]
+    return np.array([[d.get(n, zero) for n in names] for d in draws], float)
 
 
 def frame_angles(hand_eye: dict[str, Any]) -> list[float]:
@@ -113,7 +126,8 @@ def station_pose(record: dict[str, Any], hand_eye: dict[str, Any],
             cluster_sigma_mm=np.array([cal[n].get("sigma_mm", [0.0] * 3) for n in names],
                                       float),
             T_world_from_tracker=(np.asarray(record["T_world_from_tracker"], float)
-                                  if record.get("T_world_from_tracker") is not None else None))
+                                  if record.get("T_world_from_tracker") is not None else None),
+            cluster_draws=cluster_draws(hand_eye.get("smr_cluster_draws"), names))
     else:
         raise StationPoseError(f"station {name}: unknown ecs_method {method!r} (one of "
                                f"{', '.join(ECS_METHODS)})")

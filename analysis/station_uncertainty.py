@@ -20,8 +20,11 @@ refraction          job      range scale from the weather's uncertainty (or 10 p
 tracker_location    job      the nests' location of the tracker (fit RMS, or drift allowed)
 settling            station  the arm's residual motion between P1 and the scan
 hand_eye            scanner  the calibration's rotation and translation sigma
-cluster_calibration scanner  each cluster SMR's calibrated centre (its sigma); stations whose
-                             pose came from the SMR cluster only
+cluster_calibration scanner  the cluster SMRs' calibrated centres: one of the calibration's
+                             joint draws (its SMRs move together: a common error of the ECS,
+                             the fit of a tipped pose), plus independently what of each SMR's
+                             stated sigma the draws do not explain; stations whose pose came
+                             from the SMR cluster only
 scanner_scale       scanner  the scanner's scale stability (warm-up), ppm
 scanner_noise       point    each point's depth noise (the scanner's noise model), scaled in
                              each draw by the model's own stated accuracy (a relative 1-sigma)
@@ -126,6 +129,16 @@ def _scanner_error(source: str, rng: np.random.Generator, T_em: np.ndarray, s: S
     return T_em2, scale
 
 
+def _cluster_error(rng: np.random.Generator, pose: StationPose) -> np.ndarray:
+    """One draw of the cluster calibration's error at the station's SMRs (n x 3, mm)."""
+    sigma = np.asarray(pose.cluster_sigma_mm, float)
+    draws = pose.cluster_draws
+    if draws is None or not len(draws):
+        return rng.standard_normal(sigma.shape) * sigma
+    rest = np.sqrt(np.maximum(0.0, sigma**2 - draws.var(axis=0)))
+    return draws[rng.integers(len(draws))] + rng.standard_normal(sigma.shape) * rest
+
+
 def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud: np.ndarray,
           noise: np.ndarray, normal: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
     """One draw of the given sources: each point's displacement along its surface normal
@@ -147,7 +160,7 @@ def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud:
         else 1.0
     cluster = pose.cluster_mcs
     if "cluster_calibration" in sources and cluster is not None:
-        cluster = cluster + rng.standard_normal(cluster.shape) * pose.cluster_sigma_mm
+        cluster = cluster + _cluster_error(rng, pose)
     T = pose.T_world_from_mcs(p, T_em2, cluster)
     X = (cloud * scale) @ T[:3, :3].T + T[:3, 3]
     if "settling" in sources:

@@ -189,3 +189,28 @@ def test_a_cluster_station_without_a_usable_cluster_calibration_is_refused_by_na
         station_pose({**record, "ecs_method": "laser"}, hand_eye)
     with pytest.raises(StationPoseError, match=r"s07: no J6 points .*without compare_ecs"):
         station_pose(record, hand_eye, method="j6")
+
+
+@pytest.mark.unit
+def test_the_cluster_calibration_is_drawn_jointly_not_smr_by_smr():
+    """The same 0.05 mm marginal sigma per SMR: as one common shift of the cluster (what an
+    ECS error does) it moves the station by 0.05 mm; drawn SMR by SMR it also tilts the pose,
+    and the cloud 650 mm away moves 1.7 times as much."""
+    cluster = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+    rng = np.random.default_rng(3)
+    shifts = rng.normal(0.0, 0.05, (60, 1, 3)) * np.ones((1, 3, 1))
+    xy = rng.uniform(-150, 150, (5000, 2))
+    cloud = np.column_stack([xy, np.full(len(xy), 650.0)])
+
+    world = cluster + np.array([1000.0, 0.0, 0.0])
+
+    def share(draws):
+        pose = StationPose("cluster", world, np.zeros((3, 3)), np.eye(4),
+                           names=("a", "b", "c"), cluster_mcs=cluster,
+                           cluster_sigma_mm=np.full((3, 3), 0.05), cluster_draws=draws)
+        u = station_uncertainty(pose, cloud, 0.0, StatedSources(refraction_ppm=0.0), trials=100)
+        return u.share_mm["cluster_calibration"]
+
+    joint, independent = share(shifts), share(None)
+    assert joint == pytest.approx(0.05 * np.sqrt(2 / np.pi), rel=0.15)
+    assert independent > 1.5 * joint, (joint, independent)

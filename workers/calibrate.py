@@ -92,7 +92,8 @@ def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
                 version=time.strftime("%Y-%m-%dT%H:%M:%S"), pairs=len(pairs))
     if job.cluster:
         try:
-            body["smr_cluster"], body["smr_cluster_dropped"] = cluster_calibration(
+            (body["smr_cluster"], body["smr_cluster_dropped"],
+             body["smr_cluster_draws"]) = cluster_calibration(
                 pts, angles, [job.ecs[k][2] for k in order], list(job.cluster.values()),
                 np.asarray(body["T_ecs_from_mcs"], float))
         except (ClusterGeometryError, DegenerateGeometry) as exc:
@@ -102,15 +103,26 @@ def compute(job: JobData) -> tuple[dict[str, Any], list[Pair]]:
 
 def cluster_calibration(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
                         ecs_sigma: list[np.ndarray], samples: list[dict[str, Any]],
-                        T_ecs_from_mcs: np.ndarray) -> tuple[dict[str, Any], dict[str, str]]:
-    """Every SMR of the scanner in ``mcs`` (``scancell.HandEye`` ``smr_cluster``), and those
-    left out with the reason (``smr_cluster_dropped``): the poses at
-    the cluster's J6 turns from the rear SMR's J6 circle (the ECS points) and the hand-eye;
-    the rear SMR itself from the ECS points. Its 1-sigma per axis: the scatter over the turns
-    (not less than the tracker's sigma of one turn's mean over the turns), or, when larger,
-    the tracker's noise on the ECS points and the SMRs carried through the whole solution
-    (:func:`_propagated_sigma`): an error in the ECS moves every turn's pose alike, which the
-    scatter cannot show."""
+                        T_ecs_from_mcs: np.ndarray
+                        ) -> tuple[dict[str, Any], dict[str, str], list[dict[str, list[float]]]]:
+    """Every SMR of the scanner in ``mcs`` (``scancell.HandEye`` ``smr_cluster``), those left
+    out with the reason (``smr_cluster_dropped``), and joint draws of the whole calibration
+    (``smr_cluster_draws``: per draw each SMR's deviation from its stated centre, mm).
+
+    The poses at the cluster's J6 turns come from the rear SMR's J6 circle (the ECS points)
+    and the hand-eye; the rear SMR itself from the ECS points; SMRs seen only when the scanner
+    was tipped are carried in through the pose fitted to the others (:func:`locate_by_cluster`).
+    The draws repeat that whole chain with the ECS points and every SMR shot drawn from their
+    stated 1-sigma (:func:`_cluster_draws`). Their errors are not independent: an error in the
+    ECS moves every turn's pose alike and so the whole cluster rigidly, and the SMRs located
+    from one tipped pose move together with that pose's fit. Drawn one SMR at a time, a common
+    shift becomes a tilt of the station's pose as well (for a 100 mm cluster and a cloud 650 mm
+    away, 1.7 times the error: tests/test_station_uncertainty.py); the station uncertainty
+    therefore draws these joint realisations.
+
+    Each SMR's ``sigma_mm`` (per axis, its marginal 1-sigma) is the larger of the draws' spread
+    and its scatter over the turns (not less than the tracker's sigma of one turn's mean); an
+    SMR located through the cluster has the draws' spread."""
     tipped = [s for s in samples if s.get("j6_deg") is None]
     samples = [s for s in samples if s.get("j6_deg") is not None]
     turns = sorted({float(s["j6_deg"]) for s in samples} | {float(a) for a in ecs_j6_deg})
@@ -125,42 +137,54 @@ def cluster_calibration(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
         seen[turns.index(float(s["j6_deg"]))][str(s["smr"])] = np.asarray(s["point_mm"], float)
         shot_sigma.setdefault(str(s["smr"]), []).append(
             np.asarray(s.get("sigma_mm", [0.0] * 3), float))
+    by_pose: dict[str, dict[str, np.ndarray]] = {}
+    tipped_sigma: dict[tuple[str, str], np.ndarray] = {}
+    for s in tipped:
+        key = (str(s.get("pose")), str(s["smr"]))
+        by_pose.setdefault(key[0], {})[key[1]] = np.asarray(s["point_mm"], float)
+        tipped_sigma[key] = np.asarray(s.get("sigma_mm", [0.0] * 3), float)
     cal = calibrate_cluster(poses, seen)
     out = cal.to_json()
-    spread = _propagated_sigma(ecs_points, ecs_j6_deg, ecs_sigma, samples, T_ecs_from_mcs,
-                               turns, seen)
+    located = locate_by_cluster(cal, list(by_pose.values()), TrackerSigma())
+    nominal = {**cal.points_mcs, **{n: p for n, (p, _, _) in located.items()}}
+    draws = _cluster_draws(ecs_points, ecs_j6_deg, ecs_sigma, samples, T_ecs_from_mcs, turns,
+                           seen, by_pose, tipped_sigma, nominal)
+    spread = {n: np.std([d[n] for d in draws if n in d], axis=0, ddof=1) for n in nominal}
     for name, entry in out.items():
         floor = np.mean(shot_sigma[name], axis=0) / np.sqrt(cal.seen[name])
         entry["sigma_mm"] = np.round(np.maximum(np.hypot(cal.sigma_mm[name], floor),
                                                 spread[name]), 5).tolist()
-    by_pose: dict[str, dict[str, np.ndarray]] = {}
-    for s in tipped:
-        by_pose.setdefault(str(s.get("pose")), {})[str(s["smr"])] = np.asarray(s["point_mm"],
-                                                                                float)
-    for name, (p, sigma, n) in locate_by_cluster(cal, list(by_pose.values()),
-                                                 TrackerSigma()).items():
-        out[name] = {"mcs_mm": p.round(4).tolist(), "sigma_mm": sigma.round(5).tolist(),
+    for name, (p, _, n) in located.items():
+        # the draws carry each tipped shot's own stated sigma through the pose fit it shares
+        # with the other SMRs of its pose; locate_by_cluster's first-order sigma uses the
+        # tracker's generic noise model, 2-3x larger on the simulated cell
+        out[name] = {"mcs_mm": p.round(4).tolist(), "sigma_mm": spread[name].round(5).tolist(),
                      "poses": n, "through_cluster": True}
     seen_somewhere = set(shot_sigma) | {str(s["smr"]) for s in tipped}
     return out, {n: ("seen from one J6 turn only" if n in shot_sigma else
                      "seen only at tipped poses with fewer than 3 calibrated SMRs")
-                 for n in sorted(seen_somewhere - set(out))}
+                 for n in sorted(seen_somewhere - set(out))}, [
+        {n: np.round(v, 5).tolist() for n, v in d.items()} for d in draws]
 
 
-def _propagated_sigma(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
-                      ecs_sigma: list[np.ndarray], samples: list[dict[str, Any]],
-                      T_ecs_from_mcs: np.ndarray, turns: list[float],
-                      seen: list[dict[str, np.ndarray]], draws: int = 60,
-                      seed: int = 0) -> dict[str, np.ndarray]:
-    """Per SMR, the standard deviation (mm, per mcs axis) of the cluster's calibration over
-    ``draws`` solutions with the ECS points and the SMRs' points drawn from their stated
-    1-sigma (Monte Carlo: the solution is a chain of fits with no closed-form covariance)."""
+def _cluster_draws(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
+                   ecs_sigma: list[np.ndarray], samples: list[dict[str, Any]],
+                   T_ecs_from_mcs: np.ndarray, turns: list[float],
+                   seen: list[dict[str, np.ndarray]],
+                   by_pose: dict[str, dict[str, np.ndarray]],
+                   tipped_sigma: dict[tuple[str, str], np.ndarray],
+                   nominal: dict[str, np.ndarray], draws: int = 60, seed: int = 0
+                   ) -> list[dict[str, np.ndarray]]:
+    """``draws`` realisations of the cluster's calibration, each SMR's deviation from
+    ``nominal`` (mm, mcs): the ECS points and every SMR shot (at the J6 turns and at the tipped
+    poses) drawn from their stated 1-sigma and the whole chain solved again (Monte Carlo: the
+    solution is a chain of fits with no closed-form covariance)."""
     rng = np.random.default_rng(seed)
     ecs_points = np.asarray(ecs_points, float)
     ecs_s = np.array([np.broadcast_to(np.asarray(s, float), 3) for s in ecs_sigma])
     shot_s = {(turns.index(float(s["j6_deg"])), str(s["smr"])):
               np.asarray(s.get("sigma_mm", [0.0] * 3), float) for s in samples}
-    runs: dict[str, list[np.ndarray]] = {}
+    out = []
     for _ in range(draws):
         pts = ecs_points + rng.normal(size=ecs_points.shape) * ecs_s
         poses = mcs_poses_at_j6(pts, ecs_j6_deg, ecs_j6_deg[:3], T_ecs_from_mcs,
@@ -170,9 +194,14 @@ def _propagated_sigma(ecs_points: np.ndarray, ecs_j6_deg: np.ndarray,
             drawn[turns.index(float(a))][REAR_SMR] = pts[i]
         for (i, n), sg in shot_s.items():
             drawn[i][n] = seen[i][n] + rng.normal(size=3) * sg
-        for n, p in calibrate_cluster(poses, drawn).points_mcs.items():
-            runs.setdefault(n, []).append(p)
-    return {n: np.std(v, axis=0, ddof=1) for n, v in runs.items()}
+        cal = calibrate_cluster(poses, drawn)
+        tipped = [{n: p + rng.normal(size=3) * tipped_sigma[(pose, n)] for n, p in smrs.items()}
+                  for pose, smrs in by_pose.items()]
+        solved = {**cal.points_mcs,
+                  **{n: p for n, (p, _, _) in locate_by_cluster(cal, tipped,
+                                                               TrackerSigma()).items()}}
+        out.append({n: solved[n] - nominal[n] for n in nominal if n in solved})
+    return out
 
 
 def store(root: Path, body: dict[str, Any], pairs: list[Pair] | None) -> Path:
