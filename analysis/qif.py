@@ -309,8 +309,8 @@ def inspection_document(regions: Sequence[Region], *, part_name: str, unit: str 
     if t.recording:
         refs = _el(mr, "ExternalFileReferences", n=1)
         ref = _el(refs, "ExternalFileReference")
-        _el(ref, "URI", Path(t.recording).resolve().as_uri() if "://" not in t.recording
-            else t.recording)
+        _el(ref, "URI", t.recording if "://" in t.recording or "/" not in t.recording
+            else Path(t.recording).resolve().as_uri())
         _el(_el(ref, "FileSpec"), "OtherFileSpec", "MCAP")
         _el(ref, "Description", "the scan job's recording (MCAP): every frame, tracker point "
                                 "and cloud the results came from")

@@ -165,7 +165,9 @@ def main(args: argparse.Namespace) -> int:
         if args.qif:
             from scancell.analysis import qif
 
-            validated = qif.write_checked(qif.inspection_from_json(body), args.qif,
+            trace = (qif.Traceability(job_id=Path(args.measured).stem, recording=args.measured)
+                     if args.measured.endswith(".mcap") else None)
+            validated = qif.write_checked(qif.inspection_from_json(body, trace), args.qif,
                                           args.qif_schemas)
             files["qif"] = args.qif
             print(f"QIF 3.0 results -> {args.qif}"

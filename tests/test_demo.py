@@ -70,6 +70,9 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     from .test_inspect import qif_check
 
     qif_check(run / ins["qif"], ["FAIL" if ins["pass"] is False else "PASS"])
+    trace = (run / ins["qif"]).read_text()  # its traceability: job, recording, calibration
+    assert f"<ReportNumber>{s['job_id']}</ReportNumber>" in trace
+    assert f"{s['job_id']}.mcap" in trace and "hand_eye calibration calibrate_hand_eye-" in trace
     for part in acc.values():
         qif_check(run / part["qif"], ["PASS" if part["pass"] else "FAIL"]
                   * sum(p["positions"] for p in part["parameters"].values())

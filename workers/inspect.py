@@ -135,8 +135,21 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
                              f"fusion/cloud of job {job_id}")
         files["ply"] = str(folder / "inspected.ply")
         result.write_ply(files["ply"])
-        files.update(write_qif(result.to_json(), folder / "inspection.qif", job_id))
+        files.update(write_qif(result.to_json(), folder / "inspection.qif", job_id,
+                               self._calibrations()))
         return files
+
+    def _calibrations(self) -> dict[str, str]:
+        """The calibrations in force, by the ids their latched messages carry (for QIF's
+        traceability): the hand-eye job's id; none if nobody answers within 2 s."""
+        try:
+            samples = self.bus.fetch_latched(self.bus.keys.hand_eye, 2.0)
+            he = samples[-1].decode() if samples else {}
+        except Exception as exc:  # traceability is an extra: never fails the inspection
+            log.warning("no hand-eye id for the QIF traceability: %s", exc)
+            return {}
+        return {"hand_eye": str(he["job_id"])} if isinstance(he, dict) and he.get("job_id") \
+            else {}
 
     def _publish_cloud(self, result: Any, job_id: str) -> None:
         from scancell.analysis.inspection_report import deviation_colours
@@ -155,13 +168,17 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
             Attachment(now, 0, None, {"job_id": job_id}))
 
 
-def write_qif(body: dict[str, Any], path: Path, job_id: str) -> dict[str, str]:
+def write_qif(body: dict[str, Any], path: Path, job_id: str,
+              calibrations: dict[str, str] | None = None) -> dict[str, str]:
     """The inspection as QIF 3.0 beside its report ({"qif": path}), or {} with the reason
-    logged when QIF cannot hold it (no tolerance) or the schemas refuse it."""
+    logged when QIF cannot hold it (no tolerance) or the schemas refuse it. Its traceability:
+    the job, the job's recording as the recorder names it (``<job>.mcap``) and the
+    calibrations in force."""
     from scancell.analysis import qif
 
     try:
-        doc = qif.inspection_from_json(body, qif.Traceability(job_id=job_id))
+        doc = qif.inspection_from_json(body, qif.Traceability(
+            job_id=job_id, recording=f"{job_id}.mcap", calibration_ids=calibrations or {}))
         validated = qif.write_checked(doc, path)
     except qif.QIFError as exc:
         log.warning("job %s: no QIF results: %s", job_id, exc)
