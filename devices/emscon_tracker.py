@@ -14,16 +14,13 @@ coordinates, stationary measurement mode, and the reflector named in the options
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import threading
 import time
 from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
-import serial
 from scancell.devices.base import Health, HealthState, Tracker, TrackerMeasurement, TrackerStatus
-from scancell.devices.byte_stream import READ_WAIT_S, read_available
 from scancell.devices.errors import (
     BadReply,
     BeamBroken,
@@ -32,6 +29,7 @@ from scancell.devices.errors import (
     DeviceFault,
     Timeout,
 )
+from scancell.devices.stream_link import LinkBroken, StreamLink
 from scancell.protocols import emscon as es
 from scancell.protocols.messages import now_ns
 
@@ -98,13 +96,11 @@ class EmsconTracker(Tracker):
         self.timeout_s = float(self.options.get("timeout_s", 10.0))
         #: a real tracker's initialization turns the head through its range: minutes
         self.initialize_timeout_s = float(self.options.get("initialize_timeout_s", 180.0))
-        self._port: serial.SerialBase | None = None
-        self._reader: threading.Thread | None = None
-        self._closing = threading.Event()
+        self._link: StreamLink | None = None
+        self._splitter = es.PacketSplitter()
         self._lock = threading.Lock()
         self._one_at_a_time = asyncio.Lock()
         self._waiter: _Waiter | None = None
-        self._link_error: str | None = None
         self.beam_locked: bool | None = None
         self.face: int | None = None
         self.bad_packets = 0
@@ -117,15 +113,10 @@ class EmsconTracker(Tracker):
     async def connect(self) -> None:
         await self.close()
         self._one_at_a_time = asyncio.Lock()
-        self._closing.clear()
-        self._link_error = None
-        try:
-            self._port = await asyncio.to_thread(serial.serial_for_url, self.url,
-                                                 timeout=READ_WAIT_S)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise ConnectionLost(f"{self.name}: cannot open {self.url}: {exc}") from None
-        self._reader = threading.Thread(target=self._read, daemon=True, name=f"{self.name}-rx")
-        self._reader.start()
+        self._splitter = es.PacketSplitter()
+        self._link = StreamLink(self.name, self.url, self._on_bytes,
+                                lambda why: self._fail(ConnectionLost(f"{self.name}: {why}")))
+        await self._link.open()
         C = es.Command
         status = (await self._call(C.GET_SYSTEM_STATUS))[0].fields
         self.serial_number = int(status["tracker_serial_number"])
@@ -152,13 +143,8 @@ class EmsconTracker(Tracker):
         self.beam_locked = (await self.status()).beam_locked
 
     async def close(self) -> None:
-        self._closing.set()
-        if self._port is not None:
-            with contextlib.suppress(Exception):
-                self._port.close()
-        if self._reader is not None:
-            await asyncio.to_thread(self._reader.join, 1.0)
-        self._port = self._reader = None
+        if self._link is not None:
+            await self._link.close()
         self._fail(ConnectionLost(f"{self.name}: closed"))
 
     def _fail(self, exc: Exception) -> None:
@@ -167,32 +153,17 @@ class EmsconTracker(Tracker):
         if waiter is not None:
             waiter.finish(exc)
 
-    def _read(self) -> None:
-        splitter = es.PacketSplitter()
-        port = self._port
+    def _on_bytes(self, data: bytes) -> None:
         try:
-            while not self._closing.is_set() and port is not None:
-                data = read_available(port)
-                if not data:
-                    continue
-                try:
-                    packets = splitter.feed(data)
-                except es.PacketError as exc:
-                    # no frame to resynchronise on: the link is unusable until reconnected
-                    self._link_error = f"stream out of frame: {exc}"
-                    self._fail(ConnectionLost(f"{self.name}: {self._link_error}"))
-                    return
-                for raw in packets:
-                    try:
-                        self._dispatch(es.decode_reply(raw))
-                    except es.PacketError:
-                        self.bad_packets += 1
-            if port is not None and not self._closing.is_set():
-                raise OSError("closed")
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-            if not self._closing.is_set():
-                self._link_error = f"link lost: {exc}"
-                self._fail(ConnectionLost(f"{self.name}: {self._link_error}"))
+            packets = self._splitter.feed(data)
+        except es.PacketError as exc:
+            # no frame to resynchronise on: the link is unusable until reconnected
+            raise LinkBroken(f"stream out of frame: {exc}") from None
+        for raw in packets:
+            try:
+                self._dispatch(es.decode_reply(raw))
+            except es.PacketError:
+                self.bad_packets += 1
 
     def _dispatch(self, p: es.Packet) -> None:
         if p.type == es.DataType.SYSTEM_STATUS_CHANGE:
@@ -227,15 +198,14 @@ class EmsconTracker(Tracker):
                     = None, timeout_s: float | None = None, **params: Any) -> list[es.Packet]:
         """Send one command and wait for its packets (by default: its reply)."""
         async with self._one_at_a_time:
-            if self._port is None or self._link_error:
-                raise ConnectionLost(f"{self.name}: {self._link_error or 'not connected'}")
+            link = self._link
+            if link is None or not link.is_open:
+                why = (link.error if link is not None else None) or "not connected"
+                raise ConnectionLost(f"{self.name}: {why}")
             w = _Waiter(int(command), asyncio.get_running_loop(), done or _reply_only)
             with self._lock:
                 self._waiter = w
-            try:
-                await asyncio.to_thread(self._port.write, es.encode_command(command, **params))
-            except (serial.SerialException, OSError) as exc:
-                raise ConnectionLost(f"{self.name}: write failed: {exc}") from None
+            await link.write(es.encode_command(command, **params))
             limit = self.timeout_s if timeout_s is None else timeout_s
             try:
                 async with asyncio.timeout(limit):

@@ -11,16 +11,14 @@ A vendor tracker plugs in as another ``Tracker`` subclass (Leica's emScon TPI:
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import threading
 import time
 from typing import Any, ClassVar
 
 import numpy as np
-import serial
 from scancell.devices.base import Health, HealthState, Tracker, TrackerMeasurement, TrackerStatus
-from scancell.devices.byte_stream import READ_WAIT_S, read_available
 from scancell.devices.errors import BadReply, BeamBroken, ConnectionLost, DeviceFault, Timeout
+from scancell.devices.stream_link import StreamLink
 from scancell.protocols import tracker_line as tl
 from scancell.protocols.messages import now_ns
 
@@ -41,13 +39,11 @@ class LineTracker(Tracker):
         super().__init__(name, options)
         self.url = self.options.get("url", "socket://127.0.0.1:7000")
         self.timeout_s = float(self.options.get("timeout_s", 5.0))
-        self._port: serial.SerialBase | None = None
-        self._reader: threading.Thread | None = None
-        self._closing = threading.Event()
+        self._link: StreamLink | None = None
+        self._splitter = tl.LineSplitter()
         self._pending: dict[str, tuple[asyncio.AbstractEventLoop, asyncio.Future, list]] = {}
         self._lock = threading.Lock()
         self._tag = 0
-        self._link_error: str | None = None
         self.beam_locked: bool | None = None
         self.beam_reason = ""
         self.garbage_lines = 0
@@ -55,29 +51,20 @@ class LineTracker(Tracker):
 
     async def connect(self) -> None:
         await self.close()
-        self._closing.clear()
-        self._link_error = None
-        try:
-            kwargs = {"timeout": READ_WAIT_S}
-            if "baudrate" in self.options:
-                kwargs["baudrate"] = int(self.options["baudrate"])
-            self._port = await asyncio.to_thread(serial.serial_for_url, self.url, **kwargs)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise ConnectionLost(f"{self.name}: cannot open {self.url}: {exc}") from None
-        self._reader = threading.Thread(target=self._read, daemon=True, name=f"{self.name}-rx")
-        self._reader.start()
+        options = {"baudrate": int(self.options["baudrate"])} if "baudrate" in self.options \
+            else {}
+        self._splitter = tl.LineSplitter()
+        self._link = StreamLink(self.name, self.url, self._on_bytes,
+                                lambda why: self._fail_pending(ConnectionLost(f"{self.name}: {why}")),
+                                **options)
+        await self._link.open()
         await self._transact("Hello", ())
         st = await self.status()
         self.beam_locked = st.beam_locked
 
     async def close(self) -> None:
-        self._closing.set()
-        if self._port is not None:
-            with contextlib.suppress(Exception):
-                self._port.close()
-        if self._reader is not None:
-            await asyncio.to_thread(self._reader.join, 1.0)
-        self._port = self._reader = None
+        if self._link is not None:
+            await self._link.close()
         self._fail_pending(ConnectionLost(f"{self.name}: closed"))
 
     # ------------------------------------------------------------ link
@@ -87,26 +74,15 @@ class LineTracker(Tracker):
         for loop, fut, _ in pending.values():
             loop.call_soon_threadsafe(lambda f=fut: f.done() or f.set_exception(exc))
 
-    def _read(self) -> None:
-        splitter = tl.LineSplitter()
-        port = self._port
-        try:
-            while not self._closing.is_set() and port is not None:
-                data = read_available(port)
-                if not data:
-                    continue
-                for line in splitter.feed(data):
-                    if isinstance(line, tl.LineError):
-                        self.garbage_lines += 1
-                        continue
-                    try:
-                        self._dispatch(tl.parse_response(line))
-                    except tl.LineError:
-                        self.garbage_lines += 1
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-            if not self._closing.is_set():
-                self._link_error = f"link lost: {exc}"
-                self._fail_pending(ConnectionLost(f"{self.name}: {self._link_error}"))
+    def _on_bytes(self, data: bytes) -> None:
+        for line in self._splitter.feed(data):
+            if isinstance(line, tl.LineError):
+                self.garbage_lines += 1
+                continue
+            try:
+                self._dispatch(tl.parse_response(line))
+            except tl.LineError:
+                self.garbage_lines += 1
 
     def _dispatch(self, r: tl.Response) -> None:
         if r.kind == "event":
@@ -130,18 +106,17 @@ class LineTracker(Tracker):
             loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result((r, list(data))))
 
     async def _transact(self, name: str, args: tuple) -> list[tl.Response]:
-        if self._port is None or self._link_error:
-            raise ConnectionLost(f"{self.name}: {self._link_error or 'not connected'}")
+        link = self._link
+        if link is None or not link.is_open:
+            why = (link.error if link is not None else None) or "not connected"
+            raise ConnectionLost(f"{self.name}: {why}")
         loop = asyncio.get_running_loop()
         fut: asyncio.Future = loop.create_future()
         with self._lock:
             self._tag = self._tag % 99999 + 1
             tag = f"{self._tag:05d}"
             self._pending[tag] = (loop, fut, [])
-        try:
-            await asyncio.to_thread(self._port.write, tl.format_command(int(tag), name, args))
-        except (serial.SerialException, OSError) as exc:
-            raise ConnectionLost(f"{self.name}: write failed: {exc}") from None
+        await link.write(tl.format_command(int(tag), name, args))
         try:
             async with asyncio.timeout(self.timeout_s):
                 final, data = await fut
