@@ -310,6 +310,9 @@ def main(args: argparse.Namespace) -> int:
                           "fusion report")[-1]
         if report.get("error"):
             raise RuntimeError(f"fusion failed: {report['error']}")
+        if report.get("files_error"):
+            raise RuntimeError(f"the fused model was measured but not written: "
+                               f"{report['files_error']}")
         summary.update(metrology_summary(final.get("result") or {}))
 
         stage("inspection: the fused model against the car rear's CAD (STEP), bestfit")

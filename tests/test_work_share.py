@@ -374,3 +374,34 @@ def test_one_calibrate_worker_per_job_and_a_gone_ones_job_solved_by_the_other():
     finally:
         for w in workers.values():
             w.stop()
+
+
+@pytest.mark.process
+def test_a_disk_that_fills_still_reports_the_figures_and_the_worker_goes_on(
+        cell, endpoint, tmp_path, monkeypatch):
+    """Writing the fused model fails (ENOSPC): the report still comes, with its figures and
+    the error naming the folder; the next job, with room again, writes its files."""
+    import errno
+
+    from scancell.analysis import cloud_io
+
+    real = cloud_io.write_ply
+
+    def full(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    c = FuseCluster(cell, endpoint, tmp_path)
+    try:
+        owned = jobs_owned()
+        monkeypatch.setattr(cloud_io, "write_ply", full)
+        publish_job(c.sessions["obs"], owned["wa"])
+        wait_until(lambda: c.reports, 60, period_s=0.2, what="the report despite the full disk")
+        r = c.reports[0]
+        assert "No space left on device" in r["files_error"] and owned["wa"] in r["files_error"]
+        assert r["stations"] == 3 and "translation_mm" in r and "files" not in r
+        monkeypatch.setattr(cloud_io, "write_ply", real)
+        publish_job(c.sessions["obs"], owned["wb"])
+        wait_until(lambda: len(c.reports) == 2, 60, period_s=0.2, what="the next job's report")
+        assert Path(c.reports[1]["files"]["ply"]).is_file()
+    finally:
+        c.close()

@@ -497,8 +497,16 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
         hand_eye.get("rms_mm"),
         budget_by_source(uncertainty, scanner_overlap) if uncertainty else None)
     if settings.out_dir is not None:
-        body["files"] = write_outputs(settings.out_dir / job_id, fused, metrics, truth, body,
-                                      settings.mesh)
+        from scancell.analysis.cloud_io import CloudFileError
+
+        folder = settings.out_dir / job_id
+        try:
+            body["files"] = write_outputs(folder, fused, metrics, truth, body, settings.mesh)
+        except (OSError, CloudFileError, RuntimeError) as exc:
+            # a full disk, a vanished share: the figures still go out on the bus; what was
+            # written stays (each PLY is written whole or not at all)
+            body["files_error"] = f"the outputs could not be written to {folder}: {exc}"
+            log.error("job %s: %s", job_id, body["files_error"])
     body["seconds"] = round(time.perf_counter() - t0, 2)
     return body
 
