@@ -317,16 +317,25 @@ class OpcUaGateway:
         await self.nodes["LastError"].write_value(message)
         return ua.StatusCode(code)
 
+    async def _role_refusal(self, method: str) -> ua.StatusCode | None:
+        """BadUserAccessDenied (the reason in LastError) when the caller's role may not call
+        ``method``, else None."""
+        verb, allowed = METHODS[method]
+        role, user = role_of(CALLER.get())
+        if role in allowed:
+            return None
+        return await self._refuse(
+            ua.StatusCodes.BadUserAccessDenied,
+            f"{method}: user {user} has the role {role}, which may not send {verb} "
+            f"(allowed: {', '.join(sorted(allowed))})")
+
     async def _command(self, method: str, request: dict[str, Any]) -> Any:
         """Check the caller's role, then send the method's command; the reply, or a Bad
         StatusCode with the reason in LastError."""
-        verb, allowed = METHODS[method]
-        role, user = role_of(CALLER.get())
-        if role not in allowed:
-            return await self._refuse(
-                ua.StatusCodes.BadUserAccessDenied,
-                f"{method}: user {user} has the role {role}, which may not send {verb} "
-                f"(allowed: {', '.join(sorted(allowed))})")
+        refused = await self._role_refusal(method)
+        if refused is not None:
+            return refused
+        verb = METHODS[method][0]
         try:
             return await self.client.acall(verb, request)
         except CommandError as exc:
@@ -349,9 +358,9 @@ class OpcUaGateway:
         got = self._strings(args, 1, ("PlanName",))
         if isinstance(got, str):
             return await self._refuse(ua.StatusCodes.BadInvalidArgument, f"StartJob {got}")
-        role, user = role_of(CALLER.get())
-        if role not in METHODS["StartJob"][1]:  # before reading any plan
-            return await self._command("StartJob", {})
+        refused = await self._role_refusal("StartJob")  # before reading any plan
+        if refused is not None:
+            return refused
         try:
             plan = self.plan(got[0])
         except ValueError as exc:
@@ -360,16 +369,24 @@ class OpcUaGateway:
         if isinstance(reply, ua.StatusCode):
             return reply
         await self.nodes["LastError"].write_value("")
+        role, user = role_of(CALLER.get())
         log.info("OPC UA: %s (%s) started job %s from plan %s", user, role, reply["job_id"],
                  got[0])
         return [ua.Variant(str(reply["job_id"]), ua.VariantType.String)]
 
-    async def _abort(self, parent: ua.NodeId, *args: Any) -> Any:
+    async def _no_argument(self, method: str, args: tuple) -> Any:
+        """A method without arguments: its command, or a Bad StatusCode."""
         if args:
             return await self._refuse(ua.StatusCodes.BadTooManyArguments,
-                                      "AbortJob takes no argument")
-        reply = await self._command("AbortJob", {})
+                                      f"{method} takes no argument")
+        reply = await self._command(method, {})
         return reply if isinstance(reply, ua.StatusCode) else []
+
+    async def _abort(self, parent: ua.NodeId, *args: Any) -> Any:
+        return await self._no_argument("AbortJob", args)
+
+    async def _acknowledge(self, parent: ua.NodeId, *args: Any) -> Any:
+        return await self._no_argument("Acknowledge", args)
 
     async def _estop(self, parent: ua.NodeId, *args: Any) -> Any:
         got = self._strings(args, 1, ("Reason",))
@@ -377,13 +394,6 @@ class OpcUaGateway:
             return await self._refuse(ua.StatusCodes.BadInvalidArgument, f"EStop {got}")
         _, user = role_of(CALLER.get())
         reply = await self._command("EStop", {"reason": f"OPC UA {user}: {got[0]}"})
-        return reply if isinstance(reply, ua.StatusCode) else []
-
-    async def _acknowledge(self, parent: ua.NodeId, *args: Any) -> Any:
-        if args:
-            return await self._refuse(ua.StatusCodes.BadTooManyArguments,
-                                      "Acknowledge takes no argument")
-        reply = await self._command("Acknowledge", {})
         return reply if isinstance(reply, ua.StatusCode) else []
 
 
