@@ -96,12 +96,12 @@ class EmsconHandler(SimTrackerHead):
         cmd = es.Command(packet.command)
         if self.fault == "busy":
             return [es.encode_reply(cmd, es.ResultStatus.SERVER_BUSY)]
-        out = self._command(cmd, packet.fields)
-        self.last_status = es.decode_reply(out[0]).status or 0
-        return out
+        return self._command(cmd, packet.fields)
 
     def _reply(self, cmd: es.Command, status: int = es.ResultStatus.ALL_OK, **results: Any
                ) -> bytes:
+        """The command's reply; its status is what GetSystemStatus reports next."""
+        self.last_status = int(status)
         return es.encode_reply(cmd, status, **results)
 
     def _command(self, cmd: es.Command, f: dict[str, Any]) -> list[bytes]:
