@@ -230,6 +230,16 @@ def _product(root: etree._Element, ids: _Ids, part_name: str, nominal_file: str 
             _el(fmt, "OtherDigitalModelFormat", nominal_format or "unknown")
 
 
+def _characteristics(root: etree._Element, std_id: str, n: int
+                     ) -> tuple[etree._Element, etree._Element, etree._Element]:
+    """``Characteristics`` read by the standard ``std_id``: its definitions, nominals and
+    items, ``n`` of each to come."""
+    chars = _el(root, "Characteristics")
+    _el(chars, "FormalStandardId", std_id)
+    return (_el(chars, "CharacteristicDefinitions", n=n),
+            _el(chars, "CharacteristicNominals", n=n), _el(chars, "CharacteristicItems", n=n))
+
+
 def _finish(root: etree._Element, ids: _Ids) -> etree._ElementTree:
     root.set("idMax", str(ids.last))
     return etree.ElementTree(root)
@@ -274,11 +284,7 @@ def inspection_document(regions: Sequence[Region], *, part_name: str, unit: str 
     fdefs = _el(feats, "FeatureDefinitions", n=len(regions))
     fnoms = _el(feats, "FeatureNominals", n=len(regions))
     fitems = _el(feats, "FeatureItems", n=len(regions))
-    chars = _el(root, "Characteristics")
-    _el(chars, "FormalStandardId", std_id)
-    cdefs = _el(chars, "CharacteristicDefinitions", n=len(regions))
-    cnoms = _el(chars, "CharacteristicNominals", n=len(regions))
-    citems = _el(chars, "CharacteristicItems", n=len(regions))
+    cdefs, cnoms, citems = _characteristics(root, std_id, len(regions))
     per_region = []
     for r in regions:
         fdef, fnom, fitem = ids(), ids(), ids()
@@ -444,11 +450,7 @@ def acceptance_document(parameters: dict[str, dict[str, Any]], *, job_id: str | 
         if not values:
             raise QIFError(f"acceptance parameter {name}: no measured value")
         rows.append((name, base, float(mpe), values))
-    chars = _el(root, "Characteristics")
-    _el(chars, "FormalStandardId", std_id)
-    cdefs = _el(chars, "CharacteristicDefinitions", n=len(rows))
-    cnoms = _el(chars, "CharacteristicNominals", n=len(rows))
-    citems = _el(chars, "CharacteristicItems", n=len(rows))
+    cdefs, cnoms, citems = _characteristics(root, std_id, len(rows))
     items = []
     for name, base, mpe, values in rows:
         signed, what = VDI_PARAMETERS[base]
@@ -524,6 +526,13 @@ def inspection_from_json(body: dict[str, Any], traceability: Traceability | None
         T_part_from_measured=align.get("T_part_from_measured"),
         alignment=str(align.get("method", "bestfit")), overall_pass=tol.get("pass"),
         traceability=traceability)
+
+
+def acceptance_from_json(body: dict[str, Any]) -> etree._ElementTree:
+    """:func:`acceptance_document` of an acceptance test's JSON (``scancell acceptance
+    --json``, the acceptance worker's ``acceptance/report``)."""
+    return acceptance_document(body.get("parameters") or {}, job_id=body.get("job_id"),
+                               overall_pass=body.get("pass"))
 
 
 #: where the QIF 3.0 schemas are, when no folder is given

@@ -138,10 +138,7 @@ def main(args: argparse.Namespace) -> int:
         from scancell.analysis import qif
 
         try:
-            qif.write_checked(qif.acceptance_document(body["parameters"],
-                                                      job_id=body.get("job_id"),
-                                                      overall_pass=body.get("pass")),
-                              args.qif, args.qif_schemas)
+            qif.write_checked(qif.acceptance_from_json(body), args.qif, args.qif_schemas)
         except qif.QIFError as exc:
             return fail("acceptance", f"--qif {args.qif}: {exc}")
     for p, v in body["parameters"].items():

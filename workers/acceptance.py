@@ -225,17 +225,14 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
     return files
 
 
-def write_acceptance_qif(body: dict[str, Any], path: Path,
-                         schemas: str | None = None) -> dict[str, str]:
+def write_acceptance_qif(body: dict[str, Any], path: Path) -> dict[str, str]:
     """The acceptance figures as QIF 3.0 ({"qif": path}), or {} with the reason logged."""
     from scancell.analysis import qif
 
     if not body.get("parameters"):
         return {}
     try:
-        doc = qif.acceptance_document(body["parameters"], job_id=body.get("job_id"),
-                                      overall_pass=body.get("pass"))
-        validated = qif.write_checked(doc, path, schemas)
+        validated = qif.write_checked(qif.acceptance_from_json(body), path)
     except qif.QIFError as exc:
         log.warning("acceptance %s: no QIF results: %s", body.get("job_id"), exc)
         return {}
