@@ -20,15 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
-import subprocess
-import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from demo_runs import run_demo
 from scancell.deploy import cell_config_path
 from scancell.sim.mechanics import EFFECTS
 
@@ -77,21 +74,12 @@ def cell_config(row: Row, folder: Path) -> Path:
 def run_row(row: Row, folder: Path) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     config = cell_config(row, folder)
-    t0 = time.monotonic()
-    try:
-        out = subprocess.run([sys.executable, "-m", "scancell", "demo", "--quick",
-                              "--no-acceptance", "--config", str(config)], cwd=folder,
-                             capture_output=True, text=True, timeout=900, env=dict(os.environ))
-    except subprocess.TimeoutExpired as exc:
-        return {"error": f"no end after {exc.timeout:.0f} s", "seconds": exc.timeout}
-    seconds = time.monotonic() - t0
-    if out.returncode != 0:
-        return {"error": (out.stdout + out.stderr)[-600:], "seconds": seconds}
-    run = next((folder / "runs").iterdir())
-    s = json.loads((run / "summary.json").read_text())
+    run, s = run_demo(folder, config, ["--quick", "--no-acceptance"], 900)
+    if run is None:
+        return s
     return {"overlap_mm": s["translation_mm"]["mean"], "true_mm": s["true_error_mm"]["mean"],
             "hand_eye_mm": s["hand_eye"]["translation_error_mm"],
-            "coverage": s.get("uncertainty_coverage"), "seconds": seconds}
+            "coverage": s.get("uncertainty_coverage"), "seconds": s["seconds"]}
 
 
 def main() -> int:

@@ -19,17 +19,14 @@ Run: .venv/bin/python benchmarks/bench_uncertainty_coverage.py [--seeds 5] [--qu
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import re
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from demo_runs import run_demo
 from scancell.deploy import cell_config_path
 
 
@@ -46,19 +43,9 @@ def cell_config(seed: int, folder: Path) -> Path:
 def run_seed(seed: int, folder: Path, quick: bool, keep: Path | None = None) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     config = cell_config(seed, folder)
-    t0 = time.monotonic()
-    try:
-        out = subprocess.run([sys.executable, "-m", "scancell", "demo", "--no-acceptance",
-                              "--config", str(config), *(["--quick"] if quick else [])],
-                             cwd=folder, capture_output=True, text=True, timeout=3600,
-                             env=dict(os.environ))
-    except subprocess.TimeoutExpired as exc:
-        return {"error": f"no end after {exc.timeout:.0f} s", "seconds": exc.timeout}
-    seconds = time.monotonic() - t0
-    if out.returncode != 0:
-        return {"error": (out.stdout + out.stderr)[-600:], "seconds": seconds}
-    run = next((folder / "runs").iterdir())
-    s = json.loads((run / "summary.json").read_text())
+    run, s = run_demo(folder, config, ["--no-acceptance", *(["--quick"] if quick else [])], 3600)
+    if run is None:
+        return s
     if keep is not None:
         keep.mkdir(parents=True, exist_ok=True)
         shutil.copy(run / "summary.json", keep / f"summary-seed{seed}.json")
@@ -75,7 +62,7 @@ def run_seed(seed: int, folder: Path, quick: bool, keep: Path | None = None) -> 
             "he_cam": (he.get("camera_frame") or {}).get("rotation_error_arcsec"),
             "he_offset": (he.get("camera_frame") or {}).get("calibration_offset_arcsec"),
             "he_offset_sigma": (he.get("camera_frame") or {}).get("calibration_sigma_arcsec"),
-            "seconds": seconds}
+            "seconds": s["seconds"]}
 
 
 def main() -> int:
