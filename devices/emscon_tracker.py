@@ -14,6 +14,7 @@ coordinates, stationary measurement mode, and the reflector named in the options
 from __future__ import annotations
 
 import asyncio
+import collections
 import threading
 import time
 from collections.abc import Callable
@@ -104,7 +105,8 @@ class EmsconTracker(Tracker):
         self.beam_locked: bool | None = None
         self.face: int | None = None
         self.bad_packets = 0
-        self.status_changes: list[int] = []
+        #: the last status changes the server sent (``ES_SystemStatusChange`` values)
+        self.status_changes: collections.deque[int] = collections.deque(maxlen=1000)
         self.reflectors: dict[int, str] = {}
         self.reflector = "SMR1.5"
         self.serial_number: int | None = None

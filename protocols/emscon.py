@@ -15,6 +15,7 @@ their own data types. protocols/EMSCON.md lists what is implemented and every re
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -241,6 +242,7 @@ class Packet:
     values: list[dict[str, Any]] = field(default_factory=list)
 
 
+@functools.cache
 def _layout(fmt: str) -> struct.Struct:
     return struct.Struct("<" + fmt)
 
@@ -263,7 +265,8 @@ def _values(fmt: str, names: tuple[str, ...], values: dict[str, Any], what: str)
     return tuple(out)
 
 
-def _expand(fmt: str) -> list[str]:
+@functools.cache
+def _expand(fmt: str) -> tuple[str, ...]:
     """``"ii17d"`` -> one struct code per field (``"64s"`` stays whole)."""
     out, count = [], ""
     for ch in fmt:
@@ -275,7 +278,7 @@ def _expand(fmt: str) -> list[str]:
         else:
             out += [ch] * int(count or 1)
             count = ""
-    return out
+    return tuple(out)
 
 
 def encode_name(name: Any) -> bytes:
