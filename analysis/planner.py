@@ -164,7 +164,6 @@ class Planner:
         self.normals = n
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-
         self.nests = {n: np.asarray(p, float) for n, p in (nests_world or {}).items()}
         #: tracker station -> its head in world (mm); home first
         self.trackers: dict[str, np.ndarray] = {HOME_TRACKER: np.asarray(geometry.tracker_world_mm,
