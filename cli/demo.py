@@ -225,7 +225,13 @@ def main(args: argparse.Namespace) -> int:
                                        "--transform", str(nominal_dir / "T_world_from_part.json"),
                                        "--tolerance", str(INSPECTION_TOLERANCE_MM),
                                        "--out", str(run_dir / "fused")], env)
-        time.sleep(3.0)
+        # a worker declares its liveliness token after it subscribed its inputs: until the
+        # scan worker's is there, the projector job's frames could go to nobody (a loaded
+        # machine took more than a fixed 3 s to import it, and the job waited 120 s in vain)
+        keys = client.bus.keys
+        wait_for(lambda: all(client.bus.members(keys.worker(kind, "*"))
+                             for kind in ("scan", "calibrate", "fuse")), 180,
+                 "liveliness token of the scan, calibrate and fuse workers")
         scan_results: list[dict] = []
         client.bus.subscribe(client.bus.keys.scan_result("*"),
                              lambda s: scan_results.append(s.decode()))
