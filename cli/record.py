@@ -18,8 +18,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="key expressions under scancell/<cell>/ to record (default: everything)")
     p.add_argument("--exclude", nargs="+", default=[], help="key expressions to leave out")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
-    p.add_argument("--compress-images", action="store_true",
-                   help="compress image chunks too (default: images uncompressed, for speed)")
+    p.add_argument("--image-compression", choices=["png", "zstd", "lz4", "none"], default="png",
+                   help="camera frames, losslessly: png (CompressedImage; the default), or "
+                        "RawImage in chunks of that compression; stored uncompressed while "
+                        "the queue is over half full")
+    p.add_argument("--frames", choices=["all", "first_exposure", "none"], default="all",
+                   help="which camera frames to keep (default: %(default)s; first_exposure: an "
+                        "HDR scan's first exposure; none: clouds and results only)")
     p.add_argument("--queue-mb", type=int, default=1024, help="queue limit before drops")
     p.add_argument("--split-s", type=float, default=600.0,
                    help="split idle (between jobs) sessions every so many seconds")
@@ -78,8 +83,9 @@ def _record(args: argparse.Namespace) -> int:
         settings = RecorderSettings(
             directory=args.dir, name=args.name, topics=tuple(args.topics),
             exclude=tuple(args.exclude), queue_bytes=args.queue_mb << 20, split_s=args.split_s,
-            split_bytes=args.split_mb << 20, job_linger_s=args.job_linger_s,
-            file=FileSettings(compression=args.compression, compress_images=args.compress_images))
+            split_bytes=args.split_mb << 20, job_linger_s=args.job_linger_s, frames=args.frames,
+            file=FileSettings(compression=args.compression,
+                              image_compression=args.image_compression))
         Path(args.dir).mkdir(parents=True, exist_ok=True)
         if not os.access(args.dir, os.W_OK):
             raise OSError(f"{args.dir} is not writable")

@@ -25,6 +25,7 @@ from scancell.protocols.encoding import (
     MCAP_MESSAGE_ENCODING,
     MCAP_SCHEMA_ENCODING,
     Attachment,
+    EncodingError,
 )
 
 META_SUFFIX = "#meta"
@@ -35,7 +36,8 @@ log = logging.getLogger(__name__)
 
 #: mcap's Writer takes one compression for the whole file (``Writer(compression=...)``, mcap
 #: 1.x) and has no public way to change it between chunks, though the MCAP format records a
-#: compression per chunk. The only way to keep images uncompressed beside compressed JSON is
+#: compression per chunk. The only way to give images a compression of their own (and none
+#: while the recorder lags) beside the rest's is
 #: the Writer's private ``__compression`` attribute, which its ``__finalize_chunk`` reads for
 #: each new chunk. ``test_recorder_files`` checks that the attribute still exists and that each
 #: chunk carries the compression we asked for; if a release drops it, the file is written with
@@ -46,7 +48,8 @@ _PRIVATE_COMPRESSION = "_Writer__compression"
 def can_mix_chunk_compression(writer: Writer) -> bool:
     if hasattr(writer, _PRIVATE_COMPRESSION):
         return True
-    log.warning("this mcap release has no per-chunk compression: images will be compressed too")
+    log.warning("this mcap release has no per-chunk compression: images take the file's "
+                "compression")
     return False
 
 
@@ -57,8 +60,11 @@ def set_chunk_compression(writer: Writer, compression: CompressionType) -> None:
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
+#: ``image_compression``: a chunk compression, or "png": every foxglove.RawImage is written as
+#: a lossless PNG foxglove.CompressedImage on the same topic (in chunks left uncompressed)
+IMAGE_COMPRESSIONS = (*COMPRESSIONS, "png")
 
-#: Schemas whose chunks may be written uncompressed (large, already dense payloads).
+#: Schemas written under ``image_compression`` (camera frames: large, and time-critical).
 IMAGE_SCHEMAS = frozenset({"foxglove.RawImage", "foxglove.CompressedImage"})
 
 
@@ -67,8 +73,11 @@ class FileSettings:
     """How a session file is written."""
 
     compression: str = "zstd"
-    #: Leave image chunks uncompressed: compressing 300 MB/s of camera frames costs a core.
-    compress_images: bool = False
+    #: How camera frames are written (:data:`IMAGE_COMPRESSIONS`), losslessly: "png" holds a
+    #: simulated full-size station's frames in 0.30 of their bytes, zstd chunks in 0.42
+    #: (benchmarks/bench_recording_size.py); "none" for a recorder that cannot spare the CPU.
+    #: While the recorder lags (``hurry``) PNGs are stored uncompressed and chunks left so.
+    image_compression: str = "png"
     chunk_bytes: int = 4 * 1024 * 1024
     #: A chunk is closed and handed to the OS at least this often: a crash loses no more.
     flush_interval_s: float = 0.5
@@ -77,6 +86,9 @@ class FileSettings:
         if self.compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {sorted(COMPRESSIONS)}, "
                              f"got {self.compression!r}")
+        if self.image_compression not in IMAGE_COMPRESSIONS:
+            raise ValueError(f"image_compression must be one of {list(IMAGE_COMPRESSIONS)}, "
+                             f"got {self.image_compression!r}")
         if self.chunk_bytes < 1024:
             raise ValueError(f"chunk_bytes must be at least 1024, got {self.chunk_bytes}")
         if not 0 < self.flush_interval_s <= 1.0:
@@ -96,11 +108,15 @@ class SessionFile:
         self._schemas: dict[tuple[str, str], int] = {}
         self._channels: dict[tuple[str, str, str], int] = {}
         self._last_flush = time.monotonic()
-        self._chunk_compressed = True
-        #: Images go into uncompressed chunks (fast), the rest compressed, when mcap lets us.
+        self._chunk_compression = settings.compression
+        #: Images go into chunks of their own compression, the rest compressed, when mcap lets us.
         self._mixed_chunks = can_mix_chunk_compression(self._writer)
         self.messages = 0
         self.bytes = 0
+        #: image bytes written, and of them those written uncompressed because the writer lagged
+        #: (``hurry``)
+        self.image_bytes = 0
+        self.image_bytes_hurried = 0
         self.closed = False
 
     # ---------------------------------------------------------------- writing
@@ -132,14 +148,40 @@ class SessionFile:
             self._channels[key] = cid
         return cid
 
+    def _compression_of(self, schema: str, payload: bytes, hurry: bool) -> str:
+        if schema not in IMAGE_SCHEMAS:
+            return self.settings.compression
+        self.image_bytes += len(payload)
+        if hurry and self.settings.image_compression != "none":
+            self.image_bytes_hurried += len(payload)
+            return "none"
+        return "none" if self.settings.image_compression == "png" else self.settings.image_compression
+
+    def _as_png(self, schema: str, payload: bytes, hurry: bool) -> tuple[str, bytes]:
+        """A RawImage as the PNG CompressedImage the "png" image compression writes; one that
+        is not a valid RawImage is written as it came (a recording loses nothing)."""
+        if schema != "foxglove.RawImage" or self.settings.image_compression != "png":
+            return schema, payload
+        from scancell.protocols import foxglove_schemas as fg
+
+        try:
+            png = fg.png_image(fg.decode_proto(payload, schema), fast=hurry)
+        except EncodingError as exc:
+            log.warning("a frame kept as it came, not as PNG: %s", exc)
+            return schema, payload
+        return "foxglove.CompressedImage", png.SerializeToString()
+
     def write_raw(self, cid: int, schema_name: str, log_time: int, data: bytes,
                   publish_time: int, seq: int) -> None:
         self._add(cid, log_time, data, publish_time, seq,
-                  compressed=self.settings.compress_images or schema_name not in IMAGE_SCHEMAS)
+                  self._compression_of(schema_name, data, False))
 
     def write(self, topic: str, mime: str, schema: str, payload: bytes, att: Attachment,
-              log_time_ns: int) -> None:
-        """Write one bus sample (raises EncodingError for an unknown schema, OSError on disk)."""
+              log_time_ns: int, hurry: bool = False) -> None:
+        """Write one bus sample (raises EncodingError for an unknown schema, OSError on disk).
+        ``hurry``: the writer lags behind: an image is stored uncompressed."""
+        compression = self._compression_of(schema, payload, hurry)
+        schema, payload = self._as_png(schema, payload, hurry)
         cid = self.channel(topic, mime, schema)
         if att.meta or att.device_stamp_ns is not None:
             extra = {"stamp_ns": att.stamp_ns, "seq": att.seq, "meta": att.meta}
@@ -147,17 +189,15 @@ class SessionFile:
                 extra["device_stamp_ns"] = att.device_stamp_ns
             mid = self.channel(topic + META_SUFFIX, JSON, META_SCHEMA)
             self._add(mid, log_time_ns, json.dumps(extra, separators=(",", ":")).encode(),
-                      att.stamp_ns, att.seq, compressed=True)
-        self._add(cid, log_time_ns, payload, att.stamp_ns, att.seq,
-                  compressed=self.settings.compress_images or schema not in IMAGE_SCHEMAS)
+                      att.stamp_ns, att.seq, self.settings.compression)
+        self._add(cid, log_time_ns, payload, att.stamp_ns, att.seq, compression)
 
     def _add(self, cid: int, log_time: int, data: bytes, publish_time: int, seq: int,
-             compressed: bool) -> None:
-        if compressed != self._chunk_compressed and self._mixed_chunks:
+             compression: str) -> None:
+        if compression != self._chunk_compression and self._mixed_chunks:
             self._writer.flush()  # close the chunk in progress under its own compression
-            self._chunk_compressed = compressed
-            set_chunk_compression(self._writer, COMPRESSIONS[self.settings.compression]
-                                  if compressed else CompressionType.NONE)
+            self._chunk_compression = compression
+            set_chunk_compression(self._writer, COMPRESSIONS[compression])
         self._writer.add_message(cid, log_time, data, publish_time, seq & 0xFFFFFFFF)
         self.messages += 1
         self.bytes += len(data)

@@ -16,6 +16,8 @@ import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 from scancell.analysis.cloud_io import read_ply
 from scancell.analysis.stereo_calibration import StereoCalibration
@@ -137,10 +139,21 @@ def test_record_kill_recover_replay_reprocess(make_daemon, client, cell, endpoin
             else:
                 jsonschema.validate(json.loads(message.data), json.loads(schema.data))
             schemas_seen.add(schema.name)
-    assert {"foxglove.RawImage", "foxglove.PointCloud", "foxglove.JointStates", "foxglove.Log",
+    assert {"foxglove.CompressedImage", "foxglove.PointCloud", "foxglove.JointStates", "foxglove.Log",
             "scancell.TrackerPoint", "scancell.JobEvent", "scancell.HandEyeSample",
             "scancell.StereoCalibration", "scancell.SampleAttachment",
             "scancell.HandEye"} <= schemas_seen
+    # the frames are lossless PNGs (the reprocess below is bit-identical), in chunks of their
+    # own; stored plainly where the writer lagged on a loaded machine (the file says how much)
+    with open(file1, "rb") as fh:
+        kinds = {r.compression for r in StreamReader(fh, emit_chunks=True).records
+                 if isinstance(r, Chunk)}
+    assert kinds == {"zstd", ""}, kinds
+    frames = list(samples(file1, ["dev/*/image"]))
+    assert frames and {f.schema for f in frames} == {"foxglove.CompressedImage"}
+    hurried = int(i1.metadata["scancell.recorder"]["image_bytes_uncompressed_under_load"])
+    assert sum(len(f.payload) for f in frames) < (
+        0.6 * int(i1.metadata["scancell.recorder"]["image_bytes"]) + hurried)
     # the frame tree puts each ball cloud (frame mcs_<station>) into the tracker frame
     tree = {(m.parent_frame_id, m.child_frame_id) for m in
             (s.decode() for s in samples(file1, ["tf/*"]))}

@@ -357,3 +357,99 @@ def test_an_unwritable_directory_is_an_error_not_a_crash(bus_pair, tmp_path):
     err = next(e for e in events if e["event"] == "error")
     assert "cannot open a session file" in err["message"] and "sub" in err["message"]
     assert rec.lost >= 1 and rec.status()["state"] == "stopped"
+
+
+def _frames(bus, exposures: int, patterns: int = 2) -> None:
+    """One HDR scan of job-1: ``exposures`` x ``patterns`` frames from one camera."""
+    from scancell.protocols.encoding import Attachment
+
+    img = np.zeros((64, 80), np.uint8)
+    for e in range(exposures):
+        for k in range(patterns):
+            img[8:56, 8:72] = 40 + 30 * e + k
+            meta = {"scan_id": "s1", "station": "1", "role": "left", "job_id": "job-1",
+                    "pattern": k, "patterns": patterns, "steps": 3, "periods": [70],
+                    "exposure_index": e, "exposures": exposures}
+            bus.publish(bus.keys.dev("cam_left", "image"),
+                        fg.encode_proto(fg.raw_image(img, messages.now_ns(), "cam_left")),
+                        Attachment(messages.now_ns(), e * patterns + k, None, meta))
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("policy, kept", [("all", 6), ("first_exposure", 2), ("none", 0)])
+def test_the_frames_policy_keeps_what_it_says_and_the_rest_of_the_job(bus_pair, tmp_path,
+                                                                        policy, kept):
+    a, b = bus_pair
+    rec = Recorder(a, RecorderSettings(directory=str(tmp_path), job_linger_s=0.3,
+                                       job_max_linger_s=1.0, status_period_s=0.2, frames=policy))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _event(b, "job-1", "running")
+        _frames(b, exposures=3)
+        _point(b, 1)
+        _event(b, "job-1", "done")
+        wait_until(lambda: any(e["event"] == "closed" and e["session"] == "job-1" for e in events),
+                   10, what="job-1's file closed")
+    finally:
+        rec.stop()
+    frames = list(samples(tmp_path / "job-1.mcap", ["dev/*/image"]))
+    assert len(frames) == kept and rec.frames_skipped == 6 - kept
+    if policy == "first_exposure":  # the file says what it holds, and what the scan took
+        assert {(f.attachment.meta["exposure_index"], f.attachment.meta["exposures"],
+                 f.attachment.meta["exposures_taken"]) for f in frames} == {(0, 1, 3)}
+    assert len(list(samples(tmp_path / "job-1.mcap", ["dev/tracker/point"]))) == 1
+    meta = info(tmp_path / "job-1.mcap").metadata["scancell.recorder"]
+    assert meta["frames_policy"] == policy and meta["frames_skipped"] == str(6 - kept)
+    with pytest.raises(ValueError, match="frames must be one of"):
+        RecorderSettings.from_mapping({"frames": "some"})
+
+
+@pytest.mark.process
+def test_a_writer_that_lags_writes_frames_uncompressed_and_drops_nothing(bus_pair, tmp_path):
+    """A stalled disk for a moment: the frames queued meanwhile go into uncompressed chunks
+    while others wait behind them (the writer catches up instead of dropping); later frames
+    are compressed again."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    a, b = bus_pair
+    rec = Recorder(a, settings_with(RecorderSettings(
+        directory=str(tmp_path), job_linger_s=0.3, job_max_linger_s=1.0, status_period_s=0.2,
+        queue_bytes=1_000_000, uncompressed_above_queue_share=0.001), chunk_bytes=1024))
+    events = _collect(b, b.keys.recorder_event("recorder"))
+    gate = threading.Event()
+    gate.set()
+    original = rec._handle
+
+    def stalling_handle(recv_ns, sample):
+        gate.wait(10)
+        original(recv_ns, sample)
+
+    rec._handle = stalling_handle
+    rec.start()
+    time.sleep(0.3)
+    try:
+        _event(b, "job-1", "running")
+        time.sleep(0.3)
+        gate.clear()
+        _frames(b, exposures=1)  # queued behind the stall
+        time.sleep(0.6)
+        gate.set()
+        time.sleep(0.3)
+        _frames(b, exposures=1)  # on time
+        _event(b, "job-1", "done")
+        wait_until(lambda: any(e["event"] == "closed" and e["session"] == "job-1" for e in events),
+                   10, what="job-1's file closed")
+    finally:
+        gate.set()
+        rec.stop()
+    path = tmp_path / "job-1.mcap"
+    assert len(list(samples(path, ["dev/*/image"]))) == 4 and not rec.dropped
+    meta = info(path).metadata["scancell.recorder"]
+    assert 0 < int(meta["image_bytes_uncompressed_under_load"]) < int(meta["image_bytes"])
+    with open(path, "rb") as fh:
+        kinds = {r.compression for r in StreamReader(fh, emit_chunks=True).records
+                 if isinstance(r, Chunk)}
+    assert kinds == {"", "zstd"}

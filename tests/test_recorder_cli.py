@@ -133,7 +133,8 @@ def test_a_full_disk_is_reported_and_the_recorder_process_lives_on(make_daemon, 
                          lambda s: statuses.append(s.decode()))
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
     proc = subprocess.Popen([sys.executable, "-m", "scancell", "record", "--dir",
-                             str(tmp_path), "--compression", "none"], env=env, text=True,
+                             str(tmp_path), "--image-compression", "none"],
+                            env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             preexec_fn=_limit_file_size)
     try:

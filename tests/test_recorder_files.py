@@ -6,6 +6,7 @@ import json
 import os
 import time
 
+import cv2
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -15,6 +16,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import Attachment
 from scancell.recorder.reading import RecordingError, info, samples, topic_matches
+from scancell.recorder.recorder import RecorderSettings
 from scancell.recorder.recover import recover
 from scancell.recorder.session_file import FileSettings, SessionFile
 
@@ -50,11 +52,12 @@ def test_a_session_reads_back_sample_for_sample_with_attachments(tmp_path):
     f.close()
     got = list(samples(tmp_path / "a.mcap"))
     assert [s.key for s in got] == [f"{P}/dev/cam_left/image", f"{P}/dev/tracker/point"] * 3
-    img = got[2]
-    assert img.schema == "foxglove.RawImage" and img.mime == "application/protobuf"
+    img = got[2]  # a lossless PNG (the default image compression)
+    assert img.schema == "foxglove.CompressedImage" and img.mime == "application/protobuf"
     assert img.attachment == Attachment(1001, 1, 5001, {"scan_id": "s-1", "station": "3",
                                                         "role": "left", "pattern": 1})
-    assert fg.image_array(img.decode())[0, 0] == 1
+    np.testing.assert_array_equal(fg.image_array(img.decode()), np.full((48, 64), 1, np.uint8))
+    assert img.decode().format == "png" and img.decode().timestamp.ToNanoseconds() == 1001
     assert got[3].attachment == Attachment(3001, 1) and got[3].log_time_ns == 2001
     i = info(tmp_path / "a.mcap")
     assert i.cell == "c1" and i.messages == 6 and i.attachments == ["calib/stereo.json"]
@@ -75,7 +78,9 @@ def test_every_message_decodes_with_its_recorded_schema(tmp_path):
         for schema, channel, message in reader.iter_messages():
             if channel.message_encoding == "protobuf":
                 decoded = DecoderFactory().decoder_for("protobuf", schema)(message.data)
-                assert decoded.width == 64
+                assert schema.name == "foxglove.CompressedImage" and decoded.format == "png"
+                assert cv2.imdecode(np.frombuffer(decoded.data, np.uint8),
+                                    cv2.IMREAD_UNCHANGED).shape == (48, 64)
             else:
                 assert schema.encoding == "jsonschema"
                 jsonschema.validate(json.loads(message.data), json.loads(schema.data))
@@ -83,20 +88,62 @@ def test_every_message_decodes_with_its_recorded_schema(tmp_path):
     assert n == 9  # 3 images, 3 companions, 3 tracker points
 
 
+def _chunk_compressions(path) -> list[str]:
+    with open(path, "rb") as fh:
+        return [r.compression for r in StreamReader(fh, emit_chunks=True).records
+                if isinstance(r, Chunk)]
+
+
+def _fringe_image(k: int) -> bytes:
+    """A fringe frame as a camera sees one: a lit patch of 3-step fringes in a dark field."""
+    x = np.arange(320, dtype=np.float32)
+    img = np.zeros((240, 320), np.uint8)
+    img[40:200, 40:280] = (120 + 90 * np.cos(x[40:280] * 0.3 + 2.094 * k)).astype(np.uint8)
+    return fg.encode_proto(fg.raw_image(img, 1000 + k, "cam_left")).payload
+
+
 @pytest.mark.unit
-def test_image_chunks_are_uncompressed_and_the_rest_compressed(tmp_path):
-    f = _write_session(tmp_path / "a.mcap", settings=FileSettings(compression="zstd",
-                                                                  chunk_bytes=1024))
+def test_frames_are_lossless_pngs_stored_plainly_in_a_hurry_or_in_compressed_chunks(tmp_path):
+    frames = [_fringe_image(k) for k in range(3)]
+    raw = [fg.image_array(fg.decode_proto(p, "foxglove.RawImage")) for p in frames]
+    img16 = fg.encode_proto(fg.raw_image((np.arange(80 * 60, dtype=np.uint16) * 13).reshape(
+        60, 80), 7, "cam_left")).payload
+    garbage = b"\x08\x01 not a RawImage"
+    # default: PNG CompressedImage, every pixel back; in a hurry stored, not compressed
+    f = SessionFile(tmp_path / "a.mcap", FileSettings(chunk_bytes=1024))
+    for k, payload in enumerate([*frames, frames[0], img16, garbage]):
+        f.write(f"{P}/dev/cam_left/image", "application/protobuf", "foxglove.RawImage",
+                payload, Attachment(k, k), k, hurry=k == 3)
     f.close()
-    with open(tmp_path / "a.mcap", "rb") as fh:
-        chunks = [r for r in StreamReader(fh, emit_chunks=True).records if isinstance(r, Chunk)]
-    kinds = {c.compression for c in chunks}
-    assert kinds == {"", "zstd"}, kinds
-    f2 = _write_session(tmp_path / "b.mcap", settings=FileSettings(compress_images=True))
-    f2.close()
-    with open(tmp_path / "b.mcap", "rb") as fh:
-        assert {r.compression for r in StreamReader(fh, emit_chunks=True).records
-                if isinstance(r, Chunk)} == {"zstd"}
+    got = list(samples(tmp_path / "a.mcap", ["dev/*/image"]))
+    assert [s.schema for s in got] == ["foxglove.CompressedImage"] * 5 + ["foxglove.RawImage"]
+    for s, want in zip(got, [*raw, raw[0]], strict=False):
+        np.testing.assert_array_equal(fg.image_array(s.decode()), want)
+    sixteen = fg.image_array(got[4].decode())
+    assert sixteen.dtype == np.uint16
+    np.testing.assert_array_equal(sixteen, fg.image_array(fg.decode_proto(img16,
+                                                                            "foxglove.RawImage")))
+    assert got[5].payload == garbage  # not a frame: kept as it came
+    assert len(got[0].payload) < 0.5 * len(frames[0])
+    assert len(got[3].payload) > len(frames[0])  # stored: fast, not small
+    assert f.image_bytes_hurried == len(frames[0])
+    assert set(_chunk_compressions(tmp_path / "a.mcap")) == {""}  # PNGs: not compressed again
+    # chunk compression instead: RawImage in zstd chunks, in a hurry uncompressed ones
+    f = SessionFile(tmp_path / "b.mcap", FileSettings(chunk_bytes=1024, image_compression="zstd"))
+    for k, payload in enumerate([*frames, frames[0]]):
+        f.write(f"{P}/dev/cam_left/image", "application/protobuf", "foxglove.RawImage",
+                payload, Attachment(k, k), k, hurry=k == 3)
+    f.write(f"{P}/dev/tracker/point", "application/json", "scancell.TrackerPoint",
+            _point(1), Attachment(10, 10), 10, hurry=True)  # only images hurry
+    f.close()
+    kinds = _chunk_compressions(tmp_path / "b.mcap")
+    assert kinds[:3] == ["zstd"] * 3 and "" in kinds and kinds[-1] == "zstd", kinds
+    assert [s.payload for s in samples(tmp_path / "b.mcap", ["dev/*/image"])] == [*frames,
+                                                                                   frames[0]]
+    for compression, kinds in (("none", {"", "zstd"}), ("lz4", {"lz4", "zstd"})):
+        _write_session(tmp_path / f"{compression}.mcap", settings=FileSettings(
+            image_compression=compression, chunk_bytes=1024)).close()
+        assert set(_chunk_compressions(tmp_path / f"{compression}.mcap")) == kinds
 
 
 @pytest.mark.unit
@@ -115,13 +162,17 @@ def test_mcap_still_lets_the_compression_change_between_chunks(tmp_path, caplog)
         pass
 
     assert not session_file.can_mix_chunk_compression(Renamed())
-    assert "images will be compressed too" in caplog.text
+    assert "images take the file's compression" in caplog.text
 
 
 @pytest.mark.unit
 def test_bad_settings_and_bad_files_are_named(tmp_path):
     with pytest.raises(ValueError, match="compression"):
         FileSettings(compression="gzip")
+    with pytest.raises(ValueError, match="image_compression must be one of"):
+        FileSettings(image_compression="webp")
+    with pytest.raises(ValueError, match="uncompressed_above_queue_share"):
+        RecorderSettings.from_mapping({"uncompressed_above_queue_share": 2})
     with pytest.raises(ValueError, match="flush_interval_s"):
         FileSettings(flush_interval_s=5)
     with pytest.raises(RecordingError, match="no such recording"):

@@ -1,0 +1,120 @@
+"""Peak resident memory of a command and every process it starts, sampled from /proc.
+
+    .venv/bin/python benchmarks/proc_memory.py [--every 0.5] [--json OUT] -- scancell demo
+
+Every ``--every`` seconds the process tree under the command is walked (``/proc/<pid>/task/*/
+children``) and each process's RSS read from ``/proc/<pid>/status`` (VmRSS). A process is named
+by its command line (``scancell worker fuse`` -> ``worker fuse``). Printed at the end, and
+written with ``--json``: each name's peak RSS (MB), and the peak of the tree's sum — the figure
+the machine must hold. The command's exit code is returned.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def tree(pid: int) -> list[int]:
+    todo, seen = [pid], []
+    while todo:
+        p = todo.pop()
+        seen.append(p)
+        todo += children(p)
+    return seen
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+def name_of(pid: int) -> str:
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    words = [a.decode(errors="replace") for a in argv if a]
+    if "scancell" in words:  # python -m scancell worker fuse ...
+        rest = words[words.index("scancell") + 1:]
+        return " ".join(w for w in rest[:2] if not w.startswith("-")) or "scancell"
+    for w in words:
+        if w.endswith("scancell"):  # .venv/bin/scancell worker fuse ...
+            rest = words[words.index(w) + 1:]
+            return " ".join(x for x in rest[:2] if not x.startswith("-")) or "scancell"
+    return Path(words[0]).name if words else "?"
+
+
+class Sampler:
+    def __init__(self, pid: int, every_s: float) -> None:
+        self.pid, self.every_s = pid, every_s
+        self.peak: dict[str, float] = {}
+        self.peak_total = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            total = 0.0
+            for p in tree(self.pid):
+                mb, name = rss_mb(p), name_of(p)
+                total += mb
+                self.peak[name] = max(self.peak.get(name, 0.0), mb)
+            self.peak_total = max(self.peak_total, total)
+            self._stop.wait(self.every_s)
+
+    def __enter__(self) -> Sampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def report(self) -> dict[str, object]:
+        return {"peak_total_mb": round(self.peak_total),
+                "peak_mb": {k: round(v) for k, v in sorted(self.peak.items(), key=lambda kv: -kv[1])}}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--every", type=float, default=0.5)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("command", nargs=argparse.REMAINDER)
+    args = ap.parse_args()
+    cmd = args.command[1:] if args.command[:1] == ["--"] else args.command
+    if not cmd:
+        ap.error("no command")
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd)
+    with Sampler(proc.pid, args.every) as s:
+        rc = proc.wait()
+    rep = {"command": cmd, "exit": rc, "seconds": round(time.monotonic() - t0, 1), **s.report()}
+    print(json.dumps(rep, indent=2), file=sys.stderr)
+    if args.json:
+        args.json.write_text(json.dumps(rep, indent=2))
+    return rc
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
