@@ -1,15 +1,19 @@
-"""Reprocessing 4 recordings with 1 and 2 reprocess worker processes over zenoh (issue 22).
+"""Reprocessing 8 recordings as Dask tasks: a local cluster of 1 and of 2 worker processes, and
+without Dask (issue 37, item 4).
 
-Recordings: 4 MCAP files, each with 2 scans of the car-body rear rendered once by the simulated
+Recordings: 8 MCAP files, each with 2 scans of the car-body rear rendered once by the simulated
 cell at full size (2 x 9 frames of 2448 x 2048 per scan, one exposure), written as the recorder
-writes a session. The bench process is the router (the listening peer) and the batch's
-coordinator (``ReprocessBatch``, as ``scancell reprocess --bus`` runs it); the workers are
-``scancell worker reprocess`` processes. Each worker first reprocesses one small recording (its
-kernels compile), then the clock runs from the offer to the last result.
+writes a session. Each Dask worker first reprocesses one small recording (its kernels compile),
+and so does this process before the run without Dask; then the clock runs from the first
+submission to the last commit (``scancell.batch.reprocess.run``, as ``scancell reprocess``
+runs it).
 
-Figures: recordings per minute with 1 and 2 workers; the reference is the 1-worker run of the
-same invocation, so the ratio is the speed-up 2 workers give on this machine. The clouds of both
-runs are compared byte for byte.
+Figures: recordings per minute on 1 and 2 workers; the reference is the 1-worker run of the same
+invocation, so the ratio is the speed-up 2 workers give on this 2-core machine. The per-recording
+overhead of Dask: (the default local cluster's time - the same recordings reprocessed here one
+after another, no Dask) / 8; and the same for 1 worker, whose process runs one thread (Dask
+sets OMP_NUM_THREADS=1 in its workers) where the run without Dask uses both cores. The clouds of
+every run are compared byte for byte.
 
 Run: .venv/bin/python benchmarks/bench_reprocess_share.py  (or `make bench`)
 """
@@ -17,23 +21,19 @@ Run: .venv/bin/python benchmarks/bench_reprocess_share.py  (or `make bench`)
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import tempfile
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 from scancell.analysis.stereo_calibration import StereoCalibration
-from scancell.bus.ports import free_port
-from scancell.bus.zenoh_bus import Bus, BusConfig
+from scancell.batch.reprocess import reprocess_task, run
 from scancell.model.patterns import FringeSequence
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.scan_recording import write_scan_recording
-from scancell.workers.reprocess_batch import ReprocessBatch
+from scancell.workers.reprocess import reprocess
 
-RECORDINGS = 4
+RECORDINGS = 8
 
 
 def render(scale: float) -> tuple[list[dict], SimCell]:
@@ -58,46 +58,40 @@ def recordings(folder: Path, scale: float, n: int, name: str) -> list[Path]:
     return paths
 
 
-def run(n_workers: int, files: list[Path], warm: list[Path], out: Path) -> float:
-    """Recordings per minute with ``n_workers`` reprocess worker processes."""
-    cell = f"bench{uuid.uuid4().hex[:8]}"
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = Bus.open(BusConfig(listen=(endpoint,)), cell)
-    env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
-    procs = [subprocess.Popen([sys.executable, "-m", "scancell", "worker", "reprocess"],
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for _ in range(n_workers)]
-    try:
-        deadline = time.monotonic() + 120
-        while len(bus.members(bus.keys.worker("reprocess", "*"))) < n_workers:
-            if time.monotonic() > deadline:
-                raise SystemExit(f"fewer than {n_workers} reprocess workers came up")
-            time.sleep(0.5)
-        ReprocessBatch(bus, [(f, out / "warm" / f.stem) for f in warm[:n_workers]],
-                       on_event=lambda line: None).run()
+def on_cluster(n_workers: int, files: list[Path], warm: Path, out: Path) -> float:
+    """Seconds for ``files`` on a local cluster of ``n_workers`` worker processes."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
+        for k, addr in enumerate(client.scheduler_info()["workers"]):  # compile on each
+            client.submit(reprocess_task, str(warm), str(out / f"warm{k}"), None, None,
+                          workers=[addr], pure=False).result()
         t0 = time.perf_counter()
-        tasks = ReprocessBatch(bus, [(f, out / f.stem) for f in files],
-                               on_event=lambda line: None).run()
+        outcomes = run(client, files, [out / f.stem for f in files], None, None)
         seconds = time.perf_counter() - t0
-        bad = [t.path for t in tasks if t.state != "done"]
-        if bad:
-            raise SystemExit(f"not reprocessed: {bad}")
-        used = {a["worker"] for t in tasks for a in t.attempts if a["state"] == "ok"}
-        print(f"  {n_workers} worker(s): {len(files)} recordings in {seconds:.1f} s, "
-              f"by {len(used)} worker(s)")
-        return len(files) / seconds * 60.0
-    finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            p.wait(30)
-        bus.close()
+    bad = [o.file.name for o in outcomes if not o.ok]
+    if bad:
+        raise SystemExit(f"not reprocessed: {bad}")
+    used = {o.worker for o in outcomes}
+    print(f"  {n_workers} worker(s): {len(files)} recordings in {seconds:.1f} s, by "
+          f"{len(used)} worker(s)")
+    return seconds
+
+
+def without_dask(files: list[Path], warm: Path, out: Path) -> float:
+    reprocess(warm, out / "warm", progress=False)
+    t0 = time.perf_counter()
+    for f in files:
+        reprocess(f, out / f.stem, progress=False)
+    seconds = time.perf_counter() - t0
+    print(f"  no Dask : {len(files)} recordings in {seconds:.1f} s, one after another here")
+    return seconds
 
 
 def clouds(folder: Path) -> dict[str, bytes]:
-    """The timed recordings' clouds (the warm-up's left out: one per worker)."""
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*.ply"))
-            if "warm" not in p.relative_to(folder).parts}
+    """The timed recordings' clouds (the warm-ups' left out: one per worker)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.glob("full*/**/*.ply"))}
 
 
 def main() -> dict[str, float]:
@@ -105,17 +99,24 @@ def main() -> dict[str, float]:
         tmp = Path(tmp)
         t0 = time.perf_counter()
         files = recordings(tmp, 1.0, RECORDINGS, "full")
-        warm = recordings(tmp, 8.0, 2, "warm")
+        warm = recordings(tmp, 8.0, 1, "warm")[0]
         size = sum(f.stat().st_size for f in files) / 1e9
         print(f"{RECORDINGS} recordings of 2 full-size scans ({size:.2f} GB) written in "
               f"{time.perf_counter() - t0:.1f} s; {os.cpu_count()} cores")
-        one = run(1, files, warm, tmp / "one")
-        two = run(2, files, warm, tmp / "two")
-        same = clouds(tmp / "one") == clouds(tmp / "two") and clouds(tmp / "one")
-    print(f"1 worker : {one:6.2f} recordings/min (reference)")
-    print(f"2 workers: {two:6.2f} recordings/min  ratio {two / one:.2f}")
-    print(f"clouds identical between the runs: {bool(same)}")
-    return {"one_per_min": one, "two_per_min": two, "ratio": two / one}
+        local = without_dask(files, warm, tmp / "local")
+        one = on_cluster(1, files, warm, tmp / "one")
+        two = on_cluster(2, files, warm, tmp / "two")
+        same = (clouds(tmp / "one") == clouds(tmp / "two") == clouds(tmp / "local")
+                and clouds(tmp / "one"))
+    n = len(files)
+    print(f"1 worker : {n / one * 60:6.2f} recordings/min (reference)")
+    print(f"2 workers: {n / two * 60:6.2f} recordings/min  ratio {one / two:.2f}")
+    print(f"Dask's overhead per recording, the default local cluster (2 workers) against none: "
+          f"{(two - local) / n:+.2f} s of {local / n:.2f} s; 1 worker (one thread: Dask sets "
+          f"OMP_NUM_THREADS=1) against none: {(one - local) / n:+.2f} s")
+    print(f"clouds identical between the three runs: {bool(same)}")
+    return {"one_per_min": n / one * 60, "two_per_min": n / two * 60, "ratio": one / two,
+            "overhead_s": (two - local) / n}
 
 
 if __name__ == "__main__":

@@ -1,17 +1,19 @@
 """``scancell reprocess FILE|FOLDER …``: the analysis workers on recordings.
 
-Without ``--bus`` here, one recording after another, without a bus. With ``--bus``, spread over
-every ``scancell worker reprocess`` on the cell's bus (workers/reprocess_batch.py).
+One recording is reprocessed here, without a bus or a cluster. Several run as Dask tasks
+(batch/reprocess.py): on a local cluster with a worker process per core, or on the cluster of
+``--scheduler tcp://HOST:8786``. ``--scheduler none`` runs them here, one after another.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
-from scancell.cli._common import add_bus_arguments, bus_config, cell_name, fail
+from scancell.cli._common import fail
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,20 +22,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None,
                    help="output folder: one recording's (default: next to it, "
                         "<name>-reprocessed/); with several, the folder of their "
-                        "<name>-reprocessed/ folders")
+                        "<name>-reprocessed/ folders (an older output is replaced)")
     p.add_argument("--calib", default=None,
                    help="stereo.yaml to use instead of the recording's calib/stereo")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--truth-cell", default=None, metavar="CELL.toml",
                    help="simulated cell config: also each fused point's true error (default: "
                         "the simulated cell recorded in the file, if any)")
-    p.add_argument("--bus", action="store_true",
-                   help="spread the recordings over the reprocess workers on the bus "
-                        "(scancell worker reprocess); the files must be at the same path on "
-                        "every worker's host")
-    p.add_argument("--wait-workers", type=float, default=60.0, metavar="S",
-                   help="with --bus: give up when no worker has been on the bus for S s")
-    add_bus_arguments(p)
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local|none",
+                   help="where several recordings run as Dask tasks: a Dask scheduler's address, "
+                        "'local' (a local cluster, the default for several recordings), or "
+                        "'none' (here, one after another; the default for one). The files and "
+                        "--out must be at the same path on every worker's host")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
 
 
 def recordings(items: list[str]) -> list[Path]:
@@ -71,8 +73,9 @@ def main(args: argparse.Namespace) -> int:
         outs = output_folders(files, args.out)
     except ValueError as exc:
         return fail("reprocess", str(exc))
-    if args.bus:
-        return on_bus(args, files, outs)
+    scheduler = args.scheduler or ("none" if len(files) == 1 else "local")
+    if scheduler != "none":
+        return on_dask(args, scheduler, files, outs)
     failed = 0
     for f, out in zip(files, outs, strict=True):
         failed += local(args, f, out) != 0
@@ -111,58 +114,44 @@ def print_result(r: Any) -> None:
             print(f"  scan {s.get('scan_id')} (station {s.get('station')}): {s.get('error')}")
 
 
-def on_bus(args: argparse.Namespace, files: list[Path], outs: list[Path]) -> int:
-    import json
-
-    from scancell.bus import Bus, NoDaemon
-    from scancell.recorder.reading import RecordingError
-    from scancell.workers.reprocess_batch import ReprocessBatch
+def on_dask(args: argparse.Namespace, scheduler: str, files: list[Path], outs: list[Path]) -> int:
+    from scancell.batch.reprocess import SchedulerUnreachable, connect, run, write_summary
     from tqdm import tqdm
 
+    t0 = time.monotonic()
     try:
-        bus = Bus.open(bus_config(args), cell_name(args), wait_s=30.0)
-    except ValueError as exc:
-        return fail("reprocess", str(exc))
-    except NoDaemon as exc:
+        client = connect(None if scheduler == "local" else scheduler, args.workers)
+    except SchedulerUnreachable as exc:
         return fail("reprocess", str(exc), 3)
-    bar = None
     try:
-        bar = tqdm(total=0, unit="msg", desc="reprocess", disable=args.no_progress,
+        n_workers = len(client.scheduler_info()["workers"])
+        print(f"{len(files)} recordings on {scheduler} ({n_workers} workers); progress: "
+              f"{client.dashboard_link}", flush=True)
+        bar = tqdm(total=len(files), unit="rec", desc="reprocess", disable=args.no_progress,
                    file=sys.stderr)
 
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
+        def done(oc: Any, n: int, total: int) -> None:
+            bar.update(1)
+            scans = oc.result.get("scans", [])
+            what = (f"{sum(1 for s in scans if s.get('ok'))}/{len(scans)} scans -> {oc.out}"
+                    if oc.ok else f"FAILED: {oc.error}")
+            bar.write(f"[{n}/{total}] {oc.file.name} ({oc.worker}): {what}")
 
         try:
-            batch = ReprocessBatch(bus, list(zip(files, outs, strict=True)), args.calib,
-                                   args.truth_cell, on_event=bar.write, on_progress=progress)
-        except (RecordingError, OSError) as exc:
-            return fail("reprocess", str(exc))
-        bar.write(f"batch {batch.batch}: {len(files)} recordings, {batch.total_messages} "
-                  f"messages, for the reprocess workers of cell {bus.keys.cell!r}")
-        try:
-            tasks = batch.run(wait_workers_s=args.wait_workers)
-        except TimeoutError as exc:
-            return fail("reprocess", str(exc), 3)
-    finally:
-        if bar is not None:
+            outcomes = run(client, files, outs, args.calib, args.truth_cell, done)
+        finally:
             bar.close()
-        bus.close()
-    summary = {"batch": batch.batch, "tasks": [t.to_json() for t in tasks]}
+    finally:
+        cluster = getattr(client, "cluster", None) if scheduler == "local" else None
+        client.close()
+        if cluster is not None:
+            cluster.close()
     base = Path(args.out) if args.out and len(files) > 1 else outs[0].parent
-    base.mkdir(parents=True, exist_ok=True)
-    (base / f"reprocess-batch-{batch.batch}.json").write_text(json.dumps(summary, indent=2))
-    failed = [t for t in tasks if t.state != "done"]
-    attempts = [a for t in tasks for a in t.attempts]
-    workers = sorted({a["worker"] for a in attempts if a["state"] == "ok"})
-    again = [f"{a['worker']} {a['state']}" for a in attempts
-             if a["state"] in ("gone", "stalled", "refused")]
-    print(f"{len(tasks) - len(failed)}/{len(tasks)} recordings reprocessed by "
-          f"{len(workers)} worker(s) ({', '.join(workers)})"
-          + (f"; offered again after: {', '.join(again)}" if again else "")
-          + f"; batch summary {base / f'reprocess-batch-{batch.batch}.json'}")
-    for t in failed:
-        print(f"  {t.path}: {(t.result or {}).get('error')}")
+    summary = write_summary(base, outcomes, scheduler, time.monotonic() - t0)
+    failed = [o for o in outcomes if not o.ok]
+    workers = sorted({o.worker for o in outcomes if o.ok and o.worker})
+    print(f"{len(outcomes) - len(failed)}/{len(outcomes)} recordings reprocessed by "
+          f"{len(workers)} worker(s) in {time.monotonic() - t0:.1f} s; batch summary {summary}")
+    for o in failed:
+        print(f"  {o.file}: {o.error}")
     return 2 if failed else 0

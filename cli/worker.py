@@ -1,4 +1,4 @@
-"""``scancell worker scan | calibrate | fuse | inspect | acceptance | reprocess``: the analysis
+"""``scancell worker scan | calibrate | fuse | inspect | acceptance``: the analysis
 workers as bus clients."""
 
 from __future__ import annotations
@@ -42,9 +42,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                             "figures on acceptance/report")
     add_bus_arguments(acc)
     acc.add_argument("--out", default=None, help="folder for <job>/acceptance.json, .html")
-    rep = sub.add_parser("reprocess", help="recordings of the batches `scancell reprocess --bus` "
-                                           "offers -> their reprocessed folders")
-    add_bus_arguments(rep)
     ins = sub.add_parser("inspect", help="each job's final fusion/cloud against the nominal the "
                                          "plan or the cell names -> inspect/report, "
                                          "inspect/cloud")
@@ -65,16 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     return {"scan": scan_main, "calibrate": calibrate_main, "fuse": fuse_main,
-            "inspect": inspect_main, "acceptance": acceptance_main,
-            "reprocess": reprocess_main}[args.worker](args)
-
-
-def reprocess_main(args: argparse.Namespace) -> int:
-    from scancell.workers.reprocess_worker import ReprocessWorker
-
-    return serve(args, "worker reprocess", ReprocessWorker,
-                 lambda bus: f"reprocess worker on cell {bus.keys.cell!r}: waiting for batches "
-                             f"(scancell reprocess --bus)")
+            "inspect": inspect_main, "acceptance": acceptance_main}[args.worker](args)
 
 
 def acceptance_main(args: argparse.Namespace) -> int:

@@ -145,23 +145,6 @@ class CellKeys:
     def daemon_log(self) -> str:
         return f"{self.prefix}/daemon/log"
 
-    def reprocess_offer(self, batch: str) -> str:
-        """A reprocess batch's latched ``scancell.ReprocessOffer``: it is open, how much is left."""
-        return f"{self.prefix}/reprocess/{batch}/offer"
-
-    def reprocess_claim(self, batch: str) -> str:
-        """The batch's queryable: a worker's ``scancell.ReprocessClaim`` gets its next recording
-        (``scancell.ReprocessTask``)."""
-        return f"{self.prefix}/reprocess/{batch}/claim"
-
-    def reprocess_progress(self, batch: str, task: str) -> str:
-        """``scancell.ReprocessProgress`` of one recording, from the worker reprocessing it."""
-        return f"{self.prefix}/reprocess/{batch}/progress/{task}"
-
-    def reprocess_result(self, batch: str, task: str) -> str:
-        """``scancell.ReprocessResult`` of one recording."""
-        return f"{self.prefix}/reprocess/{batch}/result/{task}"
-
     def relative(self, key: str) -> str:
         """The part of ``key`` after ``scancell/<cell>/``; raises ValueError for a foreign key."""
         head = self.prefix + "/"

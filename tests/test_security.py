@@ -255,7 +255,7 @@ def test_ctl_and_a_scan_part_job_as_the_controller_a_service_cannot_move(secured
 def test_two_cells_on_one_router_each_sees_and_commands_only_its_own(tmp_path):
     """``scancell router --cells ca,cb``: cell ca's daemon cannot read cell cb's frames or
     command cb's robot; each controller moves its own robot only; the plant-wide monitor sees
-    both cells. A reprocess worker of a cell (service) claims a batch its engineer runs."""
+    both cells. A worker of a cell (service) shows in its engineer's list of workers."""
     import subprocess
     import sys
 
@@ -316,25 +316,17 @@ def test_two_cells_on_one_router_each_sees_and_commands_only_its_own(tmp_path):
                           atol=0.01)
         assert np.isclose(ctl["cb"].call("device/robot/joints")["joints_deg"][0], 22.0,
                           atol=0.01)
-        # a reprocess worker of cell ca (service) claims a batch an engineer of ca runs, and
-        # shows in `ctl workers` (its latched status through the router)
+        # a fuse worker of cell ca (service) shows in an engineer's `ctl workers` (its latched
+        # status through the router)
         from scancell.cli.ctl import live_workers
-        from scancell.workers.reprocess_batch import ReprocessBatch
-        from scancell.workers.reprocess_worker import ReprocessWorker
+        from scancell.workers.fuse import FuseWorker
 
-        from .test_recorder_cli import _small_recording
-
-        worker = ReprocessWorker(connect(cell_user("service", "ca"), "ca"), "w1")
+        worker = FuseWorker(connect(cell_user("service", "ca"), "ca"), worker_id="w1")
         worker.start()
         try:
             eng = connect(cell_user("engineer", "ca"), "ca")
-            wait_until(lambda: [(w["kind"], w.get("done")) for w in live_workers(eng)]
-                       == [("reprocess", 0)], 10, what="the worker's status via the router")
-            _small_recording(tmp_path / "a.mcap", "ca")
-            task = ReprocessBatch(eng, [(tmp_path / "a.mcap", tmp_path / "a-out")],
-                                  on_event=lambda line: None).run(wait_workers_s=10)[0]
-            assert task.worker == "w1" and task.state == "failed"
-            assert "no calib/stereo" in task.result["error"]  # its answer came back
+            wait_until(lambda: [w["kind"] for w in live_workers(eng)] == ["fuse"], 10,
+                       what="the worker's status via the router")
         finally:
             worker.stop()
         # the printed config is the same ACL, for zenohd
@@ -360,27 +352,6 @@ def _replies(bus: Bus, key: str) -> list[bytes]:
         if reply.ok is not None:
             out.append(reply.ok.payload.to_bytes())
     return out
-
-
-@pytest.mark.process
-def test_a_monitor_cannot_claim_reprocess_work_a_service_can(secured_cell):
-    """Least privilege (issue 39, 5): a claim hands out a task and its recording's path."""
-    engineer = secured_cell("engineer")  # runs the batch: answers its claims
-    key = f"scancell/{secured_cell.cell}/reprocess/b1/claim"
-
-    def on_query(query) -> None:
-        query.reply(key, b'{"task": "t1", "recording": "/var/lib/scancell/recordings/j1.mcap"}')
-        query.drop()
-
-    queryable = engineer.session.declare_queryable(key, on_query)
-    try:
-        service = secured_cell("service")
-        assert wait_until(lambda: _replies(service, key), 15, what="a service's claim")
-        monitor = secured_cell("monitor")
-        assert _replies(monitor, key) == []
-        assert monitor.call("status", timeout_s=5.0)["cell"]  # its status queries still work
-    finally:
-        queryable.undeclare()
 
 
 @pytest.mark.process

@@ -1,0 +1,1 @@
+"""Offline batch work on a Dask cluster: reprocessing archives of recordings (``reprocess``)."""
