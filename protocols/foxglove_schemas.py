@@ -120,21 +120,18 @@ def image_array(msg: RawImage_pb2.RawImage | CompressedImage_pb2.CompressedImage
     return arr.reshape(shape)
 
 
-def png_image(msg: RawImage_pb2.RawImage, fast: bool = False) -> CompressedImage_pb2.CompressedImage:
+def png_image(msg: RawImage_pb2.RawImage) -> CompressedImage_pb2.CompressedImage:
     """A RawImage as a lossless PNG CompressedImage (same stamp and frame): mono8 and mono16
     as grey, rgb8 as colour. The filters are chosen per row (OpenCV's fast filter set) and the
-    rows Huffman-coded: 0.27 of a fringe frame's bytes at ~130 MB/s a core, against zlib's
-    default strategy's 0.36 at 44 MB/s (benchmarks/bench_recording_size.py). ``fast``: stored
-    without filter or compression (~450 MB/s a core), for a writer that lags."""
+    rows Huffman-coded: 0.30 of a fringe frame's bytes at ~110 MB/s a core, against zlib's
+    default strategy's 0.38 at 52 MB/s (benchmarks/bench_recording_size.py)."""
     import cv2
 
     img = image_array(msg)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)  # OpenCV writes BGR input as RGB
-    opts = ([cv2.IMWRITE_PNG_COMPRESSION, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
-            if fast else
-            [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FAST_FILTERS,
-             cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY])
+    opts = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FAST_FILTERS,
+            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
     ok, data = cv2.imencode(".png", img, opts)
     if not ok:
         raise EncodingError(f"PNG encoding failed for a {msg.width}x{msg.height} {msg.encoding} image")

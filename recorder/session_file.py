@@ -76,7 +76,8 @@ class FileSettings:
     #: How camera frames are written (:data:`IMAGE_COMPRESSIONS`), losslessly: "png" holds a
     #: simulated full-size station's frames in 0.30 of their bytes, zstd chunks in 0.42
     #: (benchmarks/bench_recording_size.py); "none" for a recorder that cannot spare the CPU.
-    #: While the recorder lags (``hurry``) PNGs are stored uncompressed and chunks left so.
+    #: While the recorder lags (``hurry``) frames are written as they came, uncompressed (with
+    #: "png", a key then carries both foxglove.RawImage and foxglove.CompressedImage).
     image_compression: str = "png"
     chunk_bytes: int = 4 * 1024 * 1024
     #: A chunk is closed and handed to the OS at least this often: a crash loses no more.
@@ -158,14 +159,16 @@ class SessionFile:
         return "none" if self.settings.image_compression == "png" else self.settings.image_compression
 
     def _as_png(self, schema: str, payload: bytes, hurry: bool) -> tuple[str, bytes]:
-        """A RawImage as the PNG CompressedImage the "png" image compression writes; one that
-        is not a valid RawImage is written as it came (a recording loses nothing)."""
-        if schema != "foxglove.RawImage" or self.settings.image_compression != "png":
+        """A RawImage as the PNG CompressedImage the "png" image compression writes. In a hurry
+        it is written as it came, a RawImage on the same key (recoding costs ~3 copies of the
+        frame: at 300 MB/s the writer could not keep up and would drop); so is one that is not
+        a valid RawImage (a recording loses nothing)."""
+        if schema != "foxglove.RawImage" or self.settings.image_compression != "png" or hurry:
             return schema, payload
         from scancell.protocols import foxglove_schemas as fg
 
         try:
-            png = fg.png_image(fg.decode_proto(payload, schema), fast=hurry)
+            png = fg.png_image(fg.decode_proto(payload, schema))
         except EncodingError as exc:
             log.warning("a frame kept as it came, not as PNG: %s", exc)
             return schema, payload
@@ -179,7 +182,7 @@ class SessionFile:
     def write(self, topic: str, mime: str, schema: str, payload: bytes, att: Attachment,
               log_time_ns: int, hurry: bool = False) -> None:
         """Write one bus sample (raises EncodingError for an unknown schema, OSError on disk).
-        ``hurry``: the writer lags behind: an image is stored uncompressed."""
+        ``hurry``: the writer lags behind: an image is written as it came, uncompressed."""
         compression = self._compression_of(schema, payload, hurry)
         schema, payload = self._as_png(schema, payload, hurry)
         cid = self.channel(topic, mime, schema)
