@@ -228,3 +228,54 @@ def test_flush_is_time_driven(tmp_path):
     assert not f.maybe_flush(t)
     assert f.maybe_flush(t + 0.25)
     f.close()
+
+
+@pytest.mark.e2e
+def test_a_first_exposure_recording_reprocesses_as_that_exposure_alone(tmp_path):
+    """``[recorder] frames = "first_exposure"``: of an HDR scan the file keeps exposure 0, says
+    so (``exposures: 1``), and reprocesses to the cloud that exposure alone gives."""
+    from scancell.analysis.stereo_calibration import StereoCalibration
+    from scancell.bus.protocol import BusSample
+    from scancell.model.patterns import FringeSequence
+    from scancell.recorder.recorder import Recorder
+    from scancell.sim.cell import SimCell, SimCellConfig
+    from scancell.sim.scan_recording import scan_frames
+    from scancell.workers.reprocess import reprocess
+
+    cell = SimCell(SimCellConfig(camera_scale=8.0, part="flat", seed=5))
+    cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(cell.cfg.T_world_from_part[:3, 3],
+                                                              620.0)))
+    cell.load_sequence(FringeSequence())
+    n = len(FringeSequence())
+    exposures = [{c: [cell.render(c, k, brightness=b) for k in range(n)] for c in ("left", "right")}
+                 for b in (1.0, 0.25)]
+    rec = Recorder(None, RecorderSettings(frames="first_exposure"))
+    cell.rig.write_opencv_yaml(tmp_path / "stereo.yaml")
+    calib = StereoCalibration.read(tmp_path / "stereo.yaml")
+
+    def write(path, sets, keep) -> None:
+        f = SessionFile(path)
+        f.metadata("scancell.session", {"cell": "c1"})
+        enc = json.dumps({**calib.to_json(), "projector_width": 1280})
+        f.write(f"{P}/calib/stereo", "application/json", "scancell.StereoCalibration",
+                enc.encode(), Attachment(1, 0), 1)
+        for e, frames in enumerate(sets):
+            for cam, m, att in scan_frames("s-1", "s00", frames, "job", "scan", 10_000 * (e + 1)):
+                meta = {**att.meta, "exposure_index": e, "exposures": len(sets)}
+                sample = keep(BusSample(f"{P}/dev/{cam}/image", m.payload, m.mime, m.schema,
+                                        Attachment(att.stamp_ns, att.seq, None, meta)))
+                if sample is not None:
+                    f.write(sample.key, sample.mime, sample.schema, sample.payload,
+                            sample.attachment, att.stamp_ns)
+        f.close()
+
+    write(tmp_path / "hdr.mcap", exposures, rec._kept_frame)
+    write(tmp_path / "one.mcap", exposures[:1], lambda s: s)
+    assert rec.frames_skipped == 2 * n
+    kept = list(samples(tmp_path / "hdr.mcap", ["dev/*/image"]))
+    assert len(kept) == 2 * n and {(s.attachment.meta["exposures"],
+                                    s.attachment.meta["exposures_taken"]) for s in kept} == {(1, 2)}
+    a = reprocess(tmp_path / "hdr.mcap", tmp_path / "a", progress=False)
+    b = reprocess(tmp_path / "one.mcap", tmp_path / "b", progress=False)
+    assert [s["ok"] for s in a.scans] == [True]
+    assert a.clouds["s-1"].read_bytes() == b.clouds["s-1"].read_bytes()
