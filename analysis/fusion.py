@@ -9,7 +9,6 @@ calibrate worker's file or ``scancell calibrate hand-eye --json``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -101,7 +100,8 @@ def to_world(station: Station, T_ecs_from_mcs: np.ndarray) -> np.ndarray:
 @dataclass
 class FusedCloud:
     points: np.ndarray  # (N, 3) world, mm, resampled
-    per_station: dict[str, np.ndarray]  # world points of each station (not resampled)
+    #: world points of each station (not resampled), or an even sample of them (``counts``)
+    per_station: dict[str, np.ndarray]
     merged_count: int
     #: per fused point the 1-sigma noise of its inverse-variance weighted mean (mm); None when
     #: the stations carry no uncertainty
@@ -110,6 +110,11 @@ class FusedCloud:
     per_station_uncertainty: dict[str, np.ndarray] | None = None
     #: each station's camera centre (the MCS origin) in world, mm
     viewpoints: dict[str, np.ndarray] | None = None
+    #: each station's point count, where ``per_station`` holds only a sample of its points
+    counts: dict[str, int] | None = None
+
+    def count(self, name: str) -> int:
+        return self.counts[name] if self.counts else len(self.per_station[name])
 
     def viewpoint_of(self, points: np.ndarray) -> np.ndarray:
         """(N, 3): for each world point the camera centre of the station whose point lies
@@ -129,51 +134,6 @@ class FusedCloud:
         return np.array([self.viewpoints[n] for n in names])[owner[nearest]]
 
 
-def weighted_voxel_mean(clouds: Sequence[np.ndarray], sigmas: Sequence[np.ndarray],
-                        voxel_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per occupied voxel the inverse-variance weighted mean of the points of all ``clouds``
-    ((N_i, 3) mm, with ``sigmas`` their points' 1-sigma, mm) and that mean's 1-sigma (mm).
-    Open3D's voxel_down_sample averages with equal weights and has no weights argument, so the
-    grouping is done here with numpy, cloud by cloud: a merged copy of a full-size job's clouds
-    (66 M points, 1.6 GB) and its float voxel keys were most of the fuse worker's peak memory."""
-    clouds = [np.asarray(c, float).reshape(-1, 3) for c in clouds]
-    sigmas = [np.asarray(s, float).ravel() for s in sigmas]
-    n = sum(len(c) for c in clouds)
-    if n == 0:  # stations that saw nothing
-        return np.zeros((0, 3)), np.zeros(0)
-    full = [c for c in clouds if len(c)]
-    lo = np.min([np.floor(c.min(axis=0) / voxel_mm) for c in full], axis=0).astype(np.int64)
-    hi = np.max([np.floor(c.max(axis=0) / voxel_mm) for c in full], axis=0).astype(np.int64)
-    dims = hi - lo + 1
-    flat = np.empty(n, np.int64)
-    at = 0
-    for c in clouds:
-        key = flat[at:at + len(c)]
-        key[:] = np.floor(c[:, 0] / voxel_mm).astype(np.int64) - lo[0]
-        for i in (1, 2):
-            key *= dims[i]
-            key += np.floor(c[:, i] / voxel_mm).astype(np.int64) - lo[i]
-        at += len(c)
-    _, inverse = np.unique(flat, return_inverse=True)
-    del flat
-    voxels = int(inverse.max()) + 1
-    ok_sigma = np.concatenate([s[np.isfinite(s) & (s > 0)] for s in sigmas])
-    fallback = 1.0 / np.median(ok_sigma) ** 2 if len(ok_sigma) else 1.0
-    del ok_sigma
-    wsum = np.zeros(voxels)
-    total = np.zeros((voxels, 3))
-    at = 0
-    for c, s in zip(clouds, sigmas, strict=True):
-        inv = inverse[at:at + len(c)]
-        ok = np.isfinite(s) & (s > 0)
-        w = np.where(ok, 1.0 / np.maximum(s, 1e-6) ** 2, fallback)
-        wsum += np.bincount(inv, weights=w, minlength=voxels)
-        for i in range(3):
-            total[:, i] += np.bincount(inv, weights=w * c[:, i], minlength=voxels)
-        at += len(c)
-    return total / wsum[:, None], 1.0 / np.sqrt(wsum)
-
-
 def thin(points: np.ndarray, voxel_mm: float) -> np.ndarray:
     """One point per occupied ``voxel_mm`` voxel (the mean of its points, unweighted; Open3D):
     a cloud to look at, not to measure."""
@@ -182,9 +142,13 @@ def thin(points: np.ndarray, voxel_mm: float) -> np.ndarray:
 
 
 def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 0.5) -> FusedCloud:
-    """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling).
-    With per-point uncertainty on every station, each voxel is the inverse-variance weighted
-    mean of its points."""
+    """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling)
+    as the fuse worker does it (:class:`VoxelTiles`: each voxel the mean of its points, weighted
+    by their inverse variance when every station carries per-point uncertainty)."""
+    import tempfile
+
+    from scancell.analysis.voxel_tiles import VoxelTiles
+
     check_rigid(T_ecs_from_mcs, "T_ecs_from_mcs")
     world = {s.name: s.world(T_ecs_from_mcs) for s in stations}
     count = sum(len(c) for c in world.values())
@@ -192,10 +156,13 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
                    for s in stations)
     per_unc = {s.name: np.asarray(s.uncertainty, float) for s in stations} if weighted else None
     sigma = None
-    if voxel_mm > 0 and weighted:
-        pts, sigma = weighted_voxel_mean(list(world.values()), list(per_unc.values()), voxel_mm)
-    elif voxel_mm > 0:
-        pts = thin(np.concatenate(list(world.values())), voxel_mm)
+    if voxel_mm > 0:
+        with tempfile.TemporaryDirectory(prefix="scancell-fuse-") as tmp:
+            tiles = VoxelTiles(tmp, voxel_mm)
+            for name, pts in world.items():
+                tiles.add(pts, per_unc[name] if per_unc else None)
+            pts, sig = tiles.model()
+        sigma = sig if weighted else None
     else:
         pts = np.concatenate(list(world.values()))
         sigma = np.concatenate(list(per_unc.values())) if per_unc else None

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scancell.analysis.grid_kernels import CellGrid, grid_nearest, grid_normals, in_box
+from scancell.analysis.station_store import StationStore
 from scipy.spatial import cKDTree
 
 
@@ -61,20 +62,78 @@ def nearest_within(grid: CellGrid, query: np.ndarray, radius: float
     return dist, np.where(idx >= 0, grid.order[np.maximum(idx, 0)], -1)
 
 
+class Distribution:
+    """A streaming summary of non-negative values: count, sum, sum of squares, extremes, the
+    share below each of ``marks``, and a fixed-bin histogram (``bins`` bins over [0, ``top``),
+    the last one holding everything beyond) for the pictures and the median. A job's overlap
+    errors are summed station by station without keeping them (issue 37: a whole car body has
+    ~10^9 of them)."""
+
+    def __init__(self, top: float, bins: int, marks: tuple[float, ...] = ()) -> None:
+        self.top, self.bins, self.marks = float(top), int(bins), tuple(marks)
+        self.n, self.total, self.squares = 0, 0.0, 0.0
+        self.lo, self.hi = float("inf"), float("-inf")
+        self.below = [0] * len(self.marks)
+        self.counts = np.zeros(self.bins, np.int64)
+
+    def add(self, values: np.ndarray) -> None:
+        v = np.asarray(values, float).ravel()
+        if not len(v):
+            return
+        self.n += len(v)
+        self.total += float(v.sum())
+        self.squares += float(np.dot(v, v))
+        self.lo, self.hi = min(self.lo, float(v.min())), max(self.hi, float(v.max()))
+        for i, m in enumerate(self.marks):
+            self.below[i] += int(np.count_nonzero(v < m))
+        k = np.minimum((v * (self.bins / self.top)).astype(np.int64), self.bins - 1)
+        self.counts += np.bincount(k, minlength=self.bins)
+
+    @property
+    def mean(self) -> float:
+        return self.total / self.n
+
+    @property
+    def std(self) -> float:
+        return float(np.sqrt(max(self.squares / self.n - self.mean ** 2, 0.0)))
+
+    def share_below(self, mark: float) -> float:
+        return self.below[self.marks.index(mark)] / self.n
+
+    def median(self) -> float:
+        """Within half a bin (top / bins / 2)."""
+        k = int(np.searchsorted(np.cumsum(self.counts), self.n / 2.0))
+        return (k + 0.5) * self.top / self.bins
+
+    def histogram(self, bins: int = 60) -> tuple[np.ndarray, np.ndarray]:
+        """(counts, edges) from 0 to the bin holding the largest value, in about ``bins`` bins."""
+        last = int(np.flatnonzero(self.counts).max()) + 1 if self.n else 1
+        group = max(1, int(np.ceil(last / bins)))
+        c = np.add.reduceat(self.counts[:last], np.arange(0, last, group))
+        return c, np.arange(len(c) + 1) * group * self.top / self.bins
+
+
+#: the overlap errors' distributions (top, bins, marks): translation (mm), rotation (deg),
+#: translation over its own noise; bins of 1 µm, 0.01 deg and 0.005 (medians within half that)
+TRANSLATION_BINS = (5.0, 5000, (0.6, 1.0))
+ROTATION_BINS = (90.0, 9000, (10.0,))
+NORMALISED_BINS = (20.0, 4000, ())
+
+
 @dataclass
 class PairMetrics:
+    """One ordered pair's overlap: how many of A's points overlap B, and their mean errors."""
+
     a: str
     b: str
     n: int  # points of A in overlap with B
-    translation_mm: np.ndarray = field(repr=False)
-    rotation_deg: np.ndarray = field(repr=False)
-    #: per overlap point sqrt(σ_A² + σ_B²) of the two points compared (mm); None if unknown
-    sigma_mm: np.ndarray | None = field(default=None, repr=False)
+    translation_mean_mm: float | None = None
+    rotation_mean_deg: float | None = None
 
-    def summary(self) -> dict[str, float | int | str]:
+    def summary(self) -> dict[str, float | int | str | None]:
         return {"a": self.a, "b": self.b, "n": self.n,
-                "translation_mean_mm": float(self.translation_mm.mean()) if self.n else None,
-                "rotation_mean_deg": float(self.rotation_deg.mean()) if self.n else None}
+                "translation_mean_mm": self.translation_mean_mm,
+                "rotation_mean_deg": self.rotation_mean_deg}
 
 
 def _check(name: str, pts: np.ndarray) -> np.ndarray:
@@ -88,15 +147,47 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
     return p
 
 
+@dataclass
+class OverlapValues:
+    """A job's overlap errors, summed pair by pair (:class:`Distribution`), and their noise."""
+
+    translation: Distribution = field(default_factory=lambda: Distribution(*TRANSLATION_BINS))
+    rotation: Distribution = field(default_factory=lambda: Distribution(*ROTATION_BINS))
+    normalised: Distribution = field(default_factory=lambda: Distribution(*NORMALISED_BINS))
+    #: over the points with a known noise s = sqrt(σ_A² + σ_B²): Σ d/s², Σ 1/s², Σ s, count
+    weighted_sum: float = 0.0
+    weight: float = 0.0
+    sigma_sum: float = 0.0
+    sigma_n: int = 0
+    #: every overlap point had a known, positive noise
+    all_sigma: bool = True
+
+    def add(self, d: np.ndarray, rot: np.ndarray, sigma: np.ndarray | None) -> None:
+        self.translation.add(d)
+        self.rotation.add(rot)
+        if sigma is None:
+            self.all_sigma = self.all_sigma and not len(d)
+            return
+        ok = np.isfinite(sigma) & (sigma > 0)
+        self.all_sigma = self.all_sigma and bool(ok.all())
+        if ok.any():
+            w = 1.0 / sigma[ok] ** 2
+            self.weighted_sum += float(np.sum(w * d[ok]))
+            self.weight += float(np.sum(w))
+            self.sigma_sum += float(np.sum(sigma[ok]))
+            self.sigma_n += int(ok.sum())
+            self.normalised.add(d[ok] / sigma[ok])
+
+
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
-          nb: np.ndarray, grid_b: CellGrid, ua: np.ndarray | None = None,
+          nb: np.ndarray, grid_b: CellGrid, values: OverlapValues, ua: np.ndarray | None = None,
           ub: np.ndarray | None = None) -> PairMetrics:
     # only A's points within r of B's grid can overlap it: most station pairs share none
     near = in_box(a, *grid_b.bounds(radius))
     dist, j = nearest_within(grid_b, a[near], radius)
     hit = np.isfinite(dist)
     if not hit.any():
-        return PairMetrics(*names, 0, np.zeros(0), np.zeros(0))
+        return PairMetrics(*names, 0)
     overlap, j = near[hit], j[hit]
     sigma = np.hypot(ua[overlap], ub[j]) if ua is not None and ub is not None else None
     c1, n1 = a[overlap], na[overlap]
@@ -104,7 +195,9 @@ def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], n
     v = c2 - c1
     d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
     cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign is arbitrary
-    return PairMetrics(*names, len(overlap), d, np.degrees(np.arccos(cos)), sigma)
+    rot = np.degrees(np.arccos(cos))
+    values.add(d, rot, sigma)
+    return PairMetrics(*names, len(overlap), float(d.mean()), float(rot.mean()))
 
 
 @dataclass
@@ -112,39 +205,24 @@ class MetricsReport:
     radius_mm: float
     spacing_mm: float
     pairs: list[PairMetrics]
-
-    def values(self) -> tuple[np.ndarray, np.ndarray]:
-        d = np.concatenate([p.translation_mm for p in self.pairs]) if self.pairs else np.zeros(0)
-        r = np.concatenate([p.rotation_deg for p in self.pairs]) if self.pairs else np.zeros(0)
-        return d, r
-
-    def sigmas(self) -> np.ndarray | None:
-        """sqrt(σ_A² + σ_B²) of every overlap point, if every pair has it."""
-        if not self.pairs or any(p.sigma_mm is None for p in self.pairs if p.n):
-            return None
-        return np.concatenate([p.sigma_mm for p in self.pairs if p.n])
+    values: OverlapValues
 
     def to_json(self) -> dict:
-        d, r = self.values()
-        if len(d) == 0:
+        t, r, v = self.values.translation, self.values.rotation, self.values
+        if t.n == 0:
             raise MetricsError("no overlap between any pair of clouds")
-        translation = {"max": float(d.max()), "min": float(d.min()), "mean": float(d.mean()),
-                       "std": float(d.std()), "p_lt_0_6": float(np.mean(d < 0.6)),
-                       "p_lt_1_0": float(np.mean(d < 1.0))}
-        s = self.sigmas()
-        if s is not None and len(s) == len(d):
-            ok = np.isfinite(s) & (s > 0)
-            if ok.any():
-                w = 1.0 / s[ok] ** 2
-                # inverse-variance weighted mean; and the errors in units of their own noise
-                # (a median near 0.67 means the overlap errors are the scanner's noise alone)
-                translation["weighted_mean"] = float(np.sum(w * d[ok]) / np.sum(w))
-                translation["normalised_median"] = float(np.median(d[ok] / s[ok]))
-                translation["expected_mean"] = float(np.mean(s[ok]) * np.sqrt(2 / np.pi))
+        translation = {"max": t.hi, "min": t.lo, "mean": t.mean, "std": t.std,
+                       "p_lt_0_6": t.share_below(0.6), "p_lt_1_0": t.share_below(1.0)}
+        if v.all_sigma and v.sigma_n:
+            # inverse-variance weighted mean; and the errors in units of their own noise
+            # (a median near 0.67 means the overlap errors are the scanner's noise alone)
+            translation["weighted_mean"] = v.weighted_sum / v.weight
+            translation["normalised_median"] = v.normalised.median()
+            translation["expected_mean"] = v.sigma_sum / v.sigma_n * float(np.sqrt(2 / np.pi))
         return {
             "translation_mm": translation,
-            "rotation_deg": {"max": float(r.max()), "min": float(r.min()), "mean": float(r.mean()),
-                             "std": float(r.std()), "p_lt_10": float(np.mean(r < 10.0))},
+            "rotation_deg": {"max": r.hi, "min": r.lo, "mean": r.mean, "std": r.std,
+                             "p_lt_10": r.share_below(10.0)},
             "pairs": [p.summary() for p in self.pairs],
             "radius_mm": self.radius_mm, "spacing_mm": self.spacing_mm,
         }
@@ -154,25 +232,30 @@ class OverlapComparer:
     """The metric tool one cloud at a time, as a fuse worker receives stations: each cloud
     added is compared with every cloud added before it (the ordered pair (earlier, new)), so
     a job's pairs are done while it measures. The neighbourhood radius is ``radius_factor``
-    x the mean spacing of the first cloud. Only a cloud's points, normals and uncertainty are
-    kept; its grid serves the pairs of its own ``add``."""
+    x the mean spacing of the first cloud. The errors are summed as they come
+    (:class:`OverlapValues`). A cloud's points, normals and uncertainty are kept for the pairs
+    of the clouds after it: in memory, or with ``store`` on disk (a whole car body's stations
+    do not fit in memory), where a new cloud reads back only the part of each earlier one
+    within its own box."""
 
-    def __init__(self, radius_factor: float = 6.0) -> None:
+    def __init__(self, radius_factor: float = 6.0, store: StationStore | None = None) -> None:
         self.radius_factor = radius_factor
         self.spacing_mm: float | None = None
         self.radius_mm: float | None = None
         self.pairs: list[PairMetrics] = []
+        self.values = OverlapValues()
+        self.store = store
         self._clouds: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
         self._boxes: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # name -> its cells' box
 
     @property
     def names(self) -> list[str]:
-        return list(self._clouds)
+        return list(self._boxes)
 
     def add(self, name: str, points: np.ndarray, uncertainty: np.ndarray | None = None) -> None:
         """Compare cloud ``name`` (N, 3, mm, the others' frame) with every cloud before it.
         ``uncertainty``: per-point 1-sigma (mm), or None."""
-        if name in self._clouds:
+        if name in self._boxes:
             raise MetricsError(f"{name}: added twice")
         p = _check(name, points)
         if self.radius_mm is None:
@@ -182,13 +265,19 @@ class OverlapComparer:
         grid = CellGrid(p, r)
         nrm = normals(p, r, grid)
         box = grid.bounds(r)
-        for a, (pa, na, ua) in self._clouds.items():
+        for a in self.names:
             lo, hi = self._boxes[a]
             if np.any(lo > box[1]) or np.any(hi < box[0]):  # too far apart to overlap
-                self.pairs.append(PairMetrics(a, name, 0, np.zeros(0), np.zeros(0)))
+                self.pairs.append(PairMetrics(a, name, 0))
                 continue
-            self.pairs.append(_pair(pa, p, r, (a, name), na, nrm, grid, ua, uncertainty))
-        self._clouds[name] = (p, nrm, uncertainty)
+            pa, na, ua = (self.store.load(a, *box) if self.store is not None
+                          else self._clouds[a])
+            self.pairs.append(_pair(pa, p, r, (a, name), na, nrm, grid, self.values, ua,
+                                    uncertainty))
+        if self.store is not None:
+            self.store.put(name, p, nrm, uncertainty)
+        else:
+            self._clouds[name] = (p, nrm, uncertainty)
         self._boxes[name] = grid.bounds()
 
     def report(self) -> MetricsReport:
@@ -204,7 +293,7 @@ class OverlapComparer:
                                f"({', '.join(names)}); same frame and units?")
         order = {n: i for i, n in enumerate(names)}
         pairs = sorted(self.pairs, key=lambda m: (order[m.a], order[m.b]))
-        return MetricsReport(self.radius_mm, self.spacing_mm, pairs)
+        return MetricsReport(self.radius_mm, self.spacing_mm, pairs, self.values)
 
 
 def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0,
@@ -230,22 +319,22 @@ def histograms(report: MetricsReport, folder: str) -> list[str]:
 
     import matplotlib.pyplot as plt
 
-    d, r = report.values()
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     files = []
-    for values, name, unit, marks in ((d, "translation_error", "mm", (0.6, 1.0)),
-                                      (r, "rotation_error", "deg", (10.0,))):
+    for dist, name, unit in ((report.values.translation, "translation_error", "mm"),
+                             (report.values.rotation, "rotation_error", "deg")):
+        counts, edges = dist.histogram(60)
         fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-        ax.hist(values, bins=60, color="#3b6ea8")
-        for m, style in zip(marks, ("--", ":"), strict=False):
+        ax.stairs(counts, edges, fill=True, color="#3b6ea8")
+        for m, style in zip(dist.marks, ("--", ":"), strict=False):
             ax.axvline(m, color="#c0392b", ls=style, lw=1,
-                       label=f"{np.mean(values < m):.2%} of points < {m:g} {unit}")
+                       label=f"{dist.share_below(m):.2%} of points < {m:g} {unit}")
         ax.legend(fontsize=8, loc="upper right")
         ax.set_xlabel(f"{name.replace('_', ' ')} ({unit})")
         ax.set_ylabel("points")
-        ax.set_title(f"{name.replace('_', ' ')}: mean {values.mean():.4f} {unit}, "
-                     f"std {values.std():.4f}, n = {len(values)}", fontsize=9)
+        ax.set_title(f"{name.replace('_', ' ')}: mean {dist.mean:.4f} {unit}, "
+                     f"std {dist.std:.4f}, n = {dist.n}", fontsize=9)
         fig.tight_layout()
         path = out / f"{name}.png"
         fig.savefig(path)

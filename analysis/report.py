@@ -92,10 +92,10 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
     lines += [f"![{Path(p).stem}]({Path(p).name})" for p in pictures] + [""]
     lines += ["## Stations", "", "| station | points | overlapping pairs | mean translation (mm) |",
               "|---|---|---|---|"]
-    for name, pts in fused.per_station.items():
+    for name in fused.per_station:
         pairs = [p for p in m["pairs"] if name in (p["a"], p["b"]) and p["n"]]
         mean = np.mean([p["translation_mean_mm"] for p in pairs]) if pairs else float("nan")
-        lines.append(f"| {name} | {len(pts)} | {len(pairs)} | {mean:.4f} |")
+        lines.append(f"| {name} | {fused.count(name)} | {len(pairs)} | {mean:.4f} |")
     if fused.per_station_uncertainty:
         lines += uncertainty_lines(fused, t, out)
     if truth is not None:

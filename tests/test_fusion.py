@@ -162,31 +162,35 @@ def test_error_budget_follows_the_tracker_noise(stations):
                   hand_eye_rms_mm=None)["dominant"].startswith("the tracker")
 
 
-def test_weighted_voxel_means_cloud_by_cloud_equal_those_of_the_merged_cloud():
-    """Station by station (no merged copy) gives each voxel the inverse-variance weighted mean
-    of all its points, as a plain per-voxel loop does; a point without a usable sigma weighs
-    as the median one."""
-    from scancell.analysis.fusion import weighted_voxel_mean
+def test_voxel_tiles_on_disk_give_the_weighted_means_of_the_whole_job(tmp_path):
+    """The fuse worker adds each station's voxel sums to tiles on disk as it comes: the model
+    read back tile by tile gives each voxel the inverse-variance weighted mean of all its points
+    (as a plain per-voxel loop over the merged points does), across tile borders and negative
+    coordinates; a point without a usable sigma weighs as its station's median one."""
+    from scancell.analysis.voxel_tiles import VoxelTiles
 
-    rng = np.random.default_rng(4)
-    clouds = [rng.uniform([-3, 10, 2000], [3, 14, 2004], (n, 3)) for n in (400, 0, 700, 300)]
+    rng = np.random.default_rng(6)
+    clouds = [rng.uniform([-9, -3, -2], [7, 6, 3], (n, 3)) for n in (3000, 0, 2000, 2500)]
     sigmas = [rng.uniform(0.01, 0.05, len(c)) for c in clouds]
     sigmas[2][:5] = np.nan
-    pts, sig = weighted_voxel_mean(clouds, sigmas, 1.0)
-    one_pts, one_sig = weighted_voxel_mean([np.concatenate(clouds)], [np.concatenate(sigmas)],
-                                           1.0)
-    np.testing.assert_allclose(pts, one_pts, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(sig, one_sig, rtol=1e-12)
-    allp, alls = np.concatenate(clouds), np.concatenate(sigmas)
-    w = np.where(np.isfinite(alls), 1 / alls ** 2, 1 / np.nanmedian(alls) ** 2)
-    keys = [tuple(k) for k in np.floor(allp / 1.0).astype(int)]
-    voxels = {}
-    for k, p, wi in zip(keys, allp, w, strict=True):
-        voxels.setdefault(k, []).append((p, wi))
-    assert len(voxels) == len(pts)
-    want = sorted(tuple(np.round(sum(wi * p for p, wi in v) / sum(wi for _, wi in v), 9))
-                  for v in voxels.values())
-    got = sorted(tuple(np.round(p, 9)) for p in pts)
-    np.testing.assert_allclose(np.array(got), np.array(want), atol=1e-8)
-    empty = weighted_voxel_mean([np.zeros((0, 3))], [np.zeros(0)], 1.0)
-    assert empty[0].shape == (0, 3) and empty[1].shape == (0,)
+    tiles = VoxelTiles(tmp_path / "t", 0.5, tile_voxels=4)  # 2 mm tiles: many borders
+    for c, s in zip(clouds, sigmas, strict=True):
+        tiles.add(c, s)
+    pts, sig = tiles.model()
+    assert len(list((tmp_path / "t").glob("*.bin"))) > 20
+    voxels: dict = {}
+    for c, s in zip(clouds, sigmas, strict=True):
+        w = np.where(np.isfinite(s), 1 / s ** 2, 1 / np.nanmedian(s) ** 2) if len(s) else s
+        for k, p, wi in zip(map(tuple, np.floor(c / 0.5).astype(int)), c, w, strict=True):
+            voxels.setdefault(k, []).append((p, wi))
+    want = np.array([sum(wi * p for p, wi in v) / sum(wi for _, wi in v) for v in voxels.values()])
+    want_s = np.array([1 / np.sqrt(sum(wi for _, wi in v)) for v in voxels.values()])
+    assert len(pts) == len(want)
+    a, b = np.lexsort(pts.T), np.lexsort(want.T)
+    np.testing.assert_allclose(pts[a], want[b], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sig[a], want_s[b], rtol=1e-9)
+    tiles.remove()
+    assert not (tmp_path / "t").exists()
+    empty = VoxelTiles(tmp_path / "e", 1.0)
+    empty.add(np.zeros((0, 3)))
+    assert empty.model()[0].shape == (0, 3)

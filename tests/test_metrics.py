@@ -148,3 +148,45 @@ def test_clouds_compared_one_at_a_time_find_every_overlap_a_k_d_tree_finds():
     lone.add("a", clouds["a"])
     with pytest.raises(MetricsError, match="at least two clouds"):
         lone.report()
+
+
+@pytest.mark.unit
+def test_streamed_statistics_are_those_of_the_values():
+    from scancell.analysis.metrics import Distribution
+
+    v = np.abs(np.random.default_rng(3).normal(0.0, 0.05, 200_000))
+    d = Distribution(5.0, 5000, (0.06, 1.0))
+    for part in np.array_split(v, 7):  # station by station
+        d.add(part)
+    assert d.n == len(v) and d.lo == v.min() and d.hi == v.max()
+    assert d.mean == pytest.approx(v.mean(), rel=1e-12) and d.std == pytest.approx(v.std(), rel=1e-9)
+    assert d.share_below(0.06) == np.mean(v < 0.06) and d.share_below(1.0) == 1.0
+    assert abs(d.median() - np.median(v)) <= 0.5 * 5.0 / 5000 + 1e-12
+    counts, edges = d.histogram(60)
+    assert counts.sum() == len(v) and edges[0] == 0 and edges[-1] >= v.max()
+
+
+@pytest.mark.unit
+def test_clouds_kept_on_disk_give_the_figures_of_clouds_kept_in_memory(tmp_path):
+    """A fuse worker keeps its stations on disk (float32 points, float16 normals): the pairs
+    and the figures are those of the stations kept in memory."""
+    from scancell.analysis.metrics import OverlapComparer
+    from scancell.analysis.station_store import StationStore
+
+    rng = np.random.default_rng(5)
+    clouds = {n: plane(offset=o + rng.normal(0, 0.005), shift_xy=x, seed=k, noise=0.01)
+              for k, (n, o, x) in enumerate((("a", 0.0, 0.0), ("b", 0.02, 20.0),
+                                             ("c", 0.01, 40.0)))}
+    sig = {n: np.full(len(c), 0.01) for n, c in clouds.items()}
+    mem, disk = OverlapComparer(), OverlapComparer(store=StationStore(tmp_path / "st"))
+    for n, c in clouds.items():
+        mem.add(n, c, sig[n])
+        disk.add(n, c, sig[n])
+    a, b = mem.report().to_json(), disk.report().to_json()
+    assert [p["n"] for p in a["pairs"]] == [p["n"] for p in b["pairs"]]
+    for key in ("mean", "std", "max", "p_lt_0_6", "weighted_mean", "normalised_median"):
+        assert a["translation_mm"][key] == pytest.approx(b["translation_mm"][key], rel=1e-3,
+                                                         abs=1e-5), key
+    assert a["rotation_deg"]["mean"] == pytest.approx(b["rotation_deg"]["mean"], abs=0.01)
+    assert sorted(p.name for p in (tmp_path / "st").iterdir())[:3] == [
+        "00000.normals.npy", "00000.points.npy", "00000.uncertainty.npy"]

@@ -28,6 +28,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
+import tempfile
 import threading
 import time
 import zlib
@@ -38,9 +41,10 @@ from typing import Any
 import numpy as np
 from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
-from scancell.analysis.fusion import Station, check_rigid, fuse, thin
+from scancell.analysis.fusion import FusedCloud, Station, check_rigid, thin, to_world
 from scancell.analysis.metrics import MetricsError, MetricsReport, OverlapComparer
 from scancell.analysis.station_pose import StationPoseError, station_pose
+from scancell.analysis.station_store import StationStore
 from scancell.analysis.station_uncertainty import (
     StatedSources,
     StationUncertainty,
@@ -49,6 +53,7 @@ from scancell.analysis.station_uncertainty import (
     scanner_fixed_overlap,
     station_uncertainty,
 )
+from scancell.analysis.voxel_tiles import VoxelTiles
 from scancell.bus.protocol import BusLike
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
@@ -66,9 +71,22 @@ log = logging.getLogger(__name__)
 class JobStations:
     job_id: str
     ecs: dict[str, dict[str, Any]] = field(default_factory=dict)  # station -> StationEcs
-    clouds: dict[str, np.ndarray] = field(default_factory=dict)  # station -> MCS points
-    #: station -> per-point 1-sigma (mm), where the scan worker sent it
+    #: station -> an even sample of its MCS points (SAMPLE of them); the whole cloud and its
+    #: per-point 1-sigma are in ``mcs`` on disk
+    clouds: dict[str, np.ndarray] = field(default_factory=dict)
+    #: station -> the sample's per-point 1-sigma (mm), where the scan worker sent it
     uncertainty: dict[str, np.ndarray] = field(default_factory=dict)
+    #: station -> its point count
+    counts: dict[str, int] = field(default_factory=dict)
+    #: the job's folder on disk: the stations' clouds (``mcs``), their world points for the
+    #: overlap metric (``world``) and the model's voxel sums (``tiles``); removed after the job
+    spool: Path | None = None
+    mcs: StationStore | None = None
+    tiles: VoxelTiles | None = None
+    #: station -> the same sample of its points in world, and their 1-sigma
+    world_samples: dict[str, np.ndarray] = field(default_factory=dict)
+    #: station -> its mean true error (mm; simulation only), from all its points
+    true_error: dict[str, float] = field(default_factory=dict)
     fused: dict[str, Station] = field(default_factory=dict)
     display: dict[str, np.ndarray] = field(default_factory=dict)  # thinned world points
     ended: str | None = None  # done | failed | aborted
@@ -92,6 +110,18 @@ class JobStations:
     #: (T_ecs_from_mcs bytes) their world points came through
     comparer: OverlapComparer | None = None
     comparer_hand_eye: bytes = b""
+
+    def open_spool(self, root: Path) -> None:
+        if self.spool is None:
+            self.spool = Path(tempfile.mkdtemp(prefix=f"{self.job_id}-", dir=root))
+            self.mcs = StationStore(self.spool / "mcs")
+
+    def close_spool(self) -> None:
+        """Delete the job's clouds on disk (its samples and figures stay)."""
+        if self.spool is not None:
+            shutil.rmtree(self.spool, ignore_errors=True)
+        self.spool = self.mcs = self.tiles = None
+        self.comparer = None
     #: check station -> its figures, evaluated as soon as its record and cloud are both in
     check_results: dict[str, dict[str, Any]] = field(default_factory=dict)
 
@@ -105,7 +135,13 @@ class FuseSettings:
     cloud_wait_s: float = 120.0
     #: A function (points world mm) -> distances to the true surface (mm), simulation only.
     truth: Any = None
+    #: where the jobs' clouds wait on disk (default: a folder in the system's temporary one)
+    spool_dir: Path | None = None
 
+
+#: points of each station kept in memory (an even sample): for the report's pictures, the
+#: viewpoint of the mesh's normals, the ECS comparison and the scanner's overlap budget
+SAMPLE = 10_000
 
 class FuseWorker(ThreadedWorker[tuple[str, str]]):
     """Fuses each scan_part station as its cloud and ECS arrive; at the job's end writes the
@@ -129,7 +165,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         #: writes it; the others keep its data and take it over if the owner is gone
         self.share = WorkShare(bus, "fuse", worker_id)
         self.share.on_departure = self._take_over
-        #: ended jobs another worker owns, until their final report is seen
+        #: where every job's folder of clouds goes (removed when the worker stops)
+        self.spool_root = Path(tempfile.mkdtemp(
+            prefix=f"scancell-fuse-{os.getpid()}-", dir=self.settings.spool_dir))
 
     # ---------------------------------------------------------------- lifecycle
     def on_start(self) -> None:
@@ -180,6 +218,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 self._job(job_id).check_clouds[station] = pts
             self.submit(("check", f"{job_id}\0{station}"))
             return
+        pts, unc = pts.astype(np.float32), None if unc is None else unc.astype(np.float32)
         scan_id = str(meta.get("scan_id", ""))
         with self._lock:
             job = self._job(job_id)
@@ -190,9 +229,18 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                             job_id, station, scan_id, meta.get("worker"))
                 return
             job.scan_ids[station] = scan_id
-            self._job(job_id).clouds[station] = pts
+            job.open_spool(self.spool_root)
+            try:  # the whole cloud waits on disk: a job's clouds do not fit in memory
+                job.mcs.put(station, pts, None, unc)
+            except OSError as exc:
+                log.error("job %s station %s: its cloud cannot be kept (%s); not fused",
+                          job_id, station, exc.strerror or exc)
+                return
+            k = max(1, len(pts) // SAMPLE)
+            job.clouds[station] = pts[::k].astype(float)
+            job.counts[station] = len(pts)
             if unc is not None:
-                self._job(job_id).uncertainty[station] = unc.astype(float)
+                job.uncertainty[station] = unc[::k].astype(float)
         self.submit(("station", f"{job_id}\0{station}"))
 
     def _on_scan_result(self, sample: Any) -> None:
@@ -224,10 +272,17 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
 
     def on_stop(self) -> None:
         self.share.stop()
+        shutil.rmtree(self.spool_root, ignore_errors=True)
 
     def _on_report(self, sample: Any) -> None:
         body = sample.decode()
-        self.share.answered(str(body.get("job_id")))
+        job_id = str(body.get("job_id"))
+        self.share.answered(job_id)
+        if body.get("worker") and body.get("worker") != self.share.worker_id:
+            with self._lock:  # another worker's job, reported: its clouds are not needed
+                job = self.jobs.get(job_id)
+                if job is not None:
+                    job.close_spool()
 
     def _take_over(self, worker: str) -> None:
         for job_id in self.share.take_over(worker):
@@ -249,11 +304,13 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self.finish(arg)
 
     def add_station(self, job_id: str, station: str) -> Station | None:
-        """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in."""
+        """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in: its
+        pose, uncertainty, overlaps with the stations before it and voxel sums, from its whole
+        cloud read back from disk; then only a sample of it stays in memory."""
         with self._lock:
             job = self._job(job_id)
-            ecs, cloud, he = job.ecs.get(station), job.clouds.get(station), self.hand_eye.body
-            if ecs is None or cloud is None or station in job.fused:
+            ecs, sample, he = job.ecs.get(station), job.clouds.get(station), self.hand_eye.body
+            if ecs is None or sample is None or station in job.fused or job.mcs is None:
                 return None
         if he is None:
             log.error("station %s of %s: no hand-eye calibration on calib/hand_eye; not fused",
@@ -266,25 +323,32 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return None
         T_ecs_from_mcs = pose.T_ecs_from_mcs
         T_world_from_ecs = pose.T_world_from_mcs(weighted=True) @ np.linalg.inv(T_ecs_from_mcs)
+        cloud, _, unc = job.mcs.load(station)
         noise = None
         stated_sigma = ecs.get("sigma_mm") is not None or ecs.get("smr_sigma_mm") is not None
         if stated_sigma and len(cloud):
             noise = ecs_noise_effect(pose, cloud)
-            unc = job.uncertainty.get(station)
             su = station_uncertainty(
                 pose, cloud, 0.0 if unc is None else unc,
                 StatedSources.from_json(ecs.get("uncertainty_sources"), he),
                 seed=zlib.crc32(station.encode()))
             with self._lock:
                 job.station_uncertainty[station] = su
-        st = Station(station, cloud, T_world_from_ecs, noise, job.uncertainty.get(station))
-        thinned = thin(st.world(T_ecs_from_mcs), self.settings.display_voxel_mm)
-        self._compare(job, st, T_ecs_from_mcs)
+        world = to_world(Station(station, cloud, T_world_from_ecs), T_ecs_from_mcs)
+        del cloud
+        thinned = thin(world, self.settings.display_voxel_mm)
+        self._compare(job, station, world, unc, T_ecs_from_mcs)
+        if self.settings.truth is not None and len(world):
+            job.true_error[station] = station_true_error(self.settings.truth, world)
+        k = max(1, len(world) // SAMPLE)
+        st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
+            job.world_samples[station] = world[::k].copy()  # a copy: a view would hold the whole cloud
             job.fused[station] = st
             job.display[station] = thinned
             n_stations = len(job.fused)
             shown = np.concatenate(list(job.display.values()))
+        del world
         now = messages.now_ns()
         k = self.bus.keys
         for T, parent, child in ((T_world_from_ecs, "world", f"ecs_{station}"),
@@ -298,23 +362,41 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                  n_stations, len(shown))
         return st
 
-    @staticmethod
-    def _compare(job: JobStations, st: Station, T_ecs_from_mcs: np.ndarray) -> None:
-        """The overlap metrics of ``st`` against every station fused before it, now: at the
-        job's end only the model is left to fuse (a full-size job's 19 stations took 60 s of
-        normals and pairs after the job when it was all done there)."""
+    def _compare(self, job: JobStations, name: str, world: np.ndarray, unc: np.ndarray | None,
+                 T_ecs_from_mcs: np.ndarray) -> None:
+        """The overlap metrics of station ``name`` (its world points) against every station
+        fused before it, and its voxel sums, now: at the job's end only the model is left to
+        read back (a full-size job's 19 stations took 60 s of normals and pairs after the job
+        when it was all done there). The stations' world points wait on disk for the pairs of
+        the stations after them. A new hand-eye mid-job: the end starts afresh."""
         key = np.asarray(T_ecs_from_mcs, float).tobytes()
         if job.comparer is None or job.comparer_hand_eye != key:
-            if job.comparer is not None:  # a new hand-eye mid-job: the end compares afresh
+            if job.comparer is not None:
                 return
-            job.comparer, job.comparer_hand_eye = OverlapComparer(), key
-        unc = st.uncertainty
-        if unc is not None and len(unc) != len(st.points_mcs):
+            job.comparer = OverlapComparer(store=StationStore(job.spool / "world"))
+            job.comparer_hand_eye = key
+            job.tiles = VoxelTiles(job.spool / "tiles", self.settings.voxel_mm)
+        if unc is not None and len(unc) != len(world):
             unc = None
         try:
-            job.comparer.add(st.name, st.world(T_ecs_from_mcs), unc)
-        except MetricsError:  # an empty cloud: the end compares afresh and says so
+            job.comparer.add(name, world, unc)
+        except MetricsError:  # an empty cloud: the report says so
             pass
+        job.tiles.add(world, unc)
+
+    def refuse(self, job: JobStations, he: dict[str, Any]) -> None:
+        """A hand-eye that changed mid-job: the overlaps and the voxel sums again, station by
+        station from the clouds on disk, through the one now in force."""
+        old = job.spool / "world", job.spool / "tiles"
+        for folder in old:
+            shutil.rmtree(folder, ignore_errors=True)
+        job.comparer = None
+        T_em = np.asarray(he["T_ecs_from_mcs"], float)
+        for name, st in job.fused.items():
+            cloud, _, unc = job.mcs.load(name)
+            world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em)
+            self._compare(job, name, world, unc, T_em)
+            job.world_samples[name] = world[::max(1, len(world) // SAMPLE)].copy()
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
         """A scanner check's figures once its record and cloud are both in (kept for the
@@ -353,7 +435,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return body
         t0 = time.monotonic()
         # the model first, within the recorder's linger of the job's file; then the report
-        fused = fuse(stations, np.asarray(he["T_ecs_from_mcs"]), self.settings.voxel_mm)
+        fused = self.model(job, he)
         now = messages.now_ns()
         meta = {"job_id": job_id, "stations": len(stations), "final": True}
         if job.nominal:
@@ -366,27 +448,45 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self.evaluate_check(job_id, station)
         metrics: MetricsReport | MetricsError | None = None
         comparer = job.comparer
-        if (comparer is not None and comparer.names == list(fused.per_station)
-                and job.comparer_hand_eye == np.asarray(he["T_ecs_from_mcs"], float).tobytes()):
+        if len(stations) > 1:
             try:
-                metrics = comparer.report() if len(stations) > 1 else None
+                missing = sorted(set(fused.per_station) - set(comparer.names if comparer else ()))
+                if comparer is None or missing:
+                    raise MetricsError(f"the overlaps of stations {missing} were not measured")
+                metrics = comparer.report()
             except MetricsError as exc:
                 metrics = exc
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job),
-                            self.scan_workers(job), metrics)
+                            self.scan_workers(job), metrics, dict(job.true_error))
         with self._lock:
             records, clouds = dict(job.ecs), dict(job.clouds)
         comparison = ecs_comparison(records, clouds, he, self.settings.truth)
         if comparison is not None:
             body["ecs_comparison"] = comparison
         body["worker"] = self.share.worker_id
+        with self._lock:
+            job.close_spool()
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
         self.reports.append(body)
         log.info("job %s: %d stations fused and reported %.1f s after the job's last cloud",
                  job_id, len(stations), time.monotonic() - t0)
         return body
 
+
+    def model(self, job: JobStations, he: dict[str, Any]) -> FusedCloud:
+        """The job's model from its voxel sums on disk, with the stations' samples."""
+        if job.comparer_hand_eye != np.asarray(he["T_ecs_from_mcs"], float).tobytes():
+            self.refuse(job, he)
+        points, sigma = job.tiles.model()
+        names = list(job.fused)
+        weighted = all(n in job.uncertainty for n in names)
+        T_em = np.asarray(he["T_ecs_from_mcs"], float)
+        return FusedCloud(points, {n: job.world_samples[n] for n in names},
+                          sum(job.counts[n] for n in names), sigma if weighted else None,
+                          {n: job.uncertainty[n] for n in names} if weighted else None,
+                          {n: (job.fused[n].T_world_from_ecs @ T_em)[:3, 3].copy() for n in names},
+                          {n: job.counts[n] for n in names})
 
     def scan_workers(self, job: JobStations) -> dict[str, Any]:
         """Which scan worker decoded each station, the workers that failed mid-station (their
@@ -438,7 +538,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  uncertainty: dict[str, StationUncertainty] | None = None,
                  checks: list[dict[str, Any]] | None = None,
                  scan_workers: dict[str, Any] | None = None,
-                 metrics: MetricsReport | MetricsError | None = None) -> dict[str, Any]:
+                 metrics: MetricsReport | MetricsError | None = None,
+                 true_errors: dict[str, float] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
     ``metrics``: the stations' MetricsReport (or the MetricsError) when already compared as
@@ -477,7 +578,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     if uncertainty:
         per = {n: u.to_json() for n, u in uncertainty.items()}
         if settings.truth is not None:
-            true = {n: station_true_error(settings.truth, p)
+            true = {n: (true_errors or {}).get(n) or station_true_error(settings.truth, p)
                     for n, p in fused.per_station.items() if n in per and len(p)}
             for n, v in true.items():
                 per[n]["true_error_mm"] = round(v, 5)

@@ -1,0 +1,84 @@
+"""The fused model's voxel means, accumulated station by station on disk.
+
+The model is resampled on a grid of ``voxel_mm`` voxels aligned to the world origin: each
+occupied voxel's point is the inverse-variance weighted mean of the points in it, with that
+mean's 1-sigma (as :func:`scancell.analysis.fusion.weighted_voxel_mean`). Each station adds its
+partial sums per voxel (Σw, Σw·x, Σw·y, Σw·z) to the file of the tile of ``tile_voxels``³ voxels
+they fall in; at the end each tile is summed and averaged alone. Memory holds one station's
+points while it is added and one tile while it is read: not the model, not the job.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+#: one voxel's partial sums from one station: its index inside the tile and the sums
+RECORD = np.dtype([("k", np.uint16, 3), ("w", np.float64), ("wp", np.float64, 3)])
+
+
+class VoxelTiles:
+    def __init__(self, folder: str | Path, voxel_mm: float, tile_voxels: int = 512) -> None:
+        if voxel_mm <= 0:
+            raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.voxel_mm = float(voxel_mm)
+        self.tile_voxels = int(tile_voxels)
+        self.points_added = 0
+
+    def add(self, points: np.ndarray, sigma: np.ndarray | None = None) -> None:
+        """Add (N, 3) world points (mm) with their 1-sigma (mm; None, non-finite or ≤ 0: the
+        median weight of the others, or 1)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        if not len(p):
+            return
+        w = np.ones(len(p))
+        if sigma is not None:
+            s = np.asarray(sigma, float).ravel()
+            ok = np.isfinite(s) & (s > 0)
+            fallback = 1.0 / np.median(s[ok]) ** 2 if ok.any() else 1.0
+            w = np.where(ok, 1.0 / np.maximum(s, 1e-6) ** 2, fallback)
+        k = np.floor(p / self.voxel_mm).astype(np.int64)
+        voxels, inverse = np.unique(k, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        sums = np.empty(len(voxels), RECORD)
+        sums["w"] = np.bincount(inverse, weights=w, minlength=len(voxels))
+        for i in range(3):
+            sums["wp"][:, i] = np.bincount(inverse, weights=w * p[:, i], minlength=len(voxels))
+        tile = np.floor_divide(voxels, self.tile_voxels)
+        sums["k"] = voxels - tile * self.tile_voxels
+        tiles, which = np.unique(tile, axis=0, return_inverse=True)
+        which = which.ravel()
+        order = np.argsort(which, kind="stable")
+        bounds = np.searchsorted(which[order], np.arange(len(tiles) + 1))
+        for t, lo, hi in zip(tiles, bounds[:-1], bounds[1:], strict=True):
+            with open(self.folder / f"{t[0]}_{t[1]}_{t[2]}.bin", "ab") as f:
+                sums[order[lo:hi]].tofile(f)
+        self.points_added += len(p)
+
+    def means(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Tile by tile: (the occupied voxels' weighted means (M, 3) mm, their 1-sigma (M,) mm)."""
+        for path in sorted(self.folder.glob("*.bin")):
+            rec = np.fromfile(path, RECORD)
+            tv = self.tile_voxels
+            key = (rec["k"][:, 0].astype(np.int64) * tv + rec["k"][:, 1]) * tv + rec["k"][:, 2]
+            _, inverse = np.unique(key, return_inverse=True)
+            n = int(inverse.max()) + 1
+            wsum = np.bincount(inverse, weights=rec["w"], minlength=n)
+            mean = np.column_stack([np.bincount(inverse, weights=rec["wp"][:, i], minlength=n)
+                                    for i in range(3)]) / wsum[:, None]
+            yield mean, 1.0 / np.sqrt(wsum)
+
+    def model(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every tile's means together: (points (M, 3) mm, 1-sigma (M,) mm)."""
+        parts = list(self.means())
+        if not parts:
+            return np.zeros((0, 3)), np.zeros(0)
+        return np.concatenate([p for p, _ in parts]), np.concatenate([s for _, s in parts])
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
