@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fz.add_argument("--out", default=None, help="folder for <job>/fused.ply, .e57, mesh, report")
     fz.add_argument("--voxel", type=float, default=0.5, help="resampling voxel (mm)")
     fz.add_argument("--no-mesh", action="store_true", help="skip the Poisson mesh")
+    fz.add_argument("--spool", default=None, metavar="DIR",
+                    help="where each job's station clouds wait on disk until its report "
+                         "(default: the system's temporary folder, $TMPDIR; not a tmpfs: "
+                         "~0.16 GB a full-size station)")
     fz.add_argument("--truth-cell", default=None, metavar="CELL.toml",
                     help="simulated cell config: report every fused point's true error "
                          "against the simulated part")
@@ -176,8 +180,14 @@ def fuse_main(args: argparse.Namespace) -> int:
             truth = truth_from_config(args.truth_cell)
         except ValueError as exc:
             return fail("worker fuse", str(exc))
+    if args.spool:
+        try:
+            Path(args.spool).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return fail("worker fuse", f"--spool {args.spool}: {exc.strerror or exc}")
     settings = FuseSettings(Path(args.out) if args.out else None, args.voxel,
-                            mesh=not args.no_mesh, truth=truth)
+                            mesh=not args.no_mesh, truth=truth,
+                            spool_dir=Path(args.spool) if args.spool else None)
     return serve(args, "worker fuse", lambda bus: FuseWorker(bus, settings),
                  lambda bus: f"fuse worker on cell {bus.keys.cell!r}: waiting for stations "
                              f"(out {args.out or '-'})")
