@@ -9,6 +9,7 @@ calibrate worker's file or ``scancell calibrate hand-eye --json``).
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 import open3d as o3d
 from scancell.analysis.cloud_io import CloudFileError, read_ply
 from scancell.analysis.json_file import read_json
+from scancell.analysis.voxel_tiles import VoxelTiles
 
 #: station points the viewpoint lookup keeps (FusedCloud.viewpoint_of)
 VIEWPOINT_SAMPLES = 2_000_000
@@ -145,10 +147,6 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
     """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling)
     as the fuse worker does it (:class:`VoxelTiles`: each voxel the mean of its points, weighted
     by their inverse variance when every station carries per-point uncertainty)."""
-    import tempfile
-
-    from scancell.analysis.voxel_tiles import VoxelTiles
-
     check_rigid(T_ecs_from_mcs, "T_ecs_from_mcs")
     world = {s.name: s.world(T_ecs_from_mcs) for s in stations}
     count = sum(len(c) for c in world.values())

@@ -82,10 +82,6 @@ class StationStore:
             del arr
         return out[0], out[1], out[2]
 
-    def overlaps(self, name: str, lo: np.ndarray, hi: np.ndarray) -> bool:
-        st = self.stations[name]
-        return not (np.any(st.lo > hi) or np.any(st.hi < lo))
-
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
         self.stations.clear()

@@ -111,6 +111,9 @@ class JobStations:
     comparer: OverlapComparer | None = None
     comparer_hand_eye: bytes = b""
 
+    #: check station -> its figures, evaluated as soon as its record and cloud are both in
+    check_results: dict[str, dict[str, Any]] = field(default_factory=dict)
+
     def open_spool(self, root: Path) -> None:
         if self.spool is None:
             self.spool = Path(tempfile.mkdtemp(prefix=f"{self.job_id}-", dir=root))
@@ -122,8 +125,6 @@ class JobStations:
             shutil.rmtree(self.spool, ignore_errors=True)
         self.spool = self.mcs = self.tiles = None
         self.comparer = None
-    #: check station -> its figures, evaluated as soon as its record and cloud are both in
-    check_results: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 @dataclass
@@ -142,6 +143,13 @@ class FuseSettings:
 #: points of each station kept in memory (an even sample): for the report's pictures, the
 #: viewpoint of the mesh's normals, the ECS comparison and the scanner's overlap budget
 SAMPLE = 10_000
+
+
+def even_sample(a: np.ndarray) -> np.ndarray:
+    """Every k-th row of ``a``, SAMPLE of them, as float64 and a copy (a view would hold the
+    whole cloud in memory)."""
+    return np.array(a[:: max(1, len(a) // SAMPLE)], dtype=float)
+
 
 class FuseWorker(ThreadedWorker[tuple[str, str]]):
     """Fuses each scan_part station as its cloud and ECS arrive; at the job's end writes the
@@ -236,11 +244,10 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 log.error("job %s station %s: its cloud cannot be kept (%s); not fused",
                           job_id, station, exc.strerror or exc)
                 return
-            k = max(1, len(pts) // SAMPLE)
-            job.clouds[station] = pts[::k].astype(float)
+            job.clouds[station] = even_sample(pts)
             job.counts[station] = len(pts)
             if unc is not None:
-                job.uncertainty[station] = unc[::k].astype(float)
+                job.uncertainty[station] = even_sample(unc)
         self.submit(("station", f"{job_id}\0{station}"))
 
     def _on_scan_result(self, sample: Any) -> None:
@@ -340,10 +347,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         self._compare(job, station, world, unc, T_ecs_from_mcs)
         if self.settings.truth is not None and len(world):
             job.true_error[station] = station_true_error(self.settings.truth, world)
-        k = max(1, len(world) // SAMPLE)
         st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
-            job.world_samples[station] = world[::k].copy()  # a copy: a view would hold the whole cloud
+            job.world_samples[station] = even_sample(world)
             job.fused[station] = st
             job.display[station] = thinned
             n_stations = len(job.fused)
@@ -384,7 +390,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             pass
         job.tiles.add(world, unc)
 
-    def refuse(self, job: JobStations, he: dict[str, Any]) -> None:
+    def fuse_again(self, job: JobStations, he: dict[str, Any]) -> None:
         """A hand-eye that changed mid-job: the overlaps and the voxel sums again, station by
         station from the clouds on disk, through the one now in force."""
         old = job.spool / "world", job.spool / "tiles"
@@ -396,7 +402,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             cloud, _, unc = job.mcs.load(name)
             world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em)
             self._compare(job, name, world, unc, T_em)
-            job.world_samples[name] = world[::max(1, len(world) // SAMPLE)].copy()
+            job.world_samples[name] = even_sample(world)
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
         """A scanner check's figures once its record and cloud are both in (kept for the
@@ -473,11 +479,10 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                  job_id, len(stations), time.monotonic() - t0)
         return body
 
-
     def model(self, job: JobStations, he: dict[str, Any]) -> FusedCloud:
         """The job's model from its voxel sums on disk, with the stations' samples."""
         if job.comparer_hand_eye != np.asarray(he["T_ecs_from_mcs"], float).tobytes():
-            self.refuse(job, he)
+            self.fuse_again(job, he)
         points, sigma = job.tiles.model()
         names = list(job.fused)
         weighted = all(n in job.uncertainty for n in names)
