@@ -13,6 +13,7 @@ never leaves an empty or partial PLY behind.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -26,42 +27,69 @@ def write_ply(path: str | Path, points: np.ndarray, fields: dict[str, np.ndarray
               ascii: bool = False, comments: list[str] | None = None) -> None:
     """Write (N, 3) ``points`` (mm) and optional per-point scalar ``fields`` (N,) as PLY;
     ``comments`` become header ``comment`` lines (one line each, e.g. ``key: value``)."""
-    p = Path(path)
-    pts = np.ascontiguousarray(points, dtype=np.float32)
+    pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise CloudFileError(f"{p}: points must be (N, 3), got {pts.shape}")
-    if len(pts) == 0:
+        raise CloudFileError(f"{path}: points must be (N, 3), got {pts.shape}")
+    write_ply_chunks(path, len(pts), list(fields or {}), [(pts, fields or {})], ascii, comments)
+
+
+def write_ply_chunks(path: str | Path, count: int, field_names: list[str],
+                     chunks: Iterable[tuple[np.ndarray, dict[str, np.ndarray]]],
+                     ascii: bool = False, comments: list[str] | None = None) -> None:
+    """Write a PLY of ``count`` points from ``chunks``, each ((M, 3) points mm, {name: (M,)
+    values} for every one of ``field_names``), one chunk in memory at a time: a model larger
+    than memory is written as it is read."""
+    p = Path(path)
+    if count == 0:
         raise CloudFileError(f"{p}: refusing to write an empty cloud")
-    columns: dict[str, np.ndarray] = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
-    for name, values in (fields or {}).items():
-        v = np.asarray(values, dtype=np.float32).reshape(-1)
-        if len(v) != len(pts):
-            raise CloudFileError(f"{p}: field {name!r} has {len(v)} values for {len(pts)} points")
-        if not name.isidentifier() or name in columns:
+    names = ["x", "y", "z"]
+    for name in field_names:
+        if not name.isidentifier() or name in names:
             raise CloudFileError(f"{p}: field name {name!r} is not a plain identifier")
-        columns[name] = v
+        names.append(name)
     extra = [f"comment {c}\n" for c in comments or []]
     if any("\n" in c or "\r" in c or not c.isascii() for c in comments or []):
         raise CloudFileError(f"{p}: header comments must be single ASCII lines")
     header = "".join(["ply\n", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0\n",
-                      "comment scancell: units mm\n", *extra, f"element vertex {len(pts)}\n",
-                      *(f"property float {n}\n" for n in columns), "end_header\n"])
+                      "comment scancell: units mm\n", *extra, f"element vertex {count}\n",
+                      *(f"property float {n}\n" for n in names), "end_header\n"])
     tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp.ply")
+    written = 0
     try:
         with open(tmp, "wb") as fh:
             fh.write(header.encode("ascii"))
-            if ascii:
-                np.savetxt(fh, np.column_stack(list(columns.values())), fmt="%.7g")
-            else:
-                rec = np.empty(len(pts), dtype=[(n, "<f4") for n in columns])
-                for n, v in columns.items():
-                    rec[n] = v
-                fh.write(rec.tobytes())
+            for points, fields in chunks:
+                rec = _ply_records(p, names, points, fields)
+                if ascii:
+                    np.savetxt(fh, rec.view(np.float32).reshape(len(rec), -1), fmt="%.7g")
+                else:
+                    rec.tofile(fh)
+                written += len(rec)
+        if written != count:
+            raise CloudFileError(f"{p}: {written} points came for the {count} announced")
         os.replace(tmp, p)
     except OSError as exc:
         raise CloudFileError(f"{p}: cannot write: {exc.strerror or exc}") from None
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _ply_records(p: Path, names: list[str], points: np.ndarray,
+                 fields: dict[str, np.ndarray]) -> np.ndarray:
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise CloudFileError(f"{p}: points must be (N, 3), got {pts.shape}")
+    rec = np.empty(len(pts), dtype=[(n, "<f4") for n in names])
+    for i, n in enumerate("xyz"):
+        rec[n] = pts[:, i]
+    for n in names[3:]:
+        if n not in fields:
+            raise CloudFileError(f"{p}: field {n!r} missing from a chunk")
+        v = np.asarray(fields[n]).reshape(-1)
+        if len(v) != len(pts):
+            raise CloudFileError(f"{p}: field {n!r} has {len(v)} values for {len(pts)} points")
+        rec[n] = v
+    return rec
 
 
 #: bytes of each PLY property type

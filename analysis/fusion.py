@@ -17,6 +17,7 @@ import numpy as np
 import open3d as o3d
 from scancell.analysis.cloud_io import CloudFileError, read_ply
 from scancell.analysis.json_file import read_json
+from scancell.analysis.model_file import ModelFile
 from scancell.analysis.voxel_tiles import VoxelTiles
 
 #: station points the viewpoint lookup keeps (FusedCloud.viewpoint_of)
@@ -101,7 +102,8 @@ def to_world(station: Station, T_ecs_from_mcs: np.ndarray) -> np.ndarray:
 
 @dataclass
 class FusedCloud:
-    points: np.ndarray  # (N, 3) world, mm, resampled
+    #: (N, 3) world, mm, resampled; None when the model is on disk (:attr:`model`)
+    points: np.ndarray | None
     #: world points of each station (not resampled), or an even sample of them (``counts``)
     per_station: dict[str, np.ndarray]
     merged_count: int
@@ -114,6 +116,13 @@ class FusedCloud:
     viewpoints: dict[str, np.ndarray] | None = None
     #: each station's point count, where ``per_station`` holds only a sample of its points
     counts: dict[str, int] | None = None
+    #: the model on disk, read chunk by chunk (a fuse worker's job), instead of :attr:`points`
+    model: ModelFile | None = None
+
+    @property
+    def size(self) -> int:
+        """Points in the resampled model."""
+        return self.model.count if self.model is not None else len(self.points)
 
     def count(self, name: str) -> int:
         return self.counts[name] if self.counts else len(self.per_station[name])

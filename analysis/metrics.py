@@ -102,12 +102,21 @@ class Distribution:
 
     def median(self) -> float:
         """Within half a bin (top / bins / 2)."""
-        k = int(np.searchsorted(np.cumsum(self.counts), self.n / 2.0))
-        return (k + 0.5) * self.top / self.bins
+        return self.quantile(0.5)
 
-    def histogram(self, bins: int = 60) -> tuple[np.ndarray, np.ndarray]:
-        """(counts, edges) from 0 to the bin holding the largest value, in about ``bins`` bins."""
+    def quantile(self, q: float) -> float:
+        """The value below which a share ``q`` of the values lie, within half a bin (at most
+        ``top``: the last bin holds everything beyond)."""
+        k = int(np.searchsorted(np.cumsum(self.counts), q * self.n))
+        return min(k + 0.5, self.bins) * self.top / self.bins
+
+    def histogram(self, bins: int = 60, upto: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(counts, edges) from 0 to the bin holding the largest value (or ``upto``), in about
+        ``bins`` bins."""
         last = int(np.flatnonzero(self.counts).max()) + 1 if self.n else 1
+        if upto is not None:
+            last = max(1, min(self.bins, int(np.ceil(upto * self.bins / self.top))))
         group = max(1, int(np.ceil(last / bins)))
         c = np.add.reduceat(self.counts[:last], np.arange(0, last, group))
         return c, np.arange(len(c) + 1) * group * self.top / self.bins

@@ -194,3 +194,83 @@ def test_voxel_tiles_on_disk_give_the_weighted_means_of_the_whole_job(tmp_path):
     empty = VoxelTiles(tmp_path / "e", 1.0)
     empty.add(np.zeros((0, 3)))
     assert empty.model()[0].shape == (0, 3)
+
+
+@pytest.mark.unit
+def test_the_model_file_streams_its_chunks_into_ply_e57_and_the_true_error_figures(
+        tmp_path, monkeypatch):
+    """The fuse worker's model on disk, read chunk by chunk, gives the same PLY as the whole
+    array written at once, an E57 any reader reads back, the true-error figures numpy gives
+    over every point, and an even sample; a count that does not match leaves no file."""
+    import pye57
+    from scancell.analysis import model_file
+    from scancell.analysis.cloud_io import CloudFileError, write_ply_chunks
+    from scancell.analysis.export import ExportError, write_e57_chunks
+    from scancell.analysis.model_file import ModelFile, ModelFileError
+    from scancell.analysis.report import TrueErrorMap
+
+    monkeypatch.setattr(model_file, "CHUNK", 700)  # many chunks, the last one short
+    rng = np.random.default_rng(3)
+    parts = [(rng.uniform(-800, 4200, (n, 3)), rng.uniform(0.01, 0.03, n)) for n in (1500, 1, 999)]
+    pts, sig = np.concatenate([p for p, _ in parts]), np.concatenate([s for _, s in parts])
+    model = ModelFile.write(tmp_path / "m.bin", parts)
+    assert model.count == 2500 and model.weighted and not model.has_truth
+    np.testing.assert_array_equal(model.lo, pts.min(axis=0))
+    model.add_truth(lambda p: p[:, 2] / 1000.0 - 1.0)
+    truth = np.abs(pts[:, 2] / 1000.0 - 1.0)
+    rec = np.concatenate(list(model.chunks()))
+    np.testing.assert_array_equal(rec["p"], pts)
+    np.testing.assert_allclose(rec["true_error"], truth, rtol=1e-6)
+    np.testing.assert_array_equal(model.sample(100), pts[::25])
+
+    write_ply(tmp_path / "whole.ply", pts, {"uncertainty": sig, "true_error_mm": truth})
+    write_ply_chunks(tmp_path / "chunks.ply", model.count, ["uncertainty", "true_error_mm"],
+                     ((r["p"], {"uncertainty": r["sigma"], "true_error_mm": r["true_error"]})
+                      for r in model.chunks()))
+    assert (tmp_path / "whole.ply").read_bytes() == (tmp_path / "chunks.ply").read_bytes()
+    with pytest.raises(CloudFileError, match="2500 points came for the 2600 announced"):
+        write_ply_chunks(tmp_path / "short.ply", 2600, [], ((r["p"], {}) for r in model.chunks()))
+    write_e57_chunks(tmp_path / "m.e57", model.count, model.lo, model.hi,
+                     (r["p"] for r in model.chunks()))
+    back = pye57.E57(str(tmp_path / "m.e57")).read_scan_raw(0)
+    np.testing.assert_allclose(np.column_stack([back[f"cartesian{a}"] for a in "XYZ"]) * 1000,
+                               pts, atol=1e-3)
+    with pytest.raises(ExportError, match="2500 points came for the 9 announced"):
+        write_e57_chunks(tmp_path / "short.e57", 9, model.lo, model.hi,
+                         (r["p"] for r in model.chunks()))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "chunks.ply", "m.bin", "m.e57", "whole.ply"]
+
+    summed = TrueErrorMap(model.lo, model.hi)
+    for r in model.chunks():
+        summed.add(r["p"], r["true_error"])
+    f = summed.figures()
+    assert f["mean"] == pytest.approx(truth.mean(), abs=1e-6)
+    assert f["std"] == pytest.approx(truth.std(), abs=1e-6)
+    assert f["max"] == pytest.approx(truth.max(), abs=1e-6)
+    assert abs(f["p95"] - np.percentile(truth, 95)) <= 0.5e-3 + 1e-6  # 1 µm bins
+    whole = TrueErrorMap.of(pts, truth)
+    np.testing.assert_allclose(summed.rasters[0].image, whole.rasters[0].image, rtol=1e-6)
+    assert summed.save(tmp_path / "map.png").stat().st_size > 10_000
+    model.remove()
+    with pytest.raises(ModelFileError, match="no points"):
+        ModelFile.write(tmp_path / "empty.bin", [(np.zeros((0, 3)), None)])
+    assert not (tmp_path / "empty.bin").exists()
+
+
+@pytest.mark.unit
+def test_the_final_model_is_put_together_from_its_parts():
+    from scancell.workers.model_parts import ModelParts, ModelPartsError
+
+    parts = ModelParts()
+    a, b, c = (np.full((n, 3), float(n)) for n in (3, 2, 1))
+    meta = {"job_id": "j", "final": True, "parts": 3}
+    assert parts.add({**meta, "part": 2}, c) is None
+    assert parts.add({**meta, "part": 0}, a) is None
+    assert parts.waiting() == {"j": (2, 3)}
+    np.testing.assert_array_equal(parts.add({**meta, "part": 1}, b), np.concatenate([a, b, c]))
+    assert parts.waiting() == {}
+    # a recording from before the parts: one message is the whole model
+    np.testing.assert_array_equal(parts.add({"job_id": "old", "final": True}, a), a)
+    with pytest.raises(ModelPartsError, match="job j: part 3 of 3"):
+        parts.add({**meta, "part": 3}, a)

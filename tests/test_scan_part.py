@@ -60,7 +60,11 @@ class Events:
 
 
 @pytest.fixture
-def sim(make_daemon, client, tmp_path):
+def sim(make_daemon, client, tmp_path, monkeypatch):
+    from scancell.workers import fuse as fuse_module
+
+    # the final model in several parts on fusion/cloud (a whole car body's is 10^8 points)
+    monkeypatch.setattr(fuse_module, "MODEL_PART_POINTS", 4_000)
     raw = sim_cell_raw(camera_scale=8, hdr=True)  # the true error needs the dark paint
     raw["simulator"]["smr_cluster"] = "housing"  # for the cluster station
     d = make_daemon(raw)
@@ -165,6 +169,12 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
 
     pts, fields = read_ply(files["ply"])
     assert len(pts) == r["points"] and "true_error_mm" in fields
+    assert r["points"] > 3 * 4_000  # so the final model came in parts
+    import pye57
+
+    e57 = pye57.E57(files["e57"]).read_scan_raw(0)
+    np.testing.assert_allclose(np.column_stack([e57[f"cartesian{a}"] for a in "XYZ"]) * 1000,
+                               pts, atol=1e-3)
 
     # the plan named the part's CAD: the inspect worker compares the final fused model with it
     ins = wait_until(lambda: inspections, 120, period_s=0.5, what="inspection report")[0]

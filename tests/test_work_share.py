@@ -385,7 +385,7 @@ def test_a_disk_that_fills_still_reports_the_figures_and_the_worker_goes_on(
 
     from scancell.analysis import cloud_io
 
-    real = cloud_io.write_ply
+    real = cloud_io.write_ply_chunks
 
     def full(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
@@ -393,13 +393,13 @@ def test_a_disk_that_fills_still_reports_the_figures_and_the_worker_goes_on(
     c = FuseCluster(cell, endpoint, tmp_path)
     try:
         owned = jobs_owned()
-        monkeypatch.setattr(cloud_io, "write_ply", full)
+        monkeypatch.setattr(cloud_io, "write_ply_chunks", full)
         publish_job(c.sessions["obs"], owned["wa"])
         wait_until(lambda: c.reports, 60, period_s=0.2, what="the report despite the full disk")
         r = c.reports[0]
         assert "No space left on device" in r["files_error"] and owned["wa"] in r["files_error"]
         assert r["stations"] == 3 and "translation_mm" in r and "files" not in r
-        monkeypatch.setattr(cloud_io, "write_ply", real)
+        monkeypatch.setattr(cloud_io, "write_ply_chunks", real)
         publish_job(c.sessions["obs"], owned["wb"])
         wait_until(lambda: len(c.reports) == 2, 60, period_s=0.2, what="the next job's report")
         assert Path(c.reports[1]["files"]["ply"]).is_file()

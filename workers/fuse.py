@@ -12,8 +12,10 @@ Inputs:
 Outputs:
 - ``tf/ecs_<station>`` and ``tf/mcs_<station>``: the frame tree ``world <- ecs_i <- mcs_i``;
 - ``fusion/cloud``: the growing fused cloud in ``world``, thinned to ``display_voxel_mm`` for a
-  viewer; at the end of a job the whole model (``meta.final``; with the plan's ``nominal``), which
-  the inspect worker and ``scancell inspect REC.mcap`` take;
+  viewer; at the end of a job the whole model (``meta.final``; with the plan's ``nominal``) in
+  parts of at most :data:`MODEL_PART_POINTS` points (``meta.part`` of ``meta.parts``,
+  ``meta.points`` in all), which the inspect worker and ``scancell inspect REC.mcap`` put
+  together (``workers/model_parts.py``);
 - at the end of a job, ``fusion/report`` (``scancell.FusionReport``) and, with ``--out DIR``,
   ``DIR/<job>/``: ``fused.ply``, ``fused.e57``, ``mesh.ply`` and ``report/report.md`` with
   pictures.
@@ -43,6 +45,8 @@ from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
 from scancell.analysis.fusion import FusedCloud, Station, check_rigid, thin, to_world
 from scancell.analysis.metrics import MetricsError, MetricsReport, OverlapComparer
+from scancell.analysis.model_file import ModelFile
+from scancell.analysis.report import TrueErrorMap
 from scancell.analysis.station_pose import StationPoseError, station_pose
 from scancell.analysis.station_store import StationStore
 from scancell.analysis.station_uncertainty import (
@@ -139,6 +143,9 @@ class FuseSettings:
     #: where the jobs' clouds wait on disk (default: a folder in the system's temporary one)
     spool_dir: Path | None = None
 
+
+#: points per message of the final model on ``fusion/cloud`` (16 MB with their uncertainty)
+MODEL_PART_POINTS = 1_000_000
 
 #: points of each station kept in memory (an even sample): for the report's pictures, the
 #: viewpoint of the mesh's normals, the ECS comparison and the scanner's overlap budget
@@ -442,14 +449,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         t0 = time.monotonic()
         # the model first, within the recorder's linger of the job's file; then the report
         fused = self.model(job, he)
-        now = messages.now_ns()
         meta = {"job_id": job_id, "stations": len(stations), "final": True}
         if job.nominal:
             meta["nominal"] = job.nominal
-        extra = None if fused.uncertainty is None else {"uncertainty": fused.uncertainty}
-        self.bus.publish(self.bus.keys.fusion_cloud, fg.encode_proto(
-            fg.point_cloud(fused.points, now, "world", extra)),
-            Attachment(now, len(stations), None, meta))
+        publish_model(self.bus, fused.model, meta)
+        if self.settings.truth is not None:
+            fused.model.add_truth(self.settings.truth)
         for station in sorted(job.checks):
             self.evaluate_check(job_id, station)
         metrics: MetricsReport | MetricsError | None = None
@@ -480,18 +485,20 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         return body
 
     def model(self, job: JobStations, he: dict[str, Any]) -> FusedCloud:
-        """The job's model from its voxel sums on disk, with the stations' samples."""
+        """The job's model from its voxel sums, written tile by tile to a file in the job's
+        spool, and the stations' samples."""
         if job.comparer_hand_eye != np.asarray(he["T_ecs_from_mcs"], float).tobytes():
             self.fuse_again(job, he)
-        points, sigma = job.tiles.model()
         names = list(job.fused)
         weighted = all(n in job.uncertainty for n in names)
+        model = ModelFile.write(job.spool / "model.bin",
+                                ((p, s if weighted else None) for p, s in job.tiles.means()))
         T_em = np.asarray(he["T_ecs_from_mcs"], float)
-        return FusedCloud(points, {n: job.world_samples[n] for n in names},
-                          sum(job.counts[n] for n in names), sigma if weighted else None,
+        return FusedCloud(None, {n: job.world_samples[n] for n in names},
+                          sum(job.counts[n] for n in names), None,
                           {n: job.uncertainty[n] for n in names} if weighted else None,
                           {n: (job.fused[n].T_world_from_ecs @ T_em)[:3, 3].copy() for n in names},
-                          {n: job.counts[n] for n in names})
+                          {n: job.counts[n] for n in names}, model)
 
     def scan_workers(self, job: JobStations) -> dict[str, Any]:
         """Which scan worker decoded each station, the workers that failed mid-station (their
@@ -507,6 +514,20 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             log.warning("job %s station %s: scan worker %s failed mid-station; %s took it over",
                         job.job_id, f["station"], f["worker"], f["taken_over_by"])
         return {"stations": stations, "failed": failed, "duplicates": duplicates}
+
+
+def publish_model(bus: BusLike, model: ModelFile, meta: dict[str, Any]) -> None:
+    """The job's final model on ``fusion/cloud`` in parts of :data:`MODEL_PART_POINTS`, each a
+    ``foxglove.PointCloud`` in ``world`` (with the points' ``uncertainty``, mm, when known)
+    whose meta adds ``part`` (from 0), ``parts`` and ``points`` (the model's)."""
+    parts = -(-model.count // MODEL_PART_POINTS)
+    for i, rec in enumerate(model.chunks(MODEL_PART_POINTS)):
+        now = messages.now_ns()
+        extra = {"uncertainty": rec["sigma"]} if model.weighted else None
+        bus.publish(bus.keys.fusion_cloud, fg.encode_proto(
+            fg.point_cloud(rec["p"], now, "world", extra)),
+            Attachment(now, meta["stations"], None,
+                       {**meta, "part": i, "parts": parts, "points": model.count}))
 
 
 def check_figures(job_id: str, station: str, c: dict[str, Any], cloud: np.ndarray | None
@@ -553,7 +574,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
 
     t0 = time.perf_counter()
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
-                            "points_merged": fused.merged_count, "points": len(fused.points),
+                            "points_merged": fused.merged_count, "points": fused.size,
                             "hand_eye_job": hand_eye.get("job_id"),
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
     if scan_workers is not None:
@@ -572,11 +593,11 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
         body.update(translation_mm=m["translation_mm"], rotation_deg=m["rotation_deg"],
                     pairs=m["pairs"])
     truth = None
-    if settings.truth is not None:
-        d = np.abs(settings.truth(fused.points))
-        truth = d
-        body["true_error_mm"] = {"mean": float(d.mean()), "std": float(d.std()),
-                                 "max": float(d.max()), "p95": float(np.percentile(d, 95))}
+    if fused.model.has_truth:
+        truth = TrueErrorMap(fused.model.lo, fused.model.hi)
+        for rec in fused.model.chunks():
+            truth.add(rec["p"], rec["true_error"])
+        body["true_error_mm"] = truth.figures()
     if checks:
         body["scanner_checks"] = checks
     uncertainty = uncertainty or {}
@@ -635,24 +656,30 @@ def failed_workers_text(body: dict[str, Any]) -> str | None:
     return "\n".join(lines) or None
 
 
-def write_outputs(folder: Path, fused: Any, metrics: Any, truth: np.ndarray | None,
+def write_outputs(folder: Path, fused: FusedCloud, metrics: Any, truth: TrueErrorMap | None,
                   body: dict[str, Any], mesh: bool) -> dict[str, str]:
-    from scancell.analysis.cloud_io import write_ply
-    from scancell.analysis.export import poisson_mesh, write_e57, write_mesh
+    """The job's files, the model read from its file chunk by chunk: ``fused.ply`` (with each
+    point's ``uncertainty`` and, in simulation, ``true_error_mm``), ``fused.e57``, the mesh
+    (from an even sample of the model) and the report."""
+    from scancell.analysis.cloud_io import write_ply_chunks
+    from scancell.analysis.export import POISSON_POINTS, poisson_mesh, write_e57_chunks, write_mesh
     from scancell.analysis.report import write_report
 
+    model = fused.model
     folder.mkdir(parents=True, exist_ok=True)
     files = {"ply": str(folder / "fused.ply"), "e57": str(folder / "fused.e57")}
-    fields = {}
-    if fused.uncertainty is not None:
-        fields["uncertainty"] = fused.uncertainty.astype(np.float32)
-    if truth is not None:
-        fields["true_error_mm"] = truth.astype(np.float32)
-    write_ply(files["ply"], fused.points, fields or None)
-    write_e57(files["e57"], fused.points)
+    fields = {"uncertainty": "sigma"} if model.weighted else {}
+    if model.has_truth:
+        fields["true_error_mm"] = "true_error"
+    write_ply_chunks(files["ply"], model.count, list(fields),
+                     ((rec["p"], {f: rec[c] for f, c in fields.items()})
+                      for rec in model.chunks()))
+    write_e57_chunks(files["e57"], model.count, model.lo, model.hi,
+                     (rec["p"] for rec in model.chunks()))
     if mesh:
         files["mesh"] = str(folder / "mesh.ply")
-        write_mesh(files["mesh"], poisson_mesh(fused.points, fused.viewpoint_of))
+        write_mesh(files["mesh"], poisson_mesh(model.sample(POISSON_POINTS), fused.viewpoint_of,
+                                               thinned_from=model.count))
     if metrics is not None:
         files["report"] = str(write_report(folder / "report", fused, metrics,
                                            f"scancell fusion report: {body['job_id']}",

@@ -28,6 +28,7 @@ from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment, EncodingError
 from scancell.workers.base import ThreadedWorker
+from scancell.workers.model_parts import ModelParts, ModelPartsError
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +54,7 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         self.settings = settings
         self.reports: list[dict[str, Any]] = []
         self._nominals: dict[str, Any] = {}
+        self._parts = ModelParts()
         self._lock = threading.Lock()
 
     def on_start(self) -> None:
@@ -65,11 +67,13 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         if not meta.get("final"):
             return  # the growing display cloud
         try:
-            pts = fg.cloud_points(sample.decode()).astype(float)
-        except EncodingError as exc:
+            with self._lock:
+                pts = self._parts.add(meta, fg.cloud_points(sample.decode()))
+        except (EncodingError, ModelPartsError) as exc:
             log.warning("%s: %s", sample.key, exc)
             return
-        self.submit((str(meta.get("job_id", "?")), pts, meta.get("nominal")))
+        if pts is not None:
+            self.submit((str(meta.get("job_id", "?")), pts.astype(float), meta.get("nominal")))
 
     def _nominal(self, path: str, measured: np.ndarray | None = None):
         """The nominal at ``path`` (loaded once); the first cloud checks its size before the

@@ -5,6 +5,7 @@ each station's cloud (``scan/<station>/cloud``), its ECS from the recorded track
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,9 @@ from scancell.analysis.fusion import FusionError, Station
 from scancell.analysis.station_pose import StationPoseError, station_T_world_from_ecs
 from scancell.protocols import foxglove_schemas as fg
 from scancell.recorder.reading import samples
+from scancell.workers.model_parts import ModelParts, ModelPartsError
+
+log = logging.getLogger(__name__)
 
 
 def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict[str, Any]]:
@@ -60,13 +64,21 @@ def recorded_model(path: str | Path, voxel_mm: float = 0.5) -> tuple[np.ndarray,
     stations fused again."""
     from scancell.analysis.fusion import fuse
 
-    final = None
+    final, parts = None, ModelParts()
     for s in samples(path, ["fusion/cloud"]):
-        if s.attachment.meta.get("final"):
-            final = s
+        meta = s.attachment.meta
+        if meta.get("final"):
+            try:
+                whole = parts.add(meta, fg.cloud_points(s.decode()))
+            except ModelPartsError as exc:
+                raise FusionError(f"{path}: {exc}") from None
+            if whole is not None:
+                final = whole, meta.get("job_id", "?")
     if final is not None:
-        job = final.attachment.meta.get("job_id", "?")
-        return fg.cloud_points(final.decode()).astype(float), f"final fused model of job {job}"
+        return final[0].astype(float), f"final fused model of job {final[1]}"
+    for job, (got, expected) in parts.waiting().items():
+        log.warning("%s: the final model of job %s is cut short (%d of its %d parts); its "
+                    "stations are fused again", path, job, got, expected)
     stations, hand_eye, _ = recorded_stations(path)
     fused = fuse(stations, hand_eye, voxel_mm)
     return fused.points, f"{len(stations)} recorded stations fused again"
