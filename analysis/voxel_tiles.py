@@ -42,9 +42,20 @@ class VoxelTiles:
             ok = np.isfinite(s) & (s > 0)
             fallback = 1.0 / np.median(s[ok]) ** 2 if ok.any() else 1.0
             w = np.where(ok, 1.0 / np.maximum(s, 1e-6) ** 2, fallback)
-        k = np.floor(p / self.voxel_mm).astype(np.int64)
-        voxels, inverse = np.unique(k, axis=0, return_inverse=True)
-        inverse = inverse.ravel()
+        # one int64 key per point over the station's own voxel box: a 1-D unique, where
+        # np.unique(axis=0) on (N, 3) voxels held ~0.25 GB more for a full-size station
+        k0 = np.floor(p.min(axis=0) / self.voxel_mm).astype(np.int64)
+        dims = np.floor(p.max(axis=0) / self.voxel_mm).astype(np.int64) - k0 + 1
+        key = np.zeros(len(p), np.int64)
+        for a in range(3):
+            key *= dims[a]
+            key += np.floor(p[:, a] / self.voxel_mm).astype(np.int64) - k0[a]
+        keys, inverse = np.unique(key, return_inverse=True)
+        del key
+        voxels = np.empty((len(keys), 3), np.int64)
+        for a in (2, 1, 0):
+            keys, voxels[:, a] = np.divmod(keys, dims[a])
+        voxels += k0
         sums = np.empty(len(voxels), RECORD)
         sums["w"] = np.bincount(inverse, weights=w, minlength=len(voxels))
         for i in range(3):
