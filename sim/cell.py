@@ -642,6 +642,7 @@ class SimCell:
         self._warm_rig()
 
         def compute(T_wc: np.ndarray) -> CameraGeometry:
+            self._dn_cache.pop(camera, None)  # the old pose's images: freed before the new
             geom = self._compute_geometry(camera, T_wc)
             self._serial += 1
             geom.serial = self._serial
@@ -663,6 +664,8 @@ class SimCell:
                 cached[0] == key or (cached[2] == rest
                                      and now - cached[3] <= self.mech.render_burst_s)):
             return cached[4]
+        self._geom_cache.pop(device, None)  # freed before its successor is computed
+        del cached
         value = compute(T)
         self._geom_cache[device] = (key, versions, rest, now, value)
         return value
