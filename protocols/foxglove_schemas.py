@@ -152,7 +152,12 @@ def _decoded(msg: CompressedImage_pb2.CompressedImage) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
-_F32 = PackedElementField_pb2.PackedElementField.FLOAT32
+_PEF = PackedElementField_pb2.PackedElementField
+#: Foxglove's NumericType -> the little-endian numpy type of its values
+_NUMERIC = {_PEF.UINT8: np.dtype("u1"), _PEF.INT8: np.dtype("i1"), _PEF.UINT16: np.dtype("<u2"),
+            _PEF.INT16: np.dtype("<i2"), _PEF.UINT32: np.dtype("<u4"), _PEF.INT32: np.dtype("<i4"),
+            _PEF.FLOAT32: np.dtype("<f4"), _PEF.FLOAT64: np.dtype("<f8")}
+_TYPE_OF = {dtype: numeric for numeric, dtype in _NUMERIC.items()}
 
 
 def point_cloud(
@@ -161,44 +166,51 @@ def point_cloud(
     frame_id: str,
     extra: dict[str, np.ndarray] | None = None,
 ) -> PointCloud_pb2.PointCloud:
-    """An (N, 3) cloud in mm as foxglove.PointCloud with float32 x, y, z and optional fields.
+    """An (N, 3) cloud in mm as foxglove.PointCloud with float32 x, y, z and optional fields,
+    packed without padding. A field of an integer type Foxglove knows (8, 16 or 32 bits)
+    keeps its type; any other is float32.
 
     Foxglove's 3D panel takes the values as they are; the frame's unit is mm throughout scancell.
     """
     pts = np.asarray(points_mm, dtype=np.float32).reshape(-1, 3)
-    names = ["x", "y", "z"]
-    columns = [pts[:, 0], pts[:, 1], pts[:, 2]]
+    columns: dict[str, np.ndarray] = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
     for name, values in (extra or {}).items():
-        values = np.asarray(values, dtype=np.float32).reshape(-1)
-        if values.shape[0] != pts.shape[0]:
-            raise EncodingError(f"field {name!r} has {values.shape[0]} values for {len(pts)} points")
-        names.append(name)
-        columns.append(values)
-    packed = np.stack(columns, axis=1).astype("<f4")
+        v = np.asarray(values).reshape(-1)
+        if v.dtype.newbyteorder("<") not in _TYPE_OF or v.dtype.kind == "f":
+            v = v.astype(np.float32)
+        if v.shape[0] != pts.shape[0]:
+            raise EncodingError(f"field {name!r} has {v.shape[0]} values for {len(pts)} points")
+        columns[name] = v
+    rec = np.empty(len(pts), [(n, v.dtype.newbyteorder("<")) for n, v in columns.items()])
+    for n, v in columns.items():
+        rec[n] = v
     fields = [
-        PackedElementField_pb2.PackedElementField(name=n, offset=4 * i, type=_F32)
-        for i, n in enumerate(names)
+        PackedElementField_pb2.PackedElementField(
+            name=n, offset=rec.dtype.fields[n][1], type=_TYPE_OF[rec.dtype.fields[n][0]])
+        for n in columns
     ]
     return PointCloud_pb2.PointCloud(
         timestamp=_stamp(stamp_ns),
         frame_id=frame_id,
-        point_stride=4 * len(names),
+        point_stride=rec.dtype.itemsize,
         fields=fields,
-        data=packed.tobytes(),
+        data=rec.tobytes(),
     )
 
 
 def cloud_fields(msg: PointCloud_pb2.PointCloud) -> dict[str, np.ndarray]:
-    """Inverse of :func:`point_cloud` for float32 fields: name -> (N,) array."""
+    """Every field of a foxglove.PointCloud, of any of its numeric types: name -> (N,) array."""
     stride = msg.point_stride
     if stride <= 0 or len(msg.data) % stride:
         raise EncodingError(f"PointCloud data of {len(msg.data)} bytes is not a multiple of {stride}")
     raw = np.frombuffer(msg.data, dtype=np.uint8).reshape(-1, stride)
     out: dict[str, np.ndarray] = {}
     for f in msg.fields:
-        if f.type != _F32 or f.offset + 4 > stride:
-            raise EncodingError(f"PointCloud field {f.name!r}: only float32 inside the stride")
-        out[f.name] = raw[:, f.offset : f.offset + 4].copy().view("<f4").reshape(-1)
+        dtype = _NUMERIC.get(f.type)
+        if dtype is None or f.offset + dtype.itemsize > stride:
+            raise EncodingError(f"PointCloud field {f.name!r}: type {f.type} at offset "
+                                f"{f.offset} is not a number inside the {stride}-byte stride")
+        out[f.name] = raw[:, f.offset : f.offset + dtype.itemsize].copy().view(dtype).reshape(-1)
     return out
 
 

@@ -89,6 +89,34 @@ def test_point_cloud_round_trip_with_fields():
 
 
 @pytest.mark.unit
+def test_point_cloud_integer_fields_keep_their_type_packed():
+    """The scan worker's quality and intensity travel as uint16 (whole DN): packed after the
+    float32 coordinates, each with Foxglove's numeric type; any Foxglove numeric type reads
+    back; a field type outside them is named."""
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+    from scancell.workers.scan import whole_dn
+
+    pts = np.arange(12, dtype=float).reshape(4, 3)
+    level = whole_dn(np.array([-3.0, 9.5, 10.49, 70000.0]))
+    np.testing.assert_array_equal(level, [0, 10, 10, 65535])
+    msg = fg.point_cloud(pts, 1, "mcs", {"quality": level, "flag": np.array([1, 0, 1, 1], "u1"),
+                                         "uncertainty": np.full(4, 0.02)})
+    assert msg.point_stride == 12 + 2 + 1 + 4
+    assert [(f.name, f.offset, f.type) for f in msg.fields] == [
+        ("x", 0, PackedElementField.FLOAT32), ("y", 4, PackedElementField.FLOAT32),
+        ("z", 8, PackedElementField.FLOAT32), ("quality", 12, PackedElementField.UINT16),
+        ("flag", 14, PackedElementField.UINT8), ("uncertainty", 15, PackedElementField.FLOAT32)]
+    back = fg.cloud_fields(messages.decode(*(lambda e: (e.payload, e.encoding))(
+        fg.encode_proto(msg))))
+    assert back["quality"].dtype == np.uint16 and back["uncertainty"].dtype == np.float32
+    np.testing.assert_array_equal(back["quality"], level)
+    np.testing.assert_array_equal(back["flag"], [1, 0, 1, 1])
+    msg.fields[3].type = 0  # UNKNOWN
+    with pytest.raises(EncodingError, match="'quality': type 0 at offset 12"):
+        fg.cloud_fields(msg)
+
+
+@pytest.mark.unit
 def test_frame_transform_round_trip():
     from scipy.spatial.transform import Rotation
 
