@@ -188,25 +188,36 @@ class OverlapValues:
             self.normalised.add(d[ok] / sigma[ok])
 
 
+#: points of A compared with B at a time: a pair's temporaries stay ~0.1 GB however many of a
+#: full-size station's 3.5 M points overlap
+PAIR_CHUNK = 500_000
+
+
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
           nb: np.ndarray, grid_b: CellGrid, values: OverlapValues, ua: np.ndarray | None = None,
           ub: np.ndarray | None = None) -> PairMetrics:
     # only A's points within r of B's grid can overlap it: most station pairs share none
     near = in_box(a, *grid_b.bounds(radius))
-    dist, j = nearest_within(grid_b, a[near], radius)
-    hit = np.isfinite(dist)
-    if not hit.any():
+    n, d_sum, rot_sum = 0, 0.0, 0.0
+    for start in range(0, len(near), PAIR_CHUNK):
+        part = near[start:start + PAIR_CHUNK]
+        dist, j = nearest_within(grid_b, a[part], radius)
+        hit = np.isfinite(dist)
+        if not hit.any():
+            continue
+        overlap, j = part[hit], j[hit]
+        sigma = np.hypot(ua[overlap], ub[j]) if ua is not None and ub is not None else None
+        c1, n1 = a[overlap], na[overlap]
+        c2, n2 = b[j], nb[j]
+        v = c2 - c1
+        d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
+        cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign: arbitrary
+        rot = np.degrees(np.arccos(cos))
+        values.add(d, rot, sigma)
+        n, d_sum, rot_sum = n + len(overlap), d_sum + float(d.sum()), rot_sum + float(rot.sum())
+    if not n:
         return PairMetrics(*names, 0)
-    overlap, j = near[hit], j[hit]
-    sigma = np.hypot(ua[overlap], ub[j]) if ua is not None and ub is not None else None
-    c1, n1 = a[overlap], na[overlap]
-    c2, n2 = b[j], nb[j]
-    v = c2 - c1
-    d = np.abs(np.einsum("ij,ij->i", v, n1))  # |C1C2|·|cos∠(n1, C1C2)|
-    cos = np.clip(np.abs(np.einsum("ij,ij->i", n1, n2)), 0.0, 1.0)  # normals' sign is arbitrary
-    rot = np.degrees(np.arccos(cos))
-    values.add(d, rot, sigma)
-    return PairMetrics(*names, len(overlap), float(d.mean()), float(rot.mean()))
+    return PairMetrics(*names, n, d_sum / n, rot_sum / n)
 
 
 @dataclass

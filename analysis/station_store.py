@@ -58,8 +58,8 @@ class StationStore:
 
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """(points (N, 3) float64, normals float64 or None, 1-sigma float64 or None) of station
-        ``name``: all of them, or those inside the box [lo, hi]."""
+        """(points (N, 3), normals or None, 1-sigma or None) of station ``name``, float32 as
+        stored: all of them, or those inside the box [lo, hi]."""
         st = self.stations[name]
         pts = np.load(self._path(name, "points"), mmap_mode="r")
         if lo is None:
@@ -70,7 +70,7 @@ class StationStore:
                 col = pts[:, k]
                 inside &= (col >= lo[k]) & (col <= hi[k])
             idx = np.flatnonzero(inside)
-        out_pts = np.asarray(pts[idx], float)
+        out_pts = np.asarray(pts[idx])
         del pts
         out = [out_pts]
         for field, present in (("normals", st.normals), ("uncertainty", st.uncertainty)):
@@ -78,7 +78,7 @@ class StationStore:
                 out.append(None)
                 continue
             arr = np.load(self._path(name, field), mmap_mode="r")
-            out.append(np.asarray(arr[idx], float))
+            out.append(np.asarray(arr[idx]))
             del arr
         return out[0], out[1], out[2]
 

@@ -5,8 +5,9 @@
 Every ``--every`` seconds the process tree under the command is walked (``/proc/<pid>/task/*/
 children``) and each process's RSS read from ``/proc/<pid>/status`` (VmRSS). A process is named
 by its command line (``scancell worker fuse`` -> ``worker fuse``). Printed at the end, and
-written with ``--json``: each name's peak RSS (MB), and the peak of the tree's sum — the figure
-the machine must hold. The command's exit code is returned.
+written with ``--json``: each name's peak RSS (MB), the peak of the tree's sum — the figure
+the machine must hold — with each name's RSS at that moment, and the seconds into the run of
+each peak. The command's exit code is returned.
 """
 
 from __future__ import annotations
@@ -69,18 +70,26 @@ class Sampler:
     def __init__(self, pid: int, every_s: float) -> None:
         self.pid, self.every_s = pid, every_s
         self.peak: dict[str, float] = {}
+        self.peak_at: dict[str, float] = {}
         self.peak_total = 0.0
+        self.at_peak_total: dict[str, float] = {}
+        self.peak_total_at = 0.0
+        self.t0 = time.monotonic()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            total = 0.0
+            total, now = 0.0, {}
+            t = time.monotonic() - self.t0
             for p in tree(self.pid):
                 mb, name = rss_mb(p), name_of(p)
                 total += mb
-                self.peak[name] = max(self.peak.get(name, 0.0), mb)
-            self.peak_total = max(self.peak_total, total)
+                now[name] = now.get(name, 0.0) + mb
+                if mb > self.peak.get(name, 0.0):
+                    self.peak[name], self.peak_at[name] = mb, t
+            if total > self.peak_total:
+                self.peak_total, self.at_peak_total, self.peak_total_at = total, now, t
             self._stop.wait(self.every_s)
 
     def __enter__(self) -> Sampler:
@@ -92,8 +101,13 @@ class Sampler:
         self._thread.join()
 
     def report(self) -> dict[str, object]:
+        by_size = sorted(self.peak.items(), key=lambda kv: -kv[1])
         return {"peak_total_mb": round(self.peak_total),
-                "peak_mb": {k: round(v) for k, v in sorted(self.peak.items(), key=lambda kv: -kv[1])}}
+                "peak_total_at_s": round(self.peak_total_at, 1),
+                "at_peak_total_mb": {k: round(v) for k, v in sorted(
+                    self.at_peak_total.items(), key=lambda kv: -kv[1])},
+                "peak_mb": {k: round(v) for k, v in by_size},
+                "peak_at_s": {k: round(self.peak_at[k], 1) for k, _ in by_size}}
 
 
 def main() -> int:

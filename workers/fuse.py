@@ -103,6 +103,7 @@ class JobStations:
     station_uncertainty: dict[str, StationUncertainty] = field(default_factory=dict)
     #: scanner checks: check station -> its ScannerCheck, and its cloud (MCS points)
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: (float32, MCS mm; an empty array once evaluated: only its figures are kept)
     check_clouds: dict[str, np.ndarray] = field(default_factory=dict)
     #: the checks the job's final event lists
     announced_checks: set[str] = field(default_factory=set)
@@ -230,7 +231,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return
         if kind == CHECK_KIND:
             with self._lock:
-                self._job(job_id).check_clouds[station] = pts
+                self._job(job_id).check_clouds[station] = pts.astype(np.float32)
             self.submit(("check", f"{job_id}\0{station}"))
             return
         pts, unc = pts.astype(np.float32), None if unc is None else unc.astype(np.float32)
@@ -422,6 +423,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         result = check_figures(job_id, station, record, cloud)
         with self._lock:
             job.check_results[station] = result
+            job.check_clouds[station] = np.zeros((0, 3), np.float32)
         return result
 
     def finish(self, job_id: str) -> dict[str, Any] | None:
