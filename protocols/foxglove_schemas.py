@@ -198,28 +198,47 @@ def point_cloud(
     )
 
 
-def cloud_fields(msg: PointCloud_pb2.PointCloud) -> dict[str, np.ndarray]:
-    """Every field of a foxglove.PointCloud, of any of its numeric types: name -> (N,) array."""
+def _cloud_records(msg: PointCloud_pb2.PointCloud) -> np.ndarray:
+    """The cloud's data as a structured array over its bytes (no copy of the values)."""
     stride = msg.point_stride
-    if stride <= 0 or len(msg.data) % stride:
-        raise EncodingError(f"PointCloud data of {len(msg.data)} bytes is not a multiple of {stride}")
-    raw = np.frombuffer(msg.data, dtype=np.uint8).reshape(-1, stride)
-    out: dict[str, np.ndarray] = {}
+    data = msg.data  # one copy out of the message (upb hands out a new bytes object each time)
+    if stride <= 0 or len(data) % stride:
+        raise EncodingError(f"PointCloud data of {len(data)} bytes is not a multiple of {stride}")
+    names, formats, offsets = [], [], []
     for f in msg.fields:
         dtype = _NUMERIC.get(f.type)
         if dtype is None or f.offset + dtype.itemsize > stride:
             raise EncodingError(f"PointCloud field {f.name!r}: type {f.type} at offset "
                                 f"{f.offset} is not a number inside the {stride}-byte stride")
-        out[f.name] = raw[:, f.offset : f.offset + dtype.itemsize].copy().view(dtype).reshape(-1)
-    return out
+        names.append(f.name)
+        formats.append(dtype)
+        offsets.append(f.offset)
+    try:
+        layout = np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                           "itemsize": stride})
+    except ValueError as exc:  # a name twice
+        raise EncodingError(f"PointCloud fields {names}: {exc}") from None
+    return np.frombuffer(data, layout)
+
+
+def cloud_fields(msg: PointCloud_pb2.PointCloud, names: list[str] | None = None
+                 ) -> dict[str, np.ndarray]:
+    """The fields of a foxglove.PointCloud (all, or those of ``names`` it has), of any of its
+    numeric types: name -> (N,) array."""
+    rec = _cloud_records(msg)
+    return {n: rec[n].copy() for n in rec.dtype.names if names is None or n in names}
 
 
 def cloud_points(msg: PointCloud_pb2.PointCloud) -> np.ndarray:
-    f = cloud_fields(msg)
-    try:
-        return np.stack([f["x"], f["y"], f["z"]], axis=1)
-    except KeyError as exc:
-        raise EncodingError(f"PointCloud has no field {exc}") from None
+    """(N, 3) x, y, z of a foxglove.PointCloud, in their own float type (scancell's: float32)."""
+    rec = _cloud_records(msg)
+    missing = [n for n in "xyz" if n not in rec.dtype.names]
+    if missing:
+        raise EncodingError(f"PointCloud has no field {missing[0]!r}")
+    out = np.empty((len(rec), 3), np.result_type(*(rec.dtype[n] for n in "xyz")))
+    for i, n in enumerate("xyz"):
+        out[:, i] = rec[n]
+    return out
 
 
 def frame_transform(

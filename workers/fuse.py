@@ -224,17 +224,18 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
             msg = sample.decode()
-            pts = fg.cloud_points(msg).astype(float)
-            unc = fg.cloud_fields(msg).get("uncertainty")
+            pts = fg.cloud_points(msg).astype(np.float32, copy=False)
+            unc = fg.cloud_fields(msg, ["uncertainty"]).get("uncertainty")
+            del msg
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
         if kind == CHECK_KIND:
             with self._lock:
-                self._job(job_id).check_clouds[station] = pts.astype(np.float32)
+                self._job(job_id).check_clouds[station] = pts
             self.submit(("check", f"{job_id}\0{station}"))
             return
-        pts, unc = pts.astype(np.float32), None if unc is None else unc.astype(np.float32)
+        unc = None if unc is None else unc.astype(np.float32, copy=False)
         scan_id = str(meta.get("scan_id", ""))
         with self._lock:
             job = self._job(job_id)
