@@ -114,6 +114,9 @@ def test_point_cloud_integer_fields_keep_their_type_packed():
     msg.fields[3].type = 0  # UNKNOWN
     with pytest.raises(EncodingError, match="'quality': type 0 at offset 12"):
         fg.cloud_fields(msg)
+    msg.fields[3].type, msg.fields[3].name = PackedElementField.UINT16, "x"  # a name twice
+    with pytest.raises(EncodingError, match=r"PointCloud fields \['x', 'y', 'z', 'x'"):
+        fg.cloud_points(msg)
 
 
 @pytest.mark.unit
