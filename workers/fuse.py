@@ -223,10 +223,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return  # not a scan_part station (a hand-eye ball, a single scan)
         job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
-            msg = sample.decode()
-            pts = fg.cloud_points(msg).astype(np.float32, copy=False)
-            unc = fg.cloud_fields(msg, ["uncertainty"]).get("uncertainty")
-            del msg
+            pts, fields = fg.cloud_arrays(sample.decode(), ["uncertainty"])
+            pts, unc = pts.astype(np.float32, copy=False), fields.get("uncertainty")
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)
             return
@@ -354,11 +352,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         del cloud
         thinned = thin(world, self.settings.display_voxel_mm)
         self._compare(job, station, world, unc, T_ecs_from_mcs)
-        if self.settings.truth is not None and len(world):
-            job.true_error[station] = station_true_error(self.settings.truth, world)
         st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
-            job.world_samples[station] = even_sample(world)
             job.fused[station] = st
             job.display[station] = thinned
             n_stations = len(job.fused)
@@ -380,10 +375,11 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     def _compare(self, job: JobStations, name: str, world: np.ndarray, unc: np.ndarray | None,
                  T_ecs_from_mcs: np.ndarray) -> None:
         """The overlap metrics of station ``name`` (its world points) against every station
-        fused before it, and its voxel sums, now: at the job's end only the model is left to
-        read back (a full-size job's 19 stations took 60 s of normals and pairs after the job
-        when it was all done there). The stations' world points wait on disk for the pairs of
-        the stations after them. A new hand-eye mid-job: the end starts afresh."""
+        fused before it, its voxel sums, its world sample and (simulation) its true error, now:
+        at the job's end only the model is left to read back (a full-size job's 19 stations
+        took 60 s of normals and pairs after the job when it was all done there). The
+        stations' world points wait on disk for the pairs of the stations after them. A new
+        hand-eye mid-job: the end starts afresh (:meth:`fuse_again`)."""
         key = np.asarray(T_ecs_from_mcs, float).tobytes()
         if job.comparer is None or job.comparer_hand_eye != key:
             if job.comparer is not None:
@@ -398,6 +394,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         except MetricsError:  # an empty cloud: the report says so
             pass
         job.tiles.add(world, unc)
+        job.world_samples[name] = even_sample(world)
+        if self.settings.truth is not None and len(world):
+            job.true_error[name] = station_true_error(self.settings.truth, world)
 
     def fuse_again(self, job: JobStations, he: dict[str, Any]) -> None:
         """A hand-eye that changed mid-job: the overlaps and the voxel sums again, station by
@@ -411,7 +410,6 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             cloud, _, unc = job.mcs.load(name)
             world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em)
             self._compare(job, name, world, unc, T_em)
-            job.world_samples[name] = even_sample(world)
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
         """A scanner check's figures once its record and cloud are both in (kept for the
@@ -571,10 +569,9 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  true_errors: dict[str, float] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
-    ``metrics``: the stations' MetricsReport (or the MetricsError) when already compared as
-    they came; None: compared here."""
-    from scancell.analysis.metrics import compare_clouds
-
+    ``metrics``: the stations' MetricsReport, compared as they came, or the MetricsError;
+    None for a single station. ``true_errors``: each station's mean true error (simulation),
+    from all its points."""
     t0 = time.perf_counter()
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
                             "points_merged": fused.merged_count, "points": fused.size,
@@ -582,14 +579,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
     if scan_workers is not None:
         body["scan_workers"] = scan_workers
-    try:
-        if metrics is None and len(stations) > 1:
-            metrics = compare_clouds(fused.per_station,
-                                     uncertainty=fused.per_station_uncertainty)
-        elif isinstance(metrics, MetricsError):
-            raise metrics
-    except MetricsError as exc:
-        body["metrics_error"] = str(exc)
+    if isinstance(metrics, MetricsError):
+        body["metrics_error"] = str(metrics)
         metrics = None
     if metrics is not None:
         m = metrics.to_json()
@@ -607,8 +598,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     if uncertainty:
         per = {n: u.to_json() for n, u in uncertainty.items()}
         if settings.truth is not None:
-            true = {n: (true_errors or {}).get(n) or station_true_error(settings.truth, p)
-                    for n, p in fused.per_station.items() if n in per and len(p)}
+            true = {n: v for n, v in (true_errors or {}).items() if n in per}
             for n, v in true.items():
                 per[n]["true_error_mm"] = round(v, 5)
             body["uncertainty"] = {"stations": per, "coverage": coverage(
