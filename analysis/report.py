@@ -49,12 +49,6 @@ class TrueErrorMap:
         self.distribution = Distribution(5.0, 5000)
         self.rasters = [WorstRaster(lo[i], hi[i], lo[j], hi[j], pixels) for i, j, _ in self.VIEWS]
 
-    @classmethod
-    def of(cls, points: np.ndarray, error_mm: np.ndarray) -> TrueErrorMap:
-        m = cls(points.min(axis=0), points.max(axis=0))
-        m.add(points, error_mm)
-        return m
-
     def add(self, points: np.ndarray, error_mm: np.ndarray) -> None:
         e = np.abs(np.asarray(error_mm, float))
         self.distribution.add(e)

@@ -176,7 +176,7 @@ def point_cloud(
     columns: dict[str, np.ndarray] = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
     for name, values in (extra or {}).items():
         v = np.asarray(values).reshape(-1)
-        if v.dtype.newbyteorder("<") not in _TYPE_OF or v.dtype.kind == "f":
+        if v.dtype.kind not in "iu" or v.dtype.newbyteorder("<") not in _TYPE_OF:
             v = v.astype(np.float32)
         if v.shape[0] != pts.shape[0]:
             raise EncodingError(f"field {name!r} has {v.shape[0]} values for {len(pts)} points")
@@ -231,7 +231,19 @@ def cloud_fields(msg: PointCloud_pb2.PointCloud, names: list[str] | None = None
 
 def cloud_points(msg: PointCloud_pb2.PointCloud) -> np.ndarray:
     """(N, 3) x, y, z of a foxglove.PointCloud, in their own float type (scancell's: float32)."""
+    return _xyz(_cloud_records(msg))
+
+
+def cloud_arrays(msg: PointCloud_pb2.PointCloud, names: list[str] | None = None
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """:func:`cloud_points` and the other fields (all, or those of ``names`` it has) from one
+    read of the message's bytes (a full-size station's cloud is ~90 MB of them)."""
     rec = _cloud_records(msg)
+    return _xyz(rec), {n: rec[n].copy() for n in rec.dtype.names
+                       if n not in ("x", "y", "z") and (names is None or n in names)}
+
+
+def _xyz(rec: np.ndarray) -> np.ndarray:
     missing = [n for n in "xyz" if n not in rec.dtype.names]
     if missing:
         raise EncodingError(f"PointCloud has no field {missing[0]!r}")

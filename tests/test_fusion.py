@@ -249,7 +249,8 @@ def test_the_model_file_streams_its_chunks_into_ply_e57_and_the_true_error_figur
     assert f["std"] == pytest.approx(truth.std(), abs=1e-6)
     assert f["max"] == pytest.approx(truth.max(), abs=1e-6)
     assert abs(f["p95"] - np.percentile(truth, 95)) <= 0.5e-3 + 1e-6  # 1 µm bins
-    whole = TrueErrorMap.of(pts, truth)
+    whole = TrueErrorMap(pts.min(axis=0), pts.max(axis=0))
+    whole.add(pts, truth)
     np.testing.assert_allclose(summed.rasters[0].image, whole.rasters[0].image, rtol=1e-6)
     assert summed.save(tmp_path / "map.png").stat().st_size > 10_000
     model.remove()

@@ -34,10 +34,10 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
             e = json.loads(s.payload)
             ecs[e["scan_id"]] = e
         else:
-            msg = s.decode()
             scan_id = str(s.attachment.meta.get("scan_id"))
-            clouds[scan_id] = fg.cloud_points(msg).astype(float)
-            unc = fg.cloud_fields(msg).get("uncertainty")
+            pts, fields = fg.cloud_arrays(s.decode(), ["uncertainty"])
+            clouds[scan_id] = pts.astype(float)
+            unc = fields.get("uncertainty")
             if unc is not None:
                 uncertainty[scan_id] = unc.astype(float)
     if hand_eye is None:

@@ -93,15 +93,13 @@ class _Outputs:
     def _cloud(self, s: BusSample) -> None:
         meta = s.attachment.meta
         try:
-            msg = s.decode()
-            f = fg.cloud_fields(msg)
-            pts = fg.cloud_points(msg)
+            pts, fields = fg.cloud_arrays(s.decode())
         except EncodingError as exc:
             log.error("%s: %s", s.key, exc)
             return
         path = self.out / "clouds" / f"{meta.get('station', 'x')}_{meta.get('scan_id', 'x')}.ply"
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._write_ply(path, pts, {k: v for k, v in f.items() if k not in ("x", "y", "z")})
+        self._write_ply(path, pts, fields)
         self.result.clouds[str(meta.get("scan_id"))] = path
 
     def _scan_result(self, s: BusSample) -> None:
