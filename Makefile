@@ -1,6 +1,6 @@
 # Two commands on a fresh Debian machine with Python 3.11:
 #   make demo   - the main job on the embedded simulated cell
-#   make test   - ruff + the test suite
+#   make test   - ruff + the test suite (the docs site's strict build among it)
 # Both create or refresh .venv and install what they need, system libraries included.
 
 PYTHON ?= python3
@@ -8,7 +8,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.scancell-installed
 
-.PHONY: demo test test-fast lint bench setup clean
+.PHONY: demo test test-fast lint bench docs setup clean
 
 setup: $(STAMP)
 
@@ -16,14 +16,14 @@ $(STAMP): pyproject.toml deploy/install-system-deps.sh tests/js/package-lock.jso
 	sh deploy/install-system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,basler]'
+	$(PY) -m pip install --quiet -e '.[test,basler,docs]'
 	cd tests/js && npm ci --no-audit --no-fund --loglevel=error  # a real Foxglove client for the tests
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/scancell demo
 
-# ruff, then the layer contracts of pyproject.toml [tool.importlinter] (README "Layout").
+# ruff, then the layer contracts of pyproject.toml [tool.importlinter] (docs/explanation/architecture.md "Layout").
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
@@ -37,9 +37,14 @@ test: lint
 test-fast: lint
 	$(PY) -m pytest -q -n 2 -m unit
 
+# The manual as a site in site/ (open site/index.html); its reference pages and pictures are
+# generated from the code as it builds (docsgen/). `make test` builds it with --strict too.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+
 bench: $(STAMP)
 	sh deploy/install-system-deps.sh --bench || echo "no CloudCompare: bench_metrics runs without its reference"
 	$(PY) benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) build site *.egg-info .pytest_cache .ruff_cache

@@ -15,6 +15,7 @@ from typing import Any
 import jsonschema
 from scancell.bus import BusConfig
 from scancell.model.cell_geometry import CellGeometry, GeometryError
+from scancell.model.config_keys import REQUIRED, KeySpec
 from scancell.model.metrology_settings import check_table
 from scancell.protocols.keys import check_name
 
@@ -32,10 +33,15 @@ class DeviceConfig:
 
 @dataclass(frozen=True)
 class DaemonConfig:
+    #: how often each device's status is published on dev/<device>/status
     status_period_s: float = 1.0
+    #: the first wait before a failed device is connected again (doubled each time)
     reconnect_initial_s: float = 0.5
+    #: the longest wait between reconnection attempts
     reconnect_max_s: float = 10.0
+    #: the longest a device's connect may take
     connect_timeout_s: float = 10.0
+    #: the longest the devices may take to stop and close at shutdown
     shutdown_timeout_s: float = 3.0
     #: Per-operation timeout overrides, ``"<kind>.<op>" -> seconds``.
     timeouts: dict[str, float] = field(default_factory=dict)
@@ -90,20 +96,71 @@ class CellConfig:
         return scrub(self.raw)
 
 
-_TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
-             "inspection", "acceptance", "metrology"}
+#: ``[cell]``
+CELL_KEYS: dict[str, KeySpec] = {
+    "name": KeySpec("string", "the cell's name: every key expression is under "
+                              "`scancell/<name>/`; letters, digits, `_`, `-`", REQUIRED),
+    "description": KeySpec("string", "free text, shown by `scancell ctl status`", ""),
+}
+#: ``[scanner]``: how every scan of the cell is taken unless its request says otherwise
+SCANNER_KEYS: dict[str, KeySpec] = {
+    "exposures_us": KeySpec("list of 1-6 numbers, or \"auto\"",
+                            "exposure times of an HDR scan; \"auto\" picks them from a dark and "
+                            "a white preview; absent: one exposure at the camera's setting",
+                            None, "µs"),
+    "decode_limits": KeySpec("table", "overrides of the decoder's derived limits, key by key: "
+                                      "`[scanner.decode_limits]`"),
+}
 #: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
 #: sizes (their certificates) and the MPEs, all mm
 ACCEPTANCE_NUMBERS = {"sphere_diameter_mm", "ballbar_length_mm", "ballbar_sphere_diameter_mm"}
 #: Part 3 (multiple views), optional: a long ball bar at positions in the tracker frame
 ACCEPTANCE_PART3 = {"ballbar3_length_mm", "ballbar3_sphere_diameter_mm", "part3_positions_world",
                     "mpe3_mm"}
-ACCEPTANCE_KEYS = ACCEPTANCE_NUMBERS | ACCEPTANCE_PART3 | {
-    "volume_size_mm", "volume_centre_mm", "plane_size_mm", "positions", "mpe_mm"}
+ACCEPTANCE_KEYS: dict[str, KeySpec] = {
+    "volume_size_mm": KeySpec("3 numbers", "the measuring volume's size x, y, z (MCS)",
+                              REQUIRED, "mm"),
+    "volume_centre_mm": KeySpec("3 numbers", "the measuring volume's centre (MCS)", REQUIRED,
+                                "mm"),
+    "plane_size_mm": KeySpec("2 numbers", "the flatness artefact's length and width", REQUIRED,
+                             "mm"),
+    "sphere_diameter_mm": KeySpec("number", "the sphere's calibrated diameter (certificate)",
+                                  REQUIRED, "mm"),
+    "ballbar_length_mm": KeySpec("number", "the ball bar's calibrated centre distance",
+                                 REQUIRED, "mm"),
+    "ballbar_sphere_diameter_mm": KeySpec("number", "the ball bar's spheres' diameter",
+                                          REQUIRED, "mm"),
+    "positions": KeySpec("table {sphere, ballbar, plane}", "positions per artefact",
+                         {"sphere": 10, "ballbar": 7, "plane": 6}),
+    "mpe_mm": KeySpec("table {PF, PS, SD, F}", "the maximum permissible errors of Part 2",
+                      None, "mm"),
+    "ballbar3_length_mm": KeySpec("number", "Part 3: the long ball bar's calibrated length",
+                                  None, "mm"),
+    "ballbar3_sphere_diameter_mm": KeySpec("number", "Part 3: its spheres' diameter", None, "mm"),
+    "part3_positions_world": KeySpec("list of [x, y, z, dx, dy, dz]",
+                                     "Part 3: the bar's centre and direction in the tracker "
+                                     "frame, one per position", None, "mm"),
+    "mpe3_mm": KeySpec("table {SD}", "Part 3's maximum permissible error", None, "mm"),
+}
 #: ``[inspection]``: what the inspect worker compares each fused model with (paths relative
 #: to the config file)
-INSPECTION_KEYS = {"nominal", "unit", "chordal_mm", "align", "T_world_from_part", "tolerance_mm",
-                   "tolerances", "max_distance_mm"}
+INSPECTION_KEYS: dict[str, KeySpec] = {
+    "nominal": KeySpec("path", "the part's CAD (STEP, STL, OBJ, PLY); absent: a job is "
+                               "inspected only if its plan names a nominal"),
+    "unit": KeySpec("string", "a mesh nominal's unit (mm, m, in); a STEP states its own", "mm"),
+    "chordal_mm": KeySpec("number", "the chordal tolerance a STEP is meshed to", 0.01, "mm"),
+    "align": KeySpec("\"bestfit\" or \"asmeasured\"", "how the model is aligned to the nominal",
+                     "bestfit"),
+    "T_world_from_part": KeySpec("4x4 matrix", "the fixture: the part's pose in the tracker "
+                                               "frame (where best fit starts)", None, "mm"),
+    "tolerance_mm": KeySpec("number", "± tolerance of the whole part", None, "mm"),
+    "tolerances": KeySpec("path", "per-region tolerances (TOML: faces, boxes, spheres)"),
+    "max_distance_mm": KeySpec("number", "points farther from the nominal are not part of it",
+                               5.0, "mm"),
+}
+#: every table of a cell config
+_TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
+             "inspection", "acceptance", "metrology"}
 
 
 def load_cell_config(path: str | Path, overrides: dict[str, Any] | None = None) -> CellConfig:
@@ -166,6 +223,9 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         raise err(sorted(unknown)[0], f"unknown table; expected one of {sorted(_TOP_KEYS)}")
 
     cell_t = _table(raw, "cell", err)
+    unknown = set(cell_t) - CELL_KEYS.keys()
+    if unknown:
+        raise err("[cell]", f"unknown key {sorted(unknown)[0]!r} (known: {', '.join(CELL_KEYS)})")
     name = cell_t.get("name")
     try:
         check_name("cell", name)
@@ -245,16 +305,17 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
         except (ValueError, TypeError) as exc:
             raise err("[recorder]", str(exc)) from None
     scanner = _table(raw, "scanner", err)
-    unknown = set(scanner) - {"exposures_us", "decode_limits"}
+    unknown = set(scanner) - SCANNER_KEYS.keys()
     if unknown:
-        raise err("[scanner]", f"unknown key {sorted(unknown)[0]!r} (known: exposures_us, "
-                               f"decode_limits)")
+        raise err("[scanner]", f"unknown key {sorted(unknown)[0]!r} (known: "
+                               f"{', '.join(SCANNER_KEYS)})")
     limits = scanner.get("decode_limits")
     if limits is not None:
         from scancell.analysis.decode_limits import DecodeLimits
 
         if not isinstance(limits, dict):
-            raise err("[scanner] decode_limits", "must be a table of limits (docs/decoding.md)")
+            raise err("[scanner] decode_limits", "must be a table of limits "
+                                                 "(docs/how-to/decode-real-captures.md)")
         try:
             DecodeLimits.from_mapping(limits, "decode_limits")
         except (ValueError, TypeError) as exc:
@@ -283,11 +344,12 @@ def _metrology(t: dict[str, Any], err) -> dict[str, Any]:
 def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
     if not t:
         return {}
-    unknown = set(t) - ACCEPTANCE_KEYS
+    unknown = set(t) - ACCEPTANCE_KEYS.keys()
     if unknown:
         raise err("[acceptance]", f"unknown key {sorted(unknown)[0]!r} (known: "
                                   f"{', '.join(sorted(ACCEPTANCE_KEYS))})")
-    missing = sorted((ACCEPTANCE_KEYS - ACCEPTANCE_PART3 - {"positions", "mpe_mm"}) - set(t))
+    missing = sorted(k for k, spec in ACCEPTANCE_KEYS.items()
+                     if spec.default is REQUIRED and k not in t)
     if missing:
         raise err("[acceptance]", f"missing {', '.join(missing)}")
 
@@ -323,7 +385,7 @@ def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
 
 
 def _inspection(t: dict[str, Any], path: Path | None, err) -> dict[str, Any]:
-    unknown = set(t) - INSPECTION_KEYS
+    unknown = set(t) - INSPECTION_KEYS.keys()
     if unknown:
         raise err("[inspection]", f"unknown key {sorted(unknown)[0]!r} (known: "
                                   f"{', '.join(sorted(INSPECTION_KEYS))})")

@@ -62,17 +62,28 @@ QUANTISATION_DN = 1 / np.sqrt(12)
 class DecodeLimits:
     """Overrides of the derived limits; None means derive it (see the module doc)."""
 
+    #: the modulation threshold B_min (DN, 8-bit scale); None: z · sqrt(r² · 2/N_c + 2/N_f) · σ_I /
+    #: 2π, at least z · σ_I
     min_modulation_dn: float | None = None
     order_margin: float | None = None  # fringes; None: the per-pixel posterior margin
+    #: the largest second difference of the projector coordinate between neighbouring pixels; None:
+    #: 3 · the view's median bend + z · sqrt(6) · σ_x
     bend_limit_px: float | None = None
+    #: the largest coordinate step between neighbouring pixels; None: 3 · the view's median step + z
+    #: · sqrt(2) · σ_x
     step_limit_px: float | None = None
     noise_dn: float | None = None  # σ_I; None: measured from the frames
+    #: z: how many standard deviations of pure noise a derived limit lets through
     confidence_sigmas: float = 4.0
     #: σ (camera px) of the Gaussian the quadrature sums are averaged over before the phase
     smooth_px: float = 1.0
+    #: pixels masked along the image border
     border_px: int = 3
+    #: the nearest depth a point may have (camera frame)
     z_min_mm: float = 50.0
+    #: the farthest depth a point may have (camera frame)
     z_max_mm: float = 5000.0
+    #: a pixel at or above this (8-bit scale) in any frame is masked
     saturation_dn: float = 254.5
 
     @classmethod

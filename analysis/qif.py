@@ -9,7 +9,7 @@ standard lays them out (``QIFApplications/``, ``QIFLibrary/``); the one network 
 XML Signature) is resolved to the copy the ``signxml`` package ships.
 
 A result that QIF cannot hold (no regions, a non-finite value, a unit QIF has no name for) is
-refused with QIFError, never written half-valid. docs/qif.md maps each scancell figure to its
+refused with QIFError, never written half-valid. docs/reference/qif.md maps each scancell figure to its
 QIF element.
 """
 

@@ -212,7 +212,7 @@ def budget_lines(b: dict[str, Any]) -> list[str]:
     lines.append("")
     if b.get("sources"):
         lines += ["Every modelled source drawn from its stated 1-sigma (Monte Carlo per station, "
-                  "docs/metrology.md): its share of the mean error along the surface normal. A "
+                  "docs/explanation/metrology.md): its share of the mean error along the surface normal. A "
                   "job-wide source moves every station alike and cancels in the overlaps.", "",
                   "| source | scope | true error share (mm) | overlap share (mm) |",
                   "|---|---|---|---|"]

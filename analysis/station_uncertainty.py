@@ -7,7 +7,7 @@ surface (the overlap metric) sees: a point moved along the surface is not in err
 noise moves a point along its camera ray, which meets the surface at an angle: its normal
 component is the depth error times ``(c·n) / c_z`` for the point c and the normal n in MCS.
 
-Sources and where their 1-sigma comes from (docs/metrology.md, "Uncertainty"):
+Sources and where their 1-sigma comes from (docs/explanation/metrology.md, "Uncertainty"):
 
 ==================  =======  ==============================================================
 source              scope    stated 1-sigma

@@ -33,7 +33,7 @@ LINEAR_VARIANCE = 2 / 3
 @dataclass(frozen=True)
 class NoiseModel:
     """Temporal noise of the scanner's cameras at their working gain. Default: Sony IMX250
-    (the simulated cameras' sensor; see docs/simulation.md): full well 10.7 ke⁻ at 255 DN,
+    (the simulated cameras' sensor; see docs/explanation/simulation.md): full well 10.7 ke⁻ at 255 DN,
     dark noise 2.95 e⁻."""
 
     gain_dn_per_e: float = 255.0 / 10700.0

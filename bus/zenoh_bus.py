@@ -13,12 +13,13 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import zenoh
 from scancell.bus.protocol import BusSample
+from scancell.model.config_keys import KeySpec
 from scancell.protocols import messages
 from scancell.protocols.commands import (
     REPLY_SCHEMA,
@@ -40,7 +41,7 @@ def sample_from_zenoh(s: zenoh.Sample) -> BusSample:
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 ENV_CONNECT = "SCANCELL_CONNECT"
-#: A client's bus settings from the environment (README "Watching and securing the cell").
+#: A client's bus settings from the environment (docs/how-to/tls.md).
 ENV_BUS_CONFIG = "SCANCELL_BUS_CONFIG"  # a TOML file with a [bus] table
 ENV_USER = "SCANCELL_USER"
 ENV_PASSWORD = "SCANCELL_PASSWORD"
@@ -84,24 +85,39 @@ def _init_zenoh_logging() -> None:
         _zenoh_log_started = True
 
 
+#: ``[bus]`` keys besides :class:`BusConfig`'s fields
+BUS_KEYS: dict[str, KeySpec] = {
+    "password_file": KeySpec("path", "a file holding the password (0600), relative to the cell "
+                                     "config; instead of `password`"),
+    "tls": KeySpec("table", "zenoh's TLS settings: " + ", ".join(f"`{k}`" for k in _TLS_KEYS)
+                   + " (paths to PEM files)", {}),
+}
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """How a process joins the bus."""
 
+    #: "peer" (the daemon: it routes between the clients that connect to it) or "client" (through a
+    #: router)
     mode: str = "peer"
+    #: zenoh endpoints to listen on, e.g. "tcp/0.0.0.0:7447" or "tls/0.0.0.0:7447"
     listen: tuple[str, ...] = ()
+    #: zenoh endpoints to connect to: the cell router, or another peer
     connect: tuple[str, ...] = ()
+    #: find peers by UDP multicast; off: only the endpoints listed
     multicast_scouting: bool = False
     tls: dict[str, Any] = field(default_factory=dict)
+    #: the user name on a secured router (with password or password_file)
     user: str | None = None
+    #: the user's password; better kept out of the config with password_file
     password: str | None = None
     #: zenoh's shared-memory pool (MiB) for large messages to processes on this host; 0: off
     shared_memory_mb: int = DEFAULT_SHM_MB
 
     @classmethod
     def from_mapping(cls, m: dict[str, Any]) -> BusConfig:
-        known = {"mode", "listen", "connect", "multicast_scouting", "tls", "user", "password",
-                 "password_file", "shared_memory_mb"}
+        known = {f.name for f in fields(cls)} | BUS_KEYS.keys()
         for key in m:
             if key not in known:
                 raise ValueError(f"unknown key {key!r}; expected one of {sorted(known)}")
@@ -113,6 +129,8 @@ class BusConfig:
             if not isinstance(v, list) or not all(isinstance(e, str) and "/" in e for e in v):
                 raise ValueError(f"{key} must be a list of zenoh endpoints like {DEFAULT_ENDPOINT!r}")
         tls = m.get("tls", {})
+        if not isinstance(tls, dict):
+            raise ValueError(f"tls must be a table of {', '.join(_TLS_KEYS)}, got {tls!r}")
         bad = set(tls) - set(_TLS_KEYS)
         if bad:
             raise ValueError(f"tls: unknown key {sorted(bad)[0]!r}; expected one of {_TLS_KEYS}")
@@ -354,7 +372,7 @@ class Bus:
                     raise AccessDenied(
                         f"access denied: the daemon of cell {self.keys.cell!r} is up ({alive} "
                         f"device(s) alive) but {key} got no answer: the router's ACL does not let "
-                        f"user {self.config.user!r} send it (the roles: docs/commissioning.md)")
+                        f"user {self.config.user!r} send it (the roles: docs/tutorials/first-real-cell.md)")
                 if alive:
                     raise NoDaemon(f"the daemon of cell {self.keys.cell!r} is up ({alive} device(s) "
                                    f"alive) but did not answer {key} within {timeout_s:g} s")

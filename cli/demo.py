@@ -21,7 +21,7 @@ client. Stages:
 8. a summary beside the paper's figures, in ``runs/<time>/summary.json``.
 
 The simulated cell runs the profile its config names (``realistic`` in the packaged one:
-docs/simulation.md) and the scans take the exposures its ``[scanner]`` table names.
+docs/explanation/simulation.md) and the scans take the exposures its ``[scanner]`` table names.
 
 ``--quick`` runs the same path at 1/4 camera resolution, with 5 balls, the plan's first 3
 stations and the first of each other tracker station.

@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tolerance", default=None, metavar="T|LO,HI",
                    help="tolerance of the whole part (mm): 0.5, or -0.3,0.5")
     p.add_argument("--tolerances", default=None, metavar="TOL.toml",
-                   help="tolerances per region (faces, box, sphere); see docs/inspection.md")
+                   help="tolerances per region (faces, box, sphere); see docs/how-to/inspection.md")
     p.add_argument("--max-distance", type=float, default=5.0, metavar="MM",
                    help="points farther from the nominal are not part of it (default 5 mm)")
     p.add_argument("--sections", default=None,

@@ -1,4 +1,4 @@
-"""``scancell opcua``: serve one cell on OPC UA for a line's PLC or MES (docs/opcua.md)."""
+"""``scancell opcua``: serve one cell on OPC UA for a line's PLC or MES (docs/how-to/opcua.md)."""
 
 from __future__ import annotations
 

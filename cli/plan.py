@@ -50,7 +50,7 @@ def geometry_for(config: str | None, sets: list[str] | None = None):
     cfg = load_cell_config(config or default_cell_config(), merge_overrides(sets or []))
     if cfg.geometry is None:
         raise ConfigError(f"{cfg.path}: no [planner] table (robot base, scanner mount, SMR, "
-                          f"tracker position): see docs/commissioning.md")
+                          f"tracker position): see docs/tutorials/first-real-cell.md")
     return cfg.geometry, dict(cfg.metrology.get("nests") or {})
 
 

@@ -76,7 +76,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     rg.add_argument("--target", default="9x7x18", help="COLSxROWSxSQUARE_MM of the board")
     rg.add_argument("--scale", type=float, default=1.0, help="camera resolution factor")
     rg.add_argument("--bit-depth", type=int, choices=[8, 12, 16], default=8)
-    rg.add_argument("--profile", default="realistic", help="optics profile (docs/simulation.md)")
+    rg.add_argument("--profile", default="realistic", help="optics profile (docs/explanation/simulation.md)")
     rg.add_argument("--seed", type=int, default=0)
     rg.add_argument("--out", required=True)
 

@@ -137,7 +137,8 @@ def scan_settings(config: str | None):
     left = sorted(set(limits) - set(DecodeSettings.LIMITS_TAKEN))
     if left:
         print(f"scancell worker scan: [scanner] decode_limits {', '.join(left)}: for pattern-set "
-              f"decodes only; the scanner's binocular decoder keeps its own (docs/decoding.md)",
+              f"decodes only; the scanner's binocular decoder keeps its own "
+              f"(docs/how-to/decode-real-captures.md)",
               file=sys.stderr)
     return DecodeSettings().with_limits(limits)
 

@@ -1,5 +1,5 @@
 """Deployment files: cell configs, router configs, systemd units (see deploy/systemd/README.md
-and docs/commissioning.md). This module only finds them inside the installed package."""
+and docs/tutorials/first-real-cell.md). This module only finds them inside the installed package."""
 
 from __future__ import annotations
 

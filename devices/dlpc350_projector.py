@@ -2,7 +2,7 @@
 
 The DLPC350 takes no images over USB: its pattern sequences play 24-bit images stored in flash
 (each holding three 8-bit patterns: G7-G0, R7-R0, B7-B0). The ``flash`` option states what the
-cell's flash holds, as commissioning wrote it (docs/commissioning.md):
+cell's flash holds, as commissioning wrote it (docs/tutorials/first-real-cell.md):
 
     flash = [{kind = "fringe", periods = [70, 64, 59], steps = 3, first_image = 0},
              {kind = "levels", levels = [0, 15, ..., 255], first_image = 3}]
@@ -76,7 +76,7 @@ def locate(flash: list[dict[str, Any]], spec: dict[str, Any]) -> list[tuple[int,
     held = (f"fringes of periods {list(seq.periods)} x {seq.steps} steps" if seq is not None
             else f"pattern set {wanted.name or wanted.to_dict()['groups']}")
     return (f"the projector's flash holds no {what}{held} "
-            f"(a DLPC350 plays flash images only: flash them, docs/commissioning.md)")
+            f"(a DLPC350 plays flash images only: flash them, docs/tutorials/first-real-cell.md)")
 
 
 def images_needed(flash: list[dict[str, Any]]) -> int:

@@ -82,7 +82,7 @@ class UsbHidLink:
             self._dev.open(vid, pid, serial)
         except (OSError, ValueError) as exc:
             raise ConnectionLost(f"cannot open {self.where}: {exc} (is it plugged in, and may "
-                                 f"this user open it? see docs/commissioning.md)") from None
+                                 f"this user open it? see docs/tutorials/first-real-cell.md)") from None
 
     def write(self, report: bytes) -> None:
         try:

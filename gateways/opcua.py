@@ -4,14 +4,14 @@ The server mirrors the cell's bus: the devices' states (``cmd/status``, polled),
 job's state and progress (``job/*/event``), the last results (``fusion/report``,
 ``inspect/report``, ``acceptance/report``). Its methods send the same commands as the zenoh
 clients, under the same roles: an OPC UA user maps to a scancell role
-(docs/opcua.md), and a method the role may not call answers ``BadUserAccessDenied`` with the
+(docs/how-to/opcua.md), and a method the role may not call answers ``BadUserAccessDenied`` with the
 reason in ``LastError``.
 
 The address space follows OPC 40001-1 (OPC UA for Machinery) where it fits: the cell is an
 object in ``Objects/Machines``, with ``Identification`` (``Manufacturer``, ``Model``,
 ``ProductInstanceUri``, ``SerialNumber``) and ``Monitoring``. Where it departs (no DI or
 Machinery nodeset is loaded, so the types are BaseObjectType; the job and the results are
-scancell's own objects) docs/opcua.md says so.
+scancell's own objects) docs/how-to/opcua.md says so.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """What the planner and the scan job need to know of a cell: robot base, scanner mount, SMR,
-tracker position, rail (mm, frames as in README "Units and frames"). A cell config states it in ``[planner]``;
-the simulated cell supplies its own."""
+tracker position, rail (mm, frames as in docs/explanation/frames-and-units.md). A cell config
+states it in ``[planner]``; the simulated cell supplies its own."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scancell.model.config_keys import REQUIRED, KeySpec
 from scancell.model.robot_model import RobotModel
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
@@ -28,6 +29,38 @@ class GeometryError(ValueError):
 #: simulated scanner's housing reaches 60 mm around its cameras and projector, and 40 mm more
 #: covers the arm's path deviation between taught poses at speed
 DEFAULT_CLEARANCE_MM = 100.0
+
+
+#: ``[planner]``: what the planner and the scan job know of a real cell (world = the tracker's
+#: frame, mm); the simulated cell supplies its own
+PLANNER_KEYS: dict[str, KeySpec] = {
+    "T_world_from_base": KeySpec("4x4 matrix", "the robot base in the tracker frame", REQUIRED,
+                                 "mm"),
+    "T_flange_from_mcs": KeySpec("4x4 matrix", "the scanner (MCS, the left camera) on the "
+                                               "flange: the nominal hand-eye", REQUIRED, "mm"),
+    "rig_mid_in_flange_mm": KeySpec("3 numbers", "the midpoint between the cameras in the flange "
+                                                 "frame", REQUIRED, "mm"),
+    "smr_in_mcs_mm": KeySpec("3 numbers", "the scanner's rear SMR in MCS", REQUIRED, "mm"),
+    "smr_opening_in_mcs": KeySpec("3 numbers", "the direction the rear SMR's opening faces (MCS)",
+                                  [0, 0, -1]),
+    "tracker_world_mm": KeySpec("3 numbers", "the tracker's head (home set-up)", REQUIRED, "mm"),
+    "smr_acceptance_deg": KeySpec("number", "the SMR's acceptance half-angle", 30.0, "°"),
+    "standoff_mm": KeySpec("number", "the scanner's working distance", 650.0, "mm"),
+    "field_mm": KeySpec("2 numbers", "the usable field at the standoff (x, y)", [380.0, 280.0],
+                        "mm"),
+    "depth_mm": KeySpec("2 numbers", "the usable depth around the standoff", [-90.0, 90.0], "mm"),
+    "rail_axis": KeySpec("3 numbers", "the external linear axis carrying the robot (unit vector, "
+                                      "world); absent: no rail"),
+    "rail_positions_mm": KeySpec("list of numbers", "the rail positions the planner may use", [],
+                                 "mm"),
+    "rail_speed_mm_s": KeySpec("number", "the rail's speed between stations", 250.0, "mm/s"),
+    "smr_cluster": KeySpec("table name = {mcs_mm, opening}",
+                           "SMR nests on the scanner besides the rear one, as drawn (MCS)", {}),
+    "obstacles": KeySpec("list of {name, sphere = {centre, radius}} or {name, capsule = {a, b, "
+                         "radius}}", "cell objects the scanner keeps clear of (world)", [], "mm"),
+    "clearance_mm": KeySpec("number", "how far the scanner's optical centres keep from an "
+                                      "obstacle", DEFAULT_CLEARANCE_MM, "mm"),
+}
 
 
 @dataclass(frozen=True)
@@ -65,7 +98,7 @@ class Obstacle:
 
 @dataclass(frozen=True)
 class CellGeometry:
-    """What the planner needs to know of the cell (mm, frames as in README "Units and frames")."""
+    """What the planner needs to know of the cell (mm, frames as in docs/explanation/frames-and-units.md)."""
 
     T_world_from_base: np.ndarray
     T_flange_from_mcs: np.ndarray
@@ -172,8 +205,12 @@ class CellGeometry:
     @classmethod
     def from_table(cls, t: dict[str, Any]) -> CellGeometry:
         """From a cell config's ``[planner]`` table (matrices as nested lists); raises
-        GeometryError naming a missing or malformed key. ``scancell.config`` is its one caller
-        for config files."""
+        GeometryError naming a missing, unknown or malformed key. ``scancell.config`` is its one
+        caller for config files."""
+        unknown = set(t) - PLANNER_KEYS.keys()
+        if unknown:
+            raise GeometryError(f"unknown key {sorted(unknown)[0]!r} (known: "
+                                f"{', '.join(PLANNER_KEYS)})")
         try:
             g = cls(np.asarray(t["T_world_from_base"], float),
                     np.asarray(t["T_flange_from_mcs"], float),

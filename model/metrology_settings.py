@@ -1,6 +1,6 @@
 """``[metrology]`` of a cell config: the weather for the tracker's refraction correction,
 settle detection before tracker points, and the reference nests of drift control
-(docs/metrology.md). Lengths mm, times s, nests in ``world``."""
+(docs/explanation/metrology.md). Lengths mm, times s, nests in ``world``."""
 
 from __future__ import annotations
 
@@ -17,12 +17,19 @@ class ScannerCheck:
     and every ``every`` stations; the fuse worker reports its length (scale) and its spheres'
     form, and warns past ``warn_ppm`` or ``warn_form_mm``."""
 
+    #: the taught robot pose from which the scanner sees the bar
     joints_deg: tuple[float, ...]
+    #: the bar's calibrated centre distance (its certificate)
     length_mm: float
+    #: the bar's spheres' calibrated diameter
     sphere_diameter_mm: float
+    #: the rail position of the taught pose (None: the rail stays)
     axis_mm: float | None = None
+    #: scan the bar at the job's start and every this many stations
     every: int = 4
+    #: warn when the bar's measured length is off by more than this
     warn_ppm: float = 100.0
+    #: warn when a sphere's form error exceeds this
     warn_form_mm: float = 0.05
 
     def to_json(self) -> dict[str, Any]:
@@ -75,8 +82,11 @@ class MetrologySettings:
     #: "tracker": the tracker's own weather station; "config": the values below; None: the
     #: cell states no weather (every job warns that the tracker corrects for its own setting)
     weather: str | None = None
+    #: weather = "config": the air temperature the tracker corrects refraction for
     air_temperature_c: float | None = None
+    #: weather = "config": the air pressure
     air_pressure_hpa: float | None = None
+    #: weather = "config": the relative humidity
     humidity_pct: float | None = None
     #: wait before each tracker point until the arm has settled (False: measure at once, as a
     #: cell without the defence would; for ablation studies)
@@ -84,18 +94,23 @@ class MetrologySettings:
     #: settled when ``settle_window`` consecutive readings lie within this of their mean (on
     #: top of twice the tracker's stated noise)
     settle_tolerance_mm: float = 0.010
+    #: how many consecutive tracker readings must agree
     settle_window: int = 4
+    #: the longest a tracker point waits for the arm to settle (then not_settled)
     settle_timeout_s: float = 15.0
     #: reference nests (world, mm) by name, surveyed when the cell was commissioned
     nests: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    #: the scan job measures the nests at its start, every this many stations and its end
     nest_check_every: int = 4
+    #: tracker shots averaged per nest
     nest_repeats: int = 3
     #: re-locate the tracker when a nest moved more than this since the last location
     drift_tolerance_mm: float = 0.010
     #: the nests disagree (one knocked, or the tracker moved more than rigidly) beyond this
     nest_fit_tolerance_mm: float = 0.05
+    #: the fewest nests that may locate the tracker
     min_nests: int = 3
-    # ---- the stated 1-sigmas of the Monte Carlo uncertainty (docs/metrology.md)
+    # ---- the stated 1-sigmas of the Monte Carlo uncertainty (docs/explanation/metrology.md)
     #: the weather's uncertainty (°C, hPa, % RH): a tracker weather station's stated accuracy
     weather_uncertainty: tuple[float, float, float] = (0.3, 1.0, 5.0)
     #: the scanner's scale stability (ppm): its warm-up and thermal drift

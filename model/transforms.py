@@ -1,6 +1,7 @@
 """Homogeneous transforms (4x4, mm) and rotations, as every layer uses them.
 
-Names follow README "Units and frames": ``T_<to>_from_<from>`` maps ``<from>`` coordinates into ``<to>``.
+Names follow docs/explanation/frames-and-units.md: ``T_<to>_from_<from>`` maps ``<from>``
+coordinates into ``<to>``.
 """
 
 from __future__ import annotations

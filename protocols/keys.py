@@ -1,4 +1,5 @@
-"""Zenoh key expressions of a cell, all under ``scancell/<cell>/`` (README "Processes and data flow")."""
+"""Zenoh key expressions of a cell, all under ``scancell/<cell>/``: :class:`CellKeys` builds them,
+:data:`KEY_CATALOGUE` says what travels on each (the docs site's bus reference)."""
 
 from __future__ import annotations
 
@@ -89,6 +90,11 @@ class CellKeys:
         return f"{self.prefix}/calib/hand_eye"
 
     @property
+    def hand_eye_sample(self) -> str:
+        """One ball of a hand-eye job with its tracker and robot readings (``scancell.HandEyeSample``)."""
+        return f"{self.hand_eye}/sample"
+
+    @property
     def fusion_cloud(self) -> str:
         return f"{self.prefix}/fusion/cloud"
 
@@ -151,3 +157,91 @@ class CellKeys:
         if not key.startswith(head):
             raise ValueError(f"key {key!r} is not under {head!r}")
         return key[len(head) :]
+
+
+@dataclass(frozen=True)
+class KeyDoc:
+    """One key expression of a cell, relative to ``scancell/<cell>/``: what travels on it and who
+    publishes it. ``kind``: "sample" (put), "latched" (put, and a queryable that answers with the
+    last one), "query" (a queryable answering requests) or "liveliness" (a token)."""
+
+    key: str
+    kind: str
+    schema: str
+    publisher: str
+    doc: str
+    group: str
+
+
+#: Every key expression a cell uses (the docs site's bus reference is generated from it; a test
+#: holds it to :class:`CellKeys`). Schemas: ``application/json`` for ``scancell.*``, protobuf for
+#: ``foxglove.*``.
+KEY_CATALOGUE: tuple[KeyDoc, ...] = (
+    KeyDoc("cmd/<verb>", "query", "scancell.cmd.<verb> -> scancell.CommandReply", "daemon",
+           "every command of the cell: the request validated by its JSON Schema, the reply "
+           "`{result}` or `{error: {code, message}}`", "commands"),
+    KeyDoc("dev/<camera>/image", "sample", "foxglove.RawImage", "daemon",
+           "a camera's frames; a scan's frames carry a `scancell.ScanFrameMeta` attachment "
+           "(scan id, station, role, pattern)", "devices"),
+    KeyDoc("dev/<robot>/joints", "sample", "foxglove.JointStates", "daemon",
+           "the robot's joint angles (rad) and the rail", "devices"),
+    KeyDoc("dev/<tracker>/point", "sample", "scancell.TrackerPoint", "daemon",
+           "each SMR measurement of the tracker (mm, world)", "devices"),
+    KeyDoc("dev/<device>/status", "sample", "scancell.DeviceStatus", "daemon",
+           "each device's state, once a second and on every change", "devices"),
+    KeyDoc("alive/<device>", "liveliness", "", "daemon", "held while the device is connected",
+           "devices"),
+    KeyDoc("daemon/log", "sample", "foxglove.Log", "daemon", "the daemon's log", "devices"),
+    KeyDoc("job/<job_id>/event", "sample", "scancell.JobEvent", "daemon",
+           "a job's progress: running, station, step, eta_s, and its final event (done, failed, "
+           "aborted)", "jobs"),
+    KeyDoc("scan/<station>/cloud", "sample", "foxglove.PointCloud", "scan worker",
+           "a station's decoded cloud in `mcs_<station>` (mm; x, y, z, uncertainty float32; "
+           "quality, intensity uint16)", "scans"),
+    KeyDoc("scan/<station>/result", "sample", "scancell.ScanResult", "scan worker",
+           "a scan's outcome: points, decoded share, the decoding worker, or the error", "scans"),
+    KeyDoc("scan/<station>/ecs", "sample", "scancell.StationEcs", "daemon",
+           "the station's tracker points P1..P3 or its SMR-cluster pose, with settle times",
+           "scans"),
+    KeyDoc("scan/<station>/check", "sample", "scancell.ScannerCheck", "daemon",
+           "a scanner check's scan of the cell's ball bar", "scans"),
+    KeyDoc("calib/stereo", "latched", "scancell.StereoCalibration", "scan worker",
+           "the stereo calibration in force", "calibrations"),
+    KeyDoc("calib/hand_eye", "latched", "scancell.HandEye", "calibrate worker",
+           "the hand-eye calibration in force (and the SMR cluster's)", "calibrations"),
+    KeyDoc("calib/hand_eye/sample", "sample", "scancell.HandEyeSample", "daemon",
+           "one point of a hand-eye job: a ball's scan and tracker point, or the SMR at a J6 turn",
+           "calibrations"),
+    KeyDoc("calib/projector_response", "latched", "scancell.ProjectorResponse", "scan worker",
+           "the projector's response in force", "calibrations"),
+    KeyDoc("calib/projector_response/result", "sample", "scancell.ProjectorResponseResult",
+           "scan worker", "each projector-response calibration's outcome", "calibrations"),
+    KeyDoc("fusion/cloud", "sample", "foxglove.PointCloud", "fuse worker",
+           "the fused model in `world` (mm): thinned while the job runs, then the whole model "
+           "in parts of at most 1 M points (`meta.final`, `meta.part` of `meta.parts`)",
+           "fusion"),
+    KeyDoc("fusion/report", "sample", "scancell.FusionReport", "fuse worker",
+           "a job's fusion report: overlap errors, uncertainty, true error in simulation",
+           "fusion"),
+    KeyDoc("tf/<frame>", "sample", "foxglove.FrameTransform", "fuse worker",
+           "the frame tree `world <- ecs_<station> <- mcs_<station>`; the inspect worker adds `part`",
+           "fusion"),
+    KeyDoc("inspect/report", "sample", "scancell.InspectionReport", "inspect worker",
+           "a job's inspection against its nominal", "inspection"),
+    KeyDoc("inspect/cloud", "sample", "foxglove.PointCloud", "inspect worker",
+           "the inspected model in the `part` frame with its signed deviation", "inspection"),
+    KeyDoc("acceptance/sample", "sample", "scancell.AcceptanceSample", "daemon",
+           "one scan of an acceptance job with its artefact's placement", "acceptance"),
+    KeyDoc("acceptance/report", "sample", "scancell.AcceptanceReport", "acceptance worker",
+           "the VDI/VDE 2634 figures of an acceptance job", "acceptance"),
+    KeyDoc("recorder/<name>/status", "sample", "scancell.RecorderStatus", "recorder",
+           "the recorder's file, queue, bytes and drops, once a second", "recording"),
+    KeyDoc("recorder/<name>/event", "sample", "scancell.RecorderEvent", "recorder",
+           "file opened or closed, a drop, an error, a duplicate", "recording"),
+    KeyDoc("workers/<kind>/<worker_id>", "liveliness", "", "each worker",
+           "a live worker of that kind (scan, fuse, calibrate)", "workers"),
+    KeyDoc("workers/<kind>/<worker_id>/status", "latched", "scancell.WorkerStatus", "each worker",
+           "what the worker decodes, queues and holds", "workers"),
+    KeyDoc("workers/<kind>/<worker_id>/answered", "query", "scancell.WorkerAnswered",
+           "each worker", "has this worker answered an item (a scan, a job)?", "workers"),
+)

@@ -76,18 +76,28 @@ ANSWERS = {
 class RecorderSettings:
     """The ``[recorder]`` table of a cell config, and the options of ``scancell record``."""
 
+    #: where the session files go (made if missing)
     directory: str = "recordings"
+    #: the recorder's name in recorder/<name>/status and event
     name: str = "recorder"
-    #: Key expressions relative to ``scancell/<cell>/`` to record, and to leave out.
+    #: key expressions relative to ``scancell/<cell>/`` to record
     topics: tuple[str, ...] = ("**",)
+    #: key expressions to leave out
     exclude: tuple[str, ...] = ()
+    #: the queue between zenoh and the writer; a sample that does not fit is dropped, counted and
+    #: reported
     queue_bytes: int = 1 << 30
+    #: an idle file (between jobs) is closed and a new one started after this long
     split_s: float = 600.0
+    #: ... or once it holds this many bytes
     split_bytes: int = 4 << 30
+    #: a job's file stays open this long after the job's end and its last sample
     job_linger_s: float = 10.0
     #: the longest a job's file waits for the results of its scans after the job's end
     job_max_linger_s: float = 180.0
+    #: how often recorder/<name>/status is published
     status_period_s: float = 1.0
+    #: after a write error, the wait before a new file is tried
     retry_s: float = 5.0
     #: Which camera frames go into the files (:data:`FRAME_POLICIES`): "all" keeps every frame,
     #: so a recording reprocesses to the same clouds; "first_exposure" keeps an HDR scan's first

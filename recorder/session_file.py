@@ -72,6 +72,7 @@ IMAGE_SCHEMAS = frozenset({"foxglove.RawImage", "foxglove.CompressedImage"})
 class FileSettings:
     """How a session file is written."""
 
+    #: the MCAP chunks' compression: "zstd", "lz4" or "none"
     compression: str = "zstd"
     #: How camera frames are written (:data:`IMAGE_COMPRESSIONS`), losslessly: "png" holds a
     #: simulated full-size station's frames in 0.30 of their bytes, zstd chunks in 0.42
@@ -79,6 +80,7 @@ class FileSettings:
     #: While the recorder lags (``hurry``) frames are written as they came, uncompressed (with
     #: "png", a key then carries both foxglove.RawImage and foxglove.CompressedImage).
     image_compression: str = "png"
+    #: the size at which a chunk is closed and written
     chunk_bytes: int = 4 * 1024 * 1024
     #: A chunk is closed and handed to the OS at least this often: a crash loses no more.
     flush_interval_s: float = 0.5

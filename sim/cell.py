@@ -195,7 +195,7 @@ class SimCellConfig:
     smr_in_mcs_mm: np.ndarray = field(default_factory=lambda: np.array([276.0, 95.0, -140.0]))
     #: None: backwards along the rig's bisector (how the nest is machined into the housing)
     smr_opening_in_mcs: np.ndarray | None = None
-    #: projector, cameras, paints and ambient light (sim/optics_profile.py, docs/simulation.md)
+    #: projector, cameras, paints and ambient light (sim/optics_profile.py, docs/explanation/simulation.md)
     optics: OpticsProfile = field(default_factory=lambda: optics_profile(DEFAULT_PROFILE))
     #: exposure time (s) at which ``optics.exposure`` holds (the cameras' nominal 10 ms)
     nominal_exposure_s: float = 0.01
@@ -653,7 +653,7 @@ class SimCell:
     def _at_pose(self, device: str, compute: Callable[[np.ndarray], Any]) -> Any:
         """``compute(T_world_from_device)`` at the current pose, cached per device. The frames
         of one burst (a scan's patterns) share the pose of its first frame: the arm's vibration
-        and thermal growth during one scan are not rendered (docs/simulation.md)."""
+        and thermal growth during one scan are not rendered (docs/explanation/simulation.md)."""
         now = self.clock.now()
         T = self.T_world_from_camera(device)
         key = T.round(9).tobytes()

@@ -42,36 +42,64 @@ from scancell.sim.world import SimWorld, register, unregister
 
 log = logging.getLogger(__name__)
 
-_PORT = {"type": "integer", "minimum": 0, "maximum": 65535}
-_HOST = {"type": "string"}
+_PORT = {"type": "integer", "minimum": 0, "maximum": 65535,
+         "description": "the simulator's TCP port (the device's driver connects to it)"}
+_HOST = {"type": "string", "description": "the address the simulator listens on",
+         "default": "127.0.0.1"}
+
+
+def _d(description: str, schema: dict[str, Any]) -> dict[str, Any]:
+    return {**schema, "description": description}
+
+
 SIMULATOR_SCHEMA: dict[str, Any] = {
     "type": "object",
     "properties": {
-        "world": {"type": "string"},
-        "seed": {"type": "integer"},
-        "camera_scale": {"type": "number", "minimum": 1},
-        "part": {"enum": [*PARTS, ""]},
-        "look_at_part": {"type": "boolean"},
-        "smr_cluster": {"enum": ["housing", ""]},
-        "profile": {"enum": sorted(PROFILES)},
-        "effects_off": {"type": "array", "items": {"enum": sorted({*EFFECTS, *MECH_EFFECTS})},
-                        "uniqueItems": True},
+        "world": _d("the simulated world's name (its CAN channel, its log lines)",
+                    {"type": "string", "default": "default"}),
+        "seed": _d("every noise and draw of the cell; the same seed gives the same images and "
+                   "measurements", {"type": "integer", "default": 0}),
+        "camera_scale": _d("camera resolution divisor: 1 full size (2448 x 2048), 4 a quarter",
+                           {"type": "number", "minimum": 1, "default": 1.0}),
+        "part": _d("the part in the cell (\"\": none)", {"enum": [*PARTS, ""],
+                                                         "default": "car_rear"}),
+        "look_at_part": _d("the robot starts looking at the part",
+                           {"type": "boolean", "default": True}),
+        "smr_cluster": _d("\"housing\": nine SMRs on the scanner's housing besides the rear one",
+                          {"enum": ["housing", ""]}),
+        "profile": _d("the optics and mechanics profile (docs: Simulation models)",
+                      {"enum": sorted(PROFILES), "default": DEFAULT_PROFILE}),
+        "effects_off": _d("single effects of the profile switched off",
+                          {"type": "array", "items": {"enum": sorted({*EFFECTS, *MECH_EFFECTS})},
+                           "uniqueItems": True}),
         "robot": {"type": "object", "additionalProperties": False, "properties": {
-            "host": _HOST, "motion_port": _PORT, "state_port": _PORT,
-            "byte_order": {"enum": ["big", "little"]},
-            "state_hz": {"type": "number", "exclusiveMinimum": 0}}},
+            "host": _HOST, "motion_port": _d("simple_message motion port", _PORT),
+            "state_port": _d("simple_message state port", _PORT),
+            "byte_order": _d("the controller's byte order (FANUC KAREL: big)",
+                             {"enum": ["big", "little"], "default": "big"}),
+            "state_hz": _d("joint state rate", {"type": "number", "exclusiveMinimum": 0,
+                                                "default": 30.0})}},
         "tracker": {"type": "object", "additionalProperties": False, "properties": {
-            "host": _HOST, "port": _PORT, "protocol": {"enum": ["stlp", "emscon"]}}},
+            "host": _HOST, "port": _PORT,
+            "protocol": _d("\"stlp\": the tracker line protocol; \"emscon\": Leica emScon TPI",
+                           {"enum": ["stlp", "emscon"], "default": "stlp"})}},
         "projector": {"type": "object", "additionalProperties": False, "properties": {
-            "host": _HOST, "port": _PORT, "model": {"enum": ["dlpc350", "dlpc900"]},
-            "dmd": {"type": "array", "items": {"type": "integer", "minimum": 1},
-                    "minItems": 2, "maxItems": 2},
-            "flash": FLASH_LAYOUT_SCHEMA}},
+            "host": _HOST, "port": _PORT,
+            "model": _d("the emulated TI controller", {"enum": ["dlpc350", "dlpc900"],
+                                                       "default": "dlpc350"}),
+            "dmd": _d("the DMD's width and height (px)",
+                      {"type": "array", "items": {"type": "integer", "minimum": 1},
+                       "minItems": 2, "maxItems": 2}),
+            "flash": _d("a DLPC350's flash images (what commissioning would flash)",
+                        FLASH_LAYOUT_SCHEMA)}},
         "axis": {"type": "object", "additionalProperties": False, "properties": {
-            "host": _HOST, "port": _PORT, "node_id": {"type": "integer", "minimum": 1,
-                                                     "maximum": 127},
-            "counts_per_mm": {"type": "number", "exclusiveMinimum": 0},
-            "can_channel": {"type": "string"}}},
+            "host": _HOST, "port": _d("socketcand port", _PORT),
+            "node_id": _d("the CiA 402 drive's CANopen node id",
+                          {"type": "integer", "minimum": 1, "maximum": 127}),
+            "counts_per_mm": _d("encoder counts per mm of the rail",
+                                {"type": "number", "exclusiveMinimum": 0}),
+            "can_channel": _d("the virtual CAN channel between the drive and socketcand",
+                              {"type": "string"})}},
     },
     "additionalProperties": False,
 }

@@ -1,7 +1,7 @@
 """The simulated cell's mechanics and time: robot compliance, vibration and thermal growth,
 tracker systematic errors, air refraction, stand drift and SMR centring, the scanner's warm-up.
 
-Every parameter's value and source is in docs/simulation.md ("Mechanics and time"). A profile is a
+Every parameter's value and source is in docs/explanation/simulation.md ("Mechanics and time"). A profile is a
 set of values; each effect can be switched off on its own (:func:`mechanics_profile`), which puts
 back the ``ideal`` profile's values of that effect's fields (the ablation in
 benchmarks/RESULTS.md). Time-dependent effects are functions of the simulation clock (seconds,
@@ -24,7 +24,7 @@ G = 9.80665
 
 @dataclass(frozen=True)
 class MechanicsProfile:
-    """All mechanical and time parameters of the simulated cell (docs/simulation.md)."""
+    """All mechanical and time parameters of the simulated cell (docs/explanation/simulation.md)."""
 
     name: str = "ideal"
     # ---- time

@@ -1,7 +1,7 @@
 """The simulated scanner's optics: projector response and defocus, camera sensor (EMVA 1288) and
 depth of field, surface paints with a specular lobe, ambient light; the named profiles.
 
-Every parameter's value and source is listed in docs/simulation.md. A profile is a set of
+Every parameter's value and source is listed in docs/explanation/simulation.md. A profile is a set of
 values; each effect can be switched off on its own (:func:`optics_profile`), which puts back the
 ``ideal`` profile's values of that effect's fields (the ablation in benchmarks/RESULTS.md).
 """
@@ -28,7 +28,7 @@ class Paint:
 
 @dataclass(frozen=True)
 class OpticsProfile:
-    """All optical parameters of the simulated scanner and part (see docs/simulation.md)."""
+    """All optical parameters of the simulated scanner and part (see docs/explanation/simulation.md)."""
 
     name: str = "ideal"
     # ---- projector

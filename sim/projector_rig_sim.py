@@ -5,7 +5,7 @@ It renders what one camera records while the projector shows a pattern set
 its response (the optics profile's gamma and contrast), onto a plane of known pose (a plain
 sheet or a checkerboard of known squares), lit by ambient light too, seen through the
 camera's lens (distortion, in-focus blur) by an EMVA 1288 sensor (shot and dark noise, 8, 12
-or 16 bit). Every parameter comes from the optics profile (docs/simulation.md), so the same
+or 16 bit). Every parameter comes from the optics profile (docs/explanation/simulation.md), so the same
 effects that make the binocular cell unkind make this rig unkind.
 
 Truth: the rig (``truth``), the plane (``Plane``), and per camera pixel the projector

@@ -59,7 +59,7 @@ class TrackerReading:
 
 #: FindReflector locks on the reflector nearest the given position within 100 mm, or else on
 #: the one nearest in direction within this cone (deg): the camera-aided search of current
-#: trackers (docs/simulation.md, "Tracker station moves")
+#: trackers (docs/explanation/simulation.md, "Tracker station moves")
 FIND_SEARCH_DEG = 5.0
 
 

@@ -1,5 +1,5 @@
 """The simulated world as the person who sets the tracker up at a plan's other stations: the
-tripod goes roughly where the plan says, levelled, turned by eye (docs/simulation.md,
+tripod goes roughly where the plan says, levelled, turned by eye (docs/explanation/simulation.md,
 "Tracker station moves")."""
 
 from __future__ import annotations

@@ -18,14 +18,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def guide_block(heading: str, n: int = 0) -> str:
-    text = (ROOT / "docs" / "commissioning.md").read_text()
+    text = (ROOT / "docs" / "how-to" / "tls.md").read_text()
     section = text.split(heading, 1)[1]
     return re.findall(r"```sh\n(.*?)```", section, re.S)[n]
 
 
 @pytest.mark.process
 def test_the_guides_tls_step_runs_as_written_and_the_cell_behind_it_works(tmp_path, cell):
-    block = guide_block("## 6. Securing the bus")
+    block = guide_block("## Steps")
     assert "openssl req -x509" in block
     out = subprocess.run(["bash", "-e", "-c", block], cwd=tmp_path, capture_output=True,
                          text=True, timeout=60)
@@ -45,7 +45,7 @@ def test_the_guides_tls_step_runs_as_written_and_the_cell_behind_it_works(tmp_pa
         "transport/link/tls/listen_private_key": str(tls / "router.key"),
         "transport/auth/usrpwd/dictionary_file": str(tmp_path / "credentials.txt")}))
     endpoint = f"tls/localhost:{port}"
-    # the daemon's password from its file, as docs/commissioning.md step 3 writes the [bus] table
+    # the daemon's password from its file, as docs/tutorials/first-real-cell.md step 3 writes the [bus] table
     daemon = DaemonThread(MOCK_CELL, cell, endpoint, bus={
         "mode": "client", "connect": [endpoint], "user": "daemon",
         "password_file": str(tmp_path / "daemon.password"),

@@ -218,7 +218,7 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
         f"</h1><h2>{ {True: 'PASS', False: 'FAIL', None: 'no MPE given'}[body.get('pass')] }</h2>"
         f"<p>Measuring volume {vol.get('size_mm')} mm at {vol.get('centre_mm')} mm in the "
         "scanner frame. Each figure is the largest |value| over its positions (mm); see "
-        "docs/acceptance.md for our reading of the guideline.</p>"
+        "docs/how-to/acceptance.md for our reading of the guideline.</p>"
         "<table><tr><th>parameter</th><th></th><th>figure (mm)</th><th>MPE (mm)</th><th></th>"
         f"<th>positions</th><th>values (mm)</th></tr>{''.join(rows)}</table>"
         + (f"<h2>Not evaluated</h2><ul>{errors}</ul>" if errors else "") + "</body></html>")

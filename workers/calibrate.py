@@ -249,7 +249,7 @@ class CalibrateWorker(ThreadedWorker[str]):
                 self._publish(json.loads(active.read_text()))
             except ValueError as exc:
                 log.error("%s: not JSON (%s); no active hand-eye published", active, exc)
-        self.subscribe(k.hand_eye + "/sample", self._on_sample)
+        self.subscribe(k.hand_eye_sample, self._on_sample)
         self.subscribe(k.hand_eye, self._on_answer)
         self.subscribe(k.scan_cloud("*"), self._on_cloud)
         self.subscribe(k.job_event("*"), self._on_event)

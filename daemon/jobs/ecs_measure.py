@@ -1,4 +1,4 @@
-"""The SMR under J6 rotation: the tracker points an ECS is built from (README "Measurement jobs", steps 2-5).
+"""The SMR under J6 rotation: the tracker points an ECS is built from (docs/how-to/scan-a-part.md, steps 2-5).
 
 At the robot's current pose ``q0``: the SMR at J6 = q0[5] (P1), then at each J6 turn (P2, P3, ...),
 each point the mean of ``repeats`` tracker shots. If the beam breaks turning one way (the SMR

@@ -73,7 +73,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
                          tuple(req.get("spread_mm", [120.0, 100.0])))
 
     def sample(kind: str, sid: str, point: np.ndarray, **extra: Any) -> None:
-        ctx.bus.publish_json(ctx.bus.keys.hand_eye + "/sample",
+        ctx.bus.publish_json(ctx.bus.keys.hand_eye_sample,
                              {"job_id": ctx.job_id, "kind": kind, "id": sid,
                               "point_mm": [float(v) for v in point], "balls": n, **extra},
                              "scancell.HandEyeSample")

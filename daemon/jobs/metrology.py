@@ -1,5 +1,5 @@
 """The cell's metrology defences every measuring job uses (``[metrology]`` in the cell config,
-docs/metrology.md): settle detection before a tracker point, the weather for the tracker's
+docs/explanation/metrology.md): settle detection before a tracker point, the weather for the tracker's
 refraction correction, and the reference nests that control the tracker's drift.
 """
 

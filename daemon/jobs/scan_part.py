@@ -1,6 +1,6 @@
 """``cmd/job/scan_part``: the paper's measurement procedure over the stations of a plan.
 
-Per station (README "Measurement jobs"): move (robot, and the external axis if the station has a position) →
+Per station (docs/how-to/scan-a-part.md): move (robot, and the external axis if the station has a position) →
 tracker P1 → coupled scan (``dev/<camera>/image`` frames, scan id ``<job>-<station>``) → J6 turns
 with P2, P3 → J6 back. Each station ends with ``scan/<station>/ecs`` (``scancell.StationEcs``: the
 three tracker points and their J6 angles), from which the fuse worker builds ``T_world_from_ecs``.

@@ -1,4 +1,4 @@
-"""The scanner check of a scan job (``[metrology.scanner_check]``, docs/metrology.md): the robot
+"""The scanner check of a scan job (``[metrology.scanner_check]``, docs/explanation/metrology.md): the robot
 goes to the taught pose in front of the ball bar fixed in the cell, waits until the arm has
 settled, and scans it. ``scan/<check>/check`` (``scancell.ScannerCheck``) names the scan and the
 bar's calibrated size; the fuse worker reports the bar's length error (the stereo geometry's
