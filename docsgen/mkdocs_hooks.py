@@ -16,7 +16,8 @@ PROTOCOL_DOCS = {"TRACKER_PROTOCOL.md": "tracker-line.md", "EMSCON.md": "emscon.
 
 def generated_pages() -> dict[str, str | bytes]:
     """Every generated page and picture: site path -> content."""
-    from scancell.docsgen import bus_reference, cli_reference, config_reference, pictures
+    from scancell.docsgen import (bus_reference, cli_reference, config_reference, example_report,
+                                  pictures)
 
     out: dict[str, str | bytes] = {}
     out.update(cli_reference.pages())
@@ -25,6 +26,7 @@ def generated_pages() -> dict[str, str | bytes]:
     for src, dest in PROTOCOL_DOCS.items():
         out[f"reference/protocols/{dest}"] = (ROOT / "protocols" / src).read_text()
     out.update(pictures.pictures())
+    out.update(example_report.example_report())
     return out
 
 

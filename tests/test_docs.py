@@ -82,6 +82,10 @@ def test_the_site_builds_strictly_and_home_links_the_five_questions(tmp_path):
         assert must in (site / page).read_text(), page
     for picture in ("cell-layout", "data-flow", "frames", "job-stages"):
         assert (site / "pictures" / f"{picture}.svg").read_bytes().startswith(b"<?xml"), picture
+    # a report page, made by an inspection as the site was built
+    report = (site / "pictures" / "inspection" / "report.html").read_text()
+    assert "<html" in report and "car_rear.step" in report
+    assert (site / "pictures" / "inspection" / "map.png").read_bytes().startswith(b"\x89PNG")
 
 
 def test_every_command_and_option_is_in_the_cli_reference():
