@@ -20,6 +20,7 @@ import math
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -127,7 +128,8 @@ def _text(v: Any) -> str:
     if isinstance(v, float):
         if not math.isfinite(v):
             raise QIFError(f"a value of {v} cannot be written to QIF")
-        return repr(float(v))
+        # xs:decimal has no exponent: the shortest digits that read back exactly, positional
+        return format(Decimal(repr(float(v))), "f")
     return str(v)
 
 

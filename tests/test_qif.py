@@ -76,6 +76,19 @@ def test_an_acceptance_test_is_valid_qif_with_each_value_against_its_mpe(tmp_pat
     assert "<MinValue>-0.05</MinValue>" in text and "<MaxValue>0.05</MaxValue>" in text
 
 
+@needs_schemas
+def test_values_near_zero_or_huge_are_written_as_decimals_without_an_exponent(tmp_path):
+    # a live acceptance job measured PS = -6.68e-05 mm, which repr writes with an exponent
+    # that xs:decimal refuses
+    tiny = {**ACCEPTANCE, "PS": {"mpe_mm": 0.05, "pass": True, "values": [
+        {"value_mm": -6.680044236873073e-05, "position": 0}, {"value_mm": 1e-7, "position": 1}]}}
+    qif.write_checked(qif.acceptance_document(tiny, job_id="acceptance-2", overall_pass=True),
+                      tmp_path / "a.qif", QIF_SCHEMAS)
+    text = (tmp_path / "a.qif").read_text()
+    assert "-0.00006680044236873073" in text and "0.0000001" in text and "e-0" not in text
+    assert qif._text(1.5e22) == "15000000000000000000000" and float(qif._text(0.1)) == 0.1
+
+
 def test_results_qif_cannot_hold_are_refused_and_nothing_is_written(tmp_path):
     out = tmp_path / "x.qif"
     no_tolerance = inspection_body()
