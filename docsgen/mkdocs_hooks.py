@@ -16,8 +16,7 @@ PROTOCOL_DOCS = {"TRACKER_PROTOCOL.md": "tracker-line.md", "EMSCON.md": "emscon.
 
 def generated_pages() -> dict[str, str | bytes]:
     """Every generated page and picture: site path -> content."""
-    from scancell.docsgen import (bus_reference, cli_reference, config_reference, example_report,
-                                  pictures)
+    from scancell.docsgen import bus_reference, cli_reference, config_reference, example_report, pictures
 
     out: dict[str, str | bytes] = {}
     out.update(cli_reference.pages())
