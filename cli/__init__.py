@@ -97,9 +97,10 @@ def main(argv: list[str] | None = None) -> int:
         pass
     if (args.command in LONG_RUNNING
             and (args.command, getattr(args, "worker", None)) not in KEEPS_OWN_MEMORY_BOUNDED):
-        from scancell.cli._allocator import keep_freed_memory
+        from scancell.cli._allocator import give_back_when_idle, keep_freed_memory
 
-        keep_freed_memory()
+        if keep_freed_memory():
+            give_back_when_idle()
     try:
         return int(command_module(args.command).main(args) or 0)
     except KeyboardInterrupt:
