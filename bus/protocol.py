@@ -11,8 +11,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from scancell.protocols import messages
-from scancell.protocols.encoding import Attachment, Encoded
+from scancell.protocols import foxglove_schemas, messages
+from scancell.protocols.encoding import Attachment, Encoded, EncodingError
 from scancell.protocols.keys import CellKeys
 
 
@@ -32,6 +32,13 @@ class BusSample:
 
     def decode(self) -> Any:
         return messages.decode(self.payload, self.encoding)
+
+    def cloud_arrays(self, names: list[str] | None = None) -> tuple[Any, dict[str, Any]]:
+        """A foxglove.PointCloud sample's (N, 3) points and its fields (all, or ``names``), read
+        where they lie in the payload (``foxglove_schemas.split_cloud``); raises EncodingError."""
+        if self.schema != "foxglove.PointCloud":
+            raise EncodingError(f"{self.key}: a {self.encoding} sample, not a foxglove.PointCloud")
+        return foxglove_schemas.cloud_arrays(self.payload, names)
 
 
 class Subscription(Protocol):

@@ -89,6 +89,29 @@ def test_point_cloud_round_trip_with_fields():
 
 
 @pytest.mark.unit
+def test_a_cloud_read_from_its_payload_equals_the_parsed_message_and_garbage_is_named():
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(1000, 3)) * 500
+    fields = {"uncertainty": rng.random(1000), "quality": np.arange(1000, dtype=np.uint16)}
+    payload = fg.encode_proto(fg.point_cloud(pts, 7, "mcs_s01", fields)).payload
+    parsed = messages.decode(payload, "application/protobuf;foxglove.PointCloud")
+    want_pts, want = fg.cloud_arrays(parsed)
+    got_pts, got = fg.cloud_arrays(payload)
+    np.testing.assert_array_equal(got_pts, want_pts)
+    assert set(got) == set(want) == {"uncertainty", "quality"}
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name])
+    head, data = fg.split_cloud(payload)
+    assert head.frame_id == "mcs_s01" and head.data == b"" and bytes(data) == parsed.data
+    assert len(head.fields) == 5 and head.point_stride == parsed.point_stride
+    # the values are read where they lie, not copied out of a message first
+    assert np.shares_memory(np.frombuffer(data, np.uint8), np.frombuffer(payload, np.uint8))
+    for bad in (payload[:-7], b"\xff" * 20, b"\x0f" + payload):  # cut, overlong, wire type 7
+        with pytest.raises(EncodingError, match="PointCloud"):
+            fg.cloud_arrays(bad)
+
+
+@pytest.mark.unit
 def test_point_cloud_integer_fields_keep_their_type_packed():
     """The scan worker's quality and intensity travel as uint16 (whole DN): packed after the
     float32 coordinates, each with Foxglove's numeric type; any Foxglove numeric type reads

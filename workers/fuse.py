@@ -223,7 +223,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             return  # not a scan_part station (a hand-eye ball, a single scan)
         job_id, station = str(meta["job_id"]), str(meta.get("station", ""))
         try:
-            pts, fields = fg.cloud_arrays(sample.decode(), ["uncertainty"])
+            pts, fields = sample.cloud_arrays(["uncertainty"])
             pts, unc = pts.astype(np.float32, copy=False), fields.get("uncertainty")
         except EncodingError as exc:
             log.warning("%s: %s", sample.key, exc)

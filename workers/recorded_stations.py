@@ -35,7 +35,7 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
             ecs[e["scan_id"]] = e
         else:
             scan_id = str(s.attachment.meta.get("scan_id"))
-            pts, fields = fg.cloud_arrays(s.decode(), ["uncertainty"])
+            pts, fields = s.cloud_arrays(["uncertainty"])
             clouds[scan_id] = pts.astype(float)
             unc = fields.get("uncertainty")
             if unc is not None:

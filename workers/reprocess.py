@@ -30,7 +30,6 @@ from typing import Any
 from scancell.bus.local import LocalBus
 from scancell.bus.protocol import BusSample
 from scancell.model.patterns import PROJECTOR_WIDTH
-from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols.encoding import EncodingError
 from scancell.recorder.reading import RecordingError, info, samples, topic_matches
 
@@ -93,7 +92,7 @@ class _Outputs:
     def _cloud(self, s: BusSample) -> None:
         meta = s.attachment.meta
         try:
-            pts, fields = fg.cloud_arrays(s.decode())
+            pts, fields = s.cloud_arrays()
         except EncodingError as exc:
             log.error("%s: %s", s.key, exc)
             return
