@@ -22,6 +22,9 @@ from scancell.sim.render_kernels import (
     rays_near_sphere,
 )
 
+#: rays cast at a time per object (Open3D's answers: ~37 bytes a ray)
+CAST_CHUNK_RAYS = 1 << 20
+
 
 @dataclass
 class SceneObject:
@@ -89,7 +92,6 @@ class Scene:
         normal = np.zeros((n, 3), np.float32)
         idx = np.full(n, -1, np.int32)
         prim = np.full(n, -1, np.int64)
-        no_selection = np.empty(0, np.int64)
         one_origin = np.ndim(origins) == 1
         if one_origin:
             origin = np.asarray(origins, float)
@@ -107,16 +109,24 @@ class Scene:
             if sel is not None and not sel.size:
                 continue
             T = np.linalg.inv(obj.T_world_from_object)
-            if one_origin:
-                rays = rays_from_point(dirs32 if sel is None else dirs32[sel], T[:3, :3],
-                                       T[:3, :3] @ origin + T[:3, 3])
-            else:
-                rays = move_rays(world[sel], T[:3, :3], T[:3, 3])
-            r = obj.scene.cast_rays(o3d.core.Tensor(rays))
-            keep_nearer(best_t, normal, idx, prim, dirs32, no_selection if sel is None else sel,
-                        sel is None, r["t_hit"].numpy(), r["primitive_normals"].numpy(),
-                        obj.T_world_from_object[:3, :3].astype(np.float32), i,
-                        r["primitive_ids"].numpy())
+            R_world = obj.T_world_from_object[:3, :3].astype(np.float32)
+            count = n if sel is None else len(sel)
+            # a chunk at a time: Open3D answers each ray with ~37 bytes (t, ids, uv, normal),
+            # which for a whole camera (5 M rays) was ~0.2 GB of the daemon's peak at once
+            for lo in range(0, count, CAST_CHUNK_RAYS):
+                hi = min(lo + CAST_CHUNK_RAYS, count)
+                chunk = np.arange(lo, hi) if sel is None else sel[lo:hi]
+                if one_origin:
+                    rays = rays_from_point(dirs32[lo:hi] if sel is None else dirs32[chunk],
+                                           T[:3, :3], T[:3, :3] @ origin + T[:3, 3])
+                else:
+                    rays = move_rays(world[chunk], T[:3, :3], T[:3, 3])
+                r = obj.scene.cast_rays(o3d.core.Tensor(rays))
+                del rays
+                keep_nearer(best_t, normal, idx, prim, dirs32, chunk, False, r["t_hit"].numpy(),
+                            r["primitive_normals"].numpy(), R_world, i,
+                            r["primitive_ids"].numpy())
+                del r
         return Hits(best_t, normal, idx, prim)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray,

@@ -201,6 +201,28 @@ def test_render_kernels_agree_with_the_numpy_models(cell):
 
 
 @pytest.mark.unit
+def test_rays_cast_a_chunk_at_a_time_meet_what_they_met_all_at_once(monkeypatch):
+    """The scene casts at most CAST_CHUNK_RAYS rays per object at once (the daemon's memory);
+    a camera's geometry and image are the same bit for bit whatever the chunk."""
+    from scancell.sim import scene as sc
+
+    def camera(chunk: int) -> tuple[dict, np.ndarray]:
+        monkeypatch.setattr(sc, "CAST_CHUNK_RAYS", chunk)
+        c = SimCell(SimCellConfig(camera_scale=8, seed=0))
+        c.move_joints(c.start_joints())
+        g = c.geometry("left")
+        return ({k: v.copy() for k, v in vars(g).items() if isinstance(v, np.ndarray)},
+                c.render("left", 3))
+
+    whole, image = camera(1 << 30)
+    chunked, image_chunked = camera(777)
+    assert whole.keys() == chunked.keys() and len(whole) >= 5
+    for k in whole:
+        np.testing.assert_array_equal(whole[k], chunked[k], err_msg=k)
+    np.testing.assert_array_equal(image, image_chunked)
+
+
+@pytest.mark.unit
 def test_shadows_where_the_projector_cannot_see():
     cell = SimCell(SimCellConfig(camera_scale=8, part="flat", seed=2))
     cell.move_joints(cell.ik_for_mcs(cell.mcs_pose_looking_at(
