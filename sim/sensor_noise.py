@@ -58,14 +58,15 @@ class NoiseBank:
     cost only their irradiance and the sensor model. The thread draws only after the renderer
     has been idle for ``IDLE_S`` (it never competes with a scan), and keeps up to ``ahead``
     frames (20 MB each at 2448 x 2048); frames under ``THREADED_FROM_PX`` are drawn on demand.
-    The default, 18, is one exposure of a 3 x 3 scan's two cameras (360 MB at full size); the
-    further exposures of an HDR scan draw their noise as they render (~20 ms a frame on two
-    threads). 40 frames ahead held 0.8 GB of the daemon's memory (issue 37)."""
+    The default, 9, is one camera's 3 x 3 patterns (180 MB at full size), held through the
+    geometry and shading of the next pose, the daemon's peak; the other frames draw their noise
+    as they render (~20 ms a frame on two threads). 40 frames ahead held 0.8 GB of the daemon's
+    memory, 18 held 344 MB of its 3.1 GB peak in the demo (issue 37)."""
 
     #: the renderer idle this long (s): the scan has ended, the next has not begun
     IDLE_S = 0.2
 
-    def __init__(self, seed: list[int], ahead: int = 18) -> None:
+    def __init__(self, seed: list[int], ahead: int = 9) -> None:
         self.seed = list(seed)
         self.ahead = ahead
         self._drawn: dict[tuple[tuple[int, int], int], Future[np.ndarray]] = {}
