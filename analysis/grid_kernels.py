@@ -20,12 +20,13 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 
 class CellGrid:
-    """``points`` (N, 3, mm) sorted into cells of ``cell`` mm."""
+    """``points`` (N, 3, mm) sorted into cells of ``cell`` mm; float32 points stay float32."""
 
     def __init__(self, points: np.ndarray, cell: float) -> None:
-        p = np.ascontiguousarray(points, dtype=np.float64)
+        dtype = np.float32 if np.asarray(points).dtype == np.float32 else np.float64
+        p = np.ascontiguousarray(points, dtype=dtype)
         self.cell = float(cell)
-        self.origin = p.min(axis=0) - cell
+        self.origin = p.min(axis=0).astype(np.float64) - cell
         self.dims = (np.floor((p.max(axis=0) - self.origin) / cell) + 2).astype(np.int64)
         # the cell key axis by axis: one (N,) temporary at a time, not (N, 3) ones (a
         # full-size station's 3.5 M points held ~0.4 GB of them)
