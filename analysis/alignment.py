@@ -100,7 +100,7 @@ def _iterate(nominal: Nominal, pts: np.ndarray, T: np.ndarray, select, max_itera
             raise AlignmentError(f"bestfit: no overlap between the cloud and the nominal: only "
                                  f"{used.sum()} points usable at iteration {it} (the cloud does "
                                  f"not match the nominal)")
-        step = _step(p[used], cp.points[used], cp.normals[used])
+        step = _step(p[used], cp.points[used].astype(float), cp.triangle_normals[cp.triangle[used]])
         T = step @ T
         moved = float(np.max(np.linalg.norm(apply(step, p[used]) - p[used], axis=1)))
         if moved < tolerance_mm:

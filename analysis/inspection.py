@@ -200,7 +200,7 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     t = time.perf_counter()
     say("signed deviation of every point")
     part = al.apply(alignment.T_part_from_measured, pts)
-    cp = closest_points(nominal, part)
+    cp = closest_points(nominal, part, np.float32)
     in_range = cp.distance <= s.max_distance_mm
     if in_range.mean() < 0.05:
         raise InspectionError(f"only {in_range.mean():.1%} of the points lie within "

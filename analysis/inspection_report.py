@@ -126,7 +126,8 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     v = nom.vertices[nom.triangles]
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     ok = inspection.in_range
-    pts, dev, n_pts = inspection.points[ok], inspection.deviation[ok], inspection.closest.normals[ok]
+    pts, dev = inspection.points[ok], inspection.deviation[ok]
+    n_pts = inspection.closest.triangle_normals[inspection.closest.triangle[ok]]
     cov = inspection.coverage
     # cells no finer than the measured points' or the nominal samples' spacing, so that
     # neither shows as speckle
@@ -273,8 +274,9 @@ def sections_figure(inspection: Inspection, whiskers: int = 120) -> bytes | None
         ax.add_collection(LineCollection(seg, colors="k", linewidths=1.0))
         idx = sec.points[inspection.in_range[sec.points]]
         if idx.size:
-            q, n, d = _binned(inspection.closest.points[idx][:, [i, j]],
-                              inspection.closest.normals[idx][:, [i, j]],
+            cp = inspection.closest
+            q, n, d = _binned(cp.points[idx][:, [i, j]].astype(float),
+                              cp.triangle_normals[cp.triangle[idx]][:, [i, j]],
                               inspection.deviation[idx], extent / whiskers)
             tips = q + n * (d * gain)[:, None]
             ax.add_collection(LineCollection(np.stack([q, tips], axis=1), colors=cmap(norm(d)),
