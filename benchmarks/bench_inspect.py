@@ -17,6 +17,7 @@ Run: .venv/bin/python benchmarks/bench_inspect.py  (or `make bench`)
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -66,16 +67,19 @@ def main() -> None:
         print(f"signed deviation (read files, closest points, sign): {t_dev:.1f} s"
               + (f"; CloudCompare -C2M_DIST {t_cc:.1f} s; ratio {t_dev / t_cc:.2f}" if t_cc else ""))
 
-        runs = {}
+        runs, peaks = {}, {}
         for name, extra in (("inspect", []), ("inspect + HTML report", ["--report", str(tmp / "r")])):
             t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-m", "scancell", "inspect", str(tmp / "moved.ply"),
-                                "--nominal", str(tmp / "nominal.stl"), "--align", "bestfit",
-                                "--out-ply", str(tmp / "out.ply"), "--json", str(tmp / "o.json"),
-                                "--tolerance", "0.3", *extra], capture_output=True, text=True)
+            p = subprocess.Popen([sys.executable, "-m", "scancell", "inspect",
+                                  str(tmp / "moved.ply"), "--nominal", str(tmp / "nominal.stl"),
+                                  "--align", "bestfit", "--out-ply", str(tmp / "out.ply"),
+                                  "--json", str(tmp / "o.json"), "--tolerance", "0.3", *extra],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            _, status, usage = os.wait4(p.pid, 0)  # this process's own peak RSS
             runs[name] = time.perf_counter() - t0
-            if r.returncode not in (0, 1):
-                print(r.stderr[-1000:])
+            peaks[name] = usage.ru_maxrss / 1024
+            if os.waitstatus_to_exitcode(status) not in (0, 1):
+                print(p.stderr.read().decode()[-1000:])
                 return
         t_icp = cloudcompare(["-O", "moved.ply", "-O", "nominal.stl", "-ICP",
                               "-RANDOM_SAMPLING_LIMIT", "200000", "-C2M_DIST"], tmp)
@@ -85,8 +89,9 @@ def main() -> None:
         print(f"inside scancell inspect (s): {parts_s}")
         for name, t in runs.items():
             print(f"scancell {name} (bestfit, deviation, tolerances, coverage, sections, PLY): "
-                  f"{t:.1f} s" + (f"; CloudCompare -ICP -C2M_DIST {t_icp:.1f} s; ratio "
-                                  f"{t / t_icp:.2f}" if t_icp else ""))
+                  f"{t:.1f} s, peak RSS {peaks[name]:.0f} MB ({peaks[name] * 2**20 / N_POINTS:.0f} "
+                  f"bytes a point)" + (f"; CloudCompare -ICP -C2M_DIST {t_icp:.1f} s; ratio "
+                                       f"{t / t_icp:.2f}" if t_icp else ""))
         out = o3d.t.io.read_point_cloud(str(tmp / "out.ply")).point["deviation"].numpy().ravel()
         y, z = truth[:, 1], truth[:, 2]
         for d in parts.car_rear_defects_truth(("dent", "flange")):
