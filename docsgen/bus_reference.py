@@ -3,9 +3,10 @@ Schemas in ``protocols/schemas/``."""
 
 from __future__ import annotations
 
-import json
 from itertools import groupby
 from typing import Any
+
+from scancell.docsgen.markdown import cell, json_type
 
 GROUP_TITLES = {
     "commands": "Commands", "devices": "Devices and the daemon", "jobs": "Jobs",
@@ -18,10 +19,6 @@ GROUP_TITLES = {
 #: the kinds whose operations are ``cmd/device/<name>/<op>`` (devices/base.py; ``sim`` and
 #: ``mock``: the simulator's and the mock devices' test operations)
 DEVICE_KINDS = {"axis", "camera", "projector", "robot", "tracker", "sim", "mock"}
-
-
-def _cell(text: str) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
 
 
 def _schema_link(schema: str, depth: str = "../") -> str:
@@ -71,35 +68,18 @@ def key_pages() -> dict[str, str]:
     return out
 
 
-def _type(prop: dict[str, Any]) -> str:
-    if "$ref" in prop:
-        return prop["$ref"].rsplit("/", 1)[-1]
-    if "enum" in prop:
-        return "one of " + ", ".join(json.dumps(v) for v in prop["enum"])
-    if "const" in prop:
-        return json.dumps(prop["const"])
-    for combo in ("oneOf", "anyOf"):
-        if combo in prop:
-            return " or ".join(_type(p) for p in prop[combo])
-    kind = prop.get("type", "any")
-    kind = " or ".join(kind) if isinstance(kind, list) else kind
-    if "items" in prop and isinstance(prop["items"], dict):
-        return f"array of {_type(prop['items'])}"
-    return kind
-
-
 def schema_markdown(name: str, schema: dict[str, Any], title_level: int = 1) -> str:
     head = "#" * title_level
     out = [f"{head} `{name}`", ""]
     if schema.get("description"):
-        out += [_cell(schema["description"]), ""]
+        out += [cell(schema["description"]), ""]
     props = schema.get("properties", {})
     required = set(schema.get("required", ()))
     if props:
         out += ["| field | type | required | what |", "|---|---|---|---|"]
         for key, prop in props.items():
-            out.append(f"| `{key}` | {_cell(_type(prop))} | {'yes' if key in required else ''} | "
-                       f"{_cell(prop.get('description', ''))} |")
+            out.append(f"| `{key}` | {cell(json_type(prop))} | {'yes' if key in required else ''} | "
+                       f"{cell(prop.get('description', ''))} |")
         out.append("")
     return "\n".join(out)
 
@@ -134,7 +114,7 @@ def message_pages() -> dict[str, str]:
             continue
         out[f"reference/messages/{name}.md"] = schema_markdown(name, schema)
         keys = ", ".join(f"`{k}`" for k in used.get(name, [])) or "attachments, recordings"
-        index.append(f"| [`{name}`]({name}.md) | {keys} | {_cell(schema.get('description', ''))} |")
+        index.append(f"| [`{name}`]({name}.md) | {keys} | {cell(schema.get('description', ''))} |")
     out["reference/messages/index.md"] = "\n".join(index) + "\n"
     out["reference/commands.md"] = "\n".join(commands)
     return out

@@ -6,6 +6,8 @@ import argparse
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from scancell.docsgen.markdown import cell
+
 
 @dataclass(frozen=True)
 class CommandPage:
@@ -45,10 +47,6 @@ def option_names(parser: argparse.ArgumentParser) -> set[str]:
     return out
 
 
-def _cell(text: str) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
-
-
 def _default(a: argparse.Action) -> str:
     if a.option_strings and isinstance(a, argparse._StoreTrueAction | argparse._StoreFalseAction
                                        | argparse._CountAction | argparse._VersionAction):
@@ -63,13 +61,14 @@ def _usage(page: CommandPage) -> str:
     return usage.removeprefix("usage: ")
 
 
-def command_markdown(page: CommandPage) -> str:
-    """One command's section: usage, what it does, each option with its default."""
+def command_markdown(page: CommandPage, heading: bool = True) -> str:
+    """One command's section: usage, what it does, each option with its default (``heading``:
+    under a heading of its own; a top-level command's page has its title instead)."""
     head = "#" * min(len(page.path) + 1, 4)
-    out = [f"{head} `scancell {' '.join(page.path)}`", ""]
+    out = [f"{head} `scancell {' '.join(page.path)}`", ""] if heading else []
     text = page.parser.description or page.help
     if text:
-        out += [_cell(text), ""]
+        out += [cell(text), ""]
     out += ["```text", _usage(page), "```", ""]
     rows = options(page.parser)
     if rows:
@@ -81,7 +80,7 @@ def command_markdown(page: CommandPage) -> str:
             what = a.help if a.help and a.help != argparse.SUPPRESS else ""
             if a.choices and not isinstance(a, argparse._SubParsersAction):
                 what = f"{what} (one of {', '.join(f'`{c}`' for c in a.choices)})".strip()
-            out.append(f"| {names} | {_default(a)} | {_cell(what % vars(a) if '%(' in what else what)} |")
+            out.append(f"| {names} | {_default(a)} | {cell(what % vars(a) if '%(' in what else what)} |")
         out.append("")
     subs = list(_subparsers(page.parser))
     if subs:
@@ -102,12 +101,12 @@ def pages() -> dict[str, str]:
              "```text", root.format_usage().strip().removeprefix("usage: "), "```", "",
              "| command | what |", "|---|---|"]
     for name, (help_, _module) in COMMANDS.items():
-        index.append(f"| [`{name}`]({name}.md) | {_cell(help_)} |")
+        index.append(f"| [`{name}`]({name}.md) | {cell(help_)} |")
     out["reference/cli/index.md"] = "\n".join(index) + "\n"
     for top in walk_top(root):
         body = [f"# scancell {top.path[0]}", ""]
-        body += [command_markdown(p)[len("## ") + len(f"`scancell {top.path[0]}`"):].lstrip()
-                 if p is top else command_markdown(p) for p in [top, *walk(top.parser, top.path)]]
+        body += [command_markdown(top, heading=False)]
+        body += [command_markdown(p) for p in walk(top.parser, top.path)]
         out[f"reference/cli/{top.path[0]}.md"] = "\n".join(body)
     return out
 

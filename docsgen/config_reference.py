@@ -11,6 +11,7 @@ import textwrap
 from dataclasses import dataclass
 from typing import Any
 
+from scancell.docsgen.markdown import cell, json_type
 from scancell.model.config_keys import REQUIRED, KeySpec
 
 #: a key's unit from the end of its name (README: mm, s, degrees for people)
@@ -82,23 +83,9 @@ def from_json_schema(schema: dict[str, Any], prefix: str = "") -> dict[str, KeyS
         if prop.get("type") == "object" and "properties" in prop:
             out.update(from_json_schema(prop, key + "."))
             continue
-        out[key] = KeySpec(_schema_type(prop), prop.get("description", ""),
+        out[key] = KeySpec(json_type(prop), prop.get("description", ""),
                            REQUIRED if name in required else prop.get("default"), unit_of(name))
     return out
-
-
-def _schema_type(prop: dict[str, Any]) -> str:
-    if "enum" in prop:
-        return "one of " + ", ".join(f'"{v}"' if isinstance(v, str) else str(v)
-                                     for v in prop["enum"])
-    kind = prop.get("type", "any")
-    kind = " or ".join(kind) if isinstance(kind, list) else kind
-    if kind == "array" and "items" in prop:
-        return f"array of {_schema_type(prop['items'])}"
-    limits = [f"{op} {prop[k]}" for k, op in (("minimum", "≥"), ("exclusiveMinimum", ">"),
-                                             ("maximum", "≤"), ("exclusiveMaximum", "<"))
-              if k in prop]
-    return kind + (f" ({', '.join(limits)})" if limits else "")
 
 
 def tables() -> list[Table]:
@@ -185,16 +172,12 @@ def _value(v: Any) -> str:
     return f"`{v}`"
 
 
-def _cell(text: str) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
-
-
 def table_markdown(t: Table, level: int = 2) -> str:
     out = [f"{'#' * level} {t.heading or f'`[{t.name}]`'}", "", t.doc, "",
            f"Defined in `{t.source}`.", ""]
     if t.keys:
         out += ["| key | type | default | unit | what |", "|---|---|---|---|---|"]
-        out += [f"| `{k}` | {_cell(s.type)} | {_value(s.default)} | {s.unit} | {_cell(s.doc)} |"
+        out += [f"| `{k}` | {cell(s.type)} | {_value(s.default)} | {s.unit} | {cell(s.doc)} |"
                 for k, s in t.keys.items()]
     else:
         out.append("No options.")
@@ -222,7 +205,7 @@ def pages() -> dict[str, str]:
         if t.name == "devices.<name>":
             extra = "\nEach driver's options: [Driver options](drivers.md).\n"
         out[f"reference/config/{slug}.md"] = table_markdown(t, 1) + extra
-        index.append(f"| [`[{t.name}]`]({slug}.md) | {_cell(t.doc)} |")
+        index.append(f"| [`[{t.name}]`]({slug}.md) | {cell(t.doc)} |")
     drivers = ["# Driver options", "", "Each `[devices.<name>]` table names its `driver`; "
                "these are the options each driver takes, from its `OPTIONS_SCHEMA`.", ""]
     drivers += [table_markdown(t, 2) for t in driver_tables()]
