@@ -12,13 +12,11 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import logging
+import functools
 import sys
 import threading
 import time
 from collections.abc import Callable
-
-log = logging.getLogger(__name__)
 
 #: mallopt parameters (malloc.h)
 M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
@@ -35,6 +33,7 @@ IDLE_S = 2.0
 POLL_S = 0.5
 
 
+@functools.cache
 def _libc():
     try:
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
@@ -95,7 +94,7 @@ class IdleTrim:
             self.trim()
             self.trims += 1
             self._trimmed = True
-            self._last = (time.process_time(), time.monotonic())  # the trim's own CPU
+            self._last = None  # the next window holds the trim's own CPU: not a sign of work
 
 
 def give_back_when_idle(poll_s: float = POLL_S) -> threading.Thread | None:
