@@ -68,16 +68,16 @@ def _rays_near_sphere(rays: np.ndarray, tfar: np.ndarray, centre: np.ndarray,
 
 @numba.njit(parallel=True, cache=True)
 def keep_nearer(best_t: np.ndarray, normal: np.ndarray, index: np.ndarray,
-                primitive: np.ndarray, dirs: np.ndarray, sel: np.ndarray, every_ray: bool,
+                primitive: np.ndarray, dirs: np.ndarray, sel: np.ndarray,
                 t: np.ndarray, normal_obj: np.ndarray, R: np.ndarray, obj: int,
                 primitive_obj: np.ndarray) -> None:
-    """Merge one object's hits into the nearest hits so far, in place. Ray ``sel[j]`` (ray j
-    when ``every_ray``) met the object at ``t[j]`` on triangle ``primitive_obj[j]`` with normal
-    ``normal_obj[j]`` (object frame); where that is nearer than ``best_t``, the ray takes the
+    """Merge one object's hits into the nearest hits so far, in place. Ray ``sel[j]`` met the
+    object at ``t[j]`` on triangle ``primitive_obj[j]`` with normal ``normal_obj[j]`` (object
+    frame); where that is nearer than ``best_t``, the ray takes the
     distance, the normal turned to world by ``R`` and facing the ray's origin (``dirs``: the
     rays' world directions), the object's index and the triangle."""
     for j in numba.prange(t.shape[0]):
-        i = np.int64(j) if every_ray else sel[j]
+        i = sel[j]
         if not t[j] < best_t[i]:
             continue
         best_t[i] = t[j]

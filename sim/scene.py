@@ -123,7 +123,7 @@ class Scene:
                     rays = move_rays(world[chunk], T[:3, :3], T[:3, 3])
                 r = obj.scene.cast_rays(o3d.core.Tensor(rays))
                 del rays
-                keep_nearer(best_t, normal, idx, prim, dirs32, chunk, False, r["t_hit"].numpy(),
+                keep_nearer(best_t, normal, idx, prim, dirs32, chunk, r["t_hit"].numpy(),
                             r["primitive_normals"].numpy(), R_world, i,
                             r["primitive_ids"].numpy())
                 del r
