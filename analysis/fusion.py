@@ -45,7 +45,7 @@ class Station:
         ``T_ecs_from_mcs``; kept for the next call with the same hand-eye."""
         key = np.asarray(T_ecs_from_mcs, float).tobytes()
         if self._world is None or self._world[0] != key:
-            self._world = (key, to_world(self, T_ecs_from_mcs, np.float32))
+            self._world = (key, to_world(self, T_ecs_from_mcs))
         return self._world[1]
 
 
@@ -95,20 +95,17 @@ def load_station_folder(folder: str | Path) -> tuple[list[Station], np.ndarray]:
     return stations, hand_eye
 
 
-#: points moved at a time by :func:`to_world` into a float32 result
+#: points moved at a time by :func:`to_world` into its float32 result
 WORLD_CHUNK = 1 << 20
 
 
-def to_world(station: Station, T_ecs_from_mcs: np.ndarray, dtype: type = np.float64
-             ) -> np.ndarray:
-    """The station's points in the tracker frame (N, 3, mm). ``np.float32``: computed in
-    float64 a million points at a time and rounded once (0.25 µm steps at 3 m), as the station
-    store keeps them."""
+def to_world(station: Station, T_ecs_from_mcs: np.ndarray) -> np.ndarray:
+    """The station's points in the tracker frame (N, 3, mm, float32): computed in float64 a
+    million points at a time and rounded once (0.25 µm steps at 3 m), as the station store
+    keeps them."""
     T = station.T_world_from_ecs @ T_ecs_from_mcs
     p = station.points_mcs
-    if np.dtype(dtype) == np.float64:
-        return p @ T[:3, :3].T + T[:3, 3]
-    out = np.empty((len(p), 3), dtype)
+    out = np.empty((len(p), 3), np.float32)
     for lo in range(0, len(p), WORLD_CHUNK):
         out[lo:lo + WORLD_CHUNK] = p[lo:lo + WORLD_CHUNK] @ T[:3, :3].T + T[:3, 3]
     return out

@@ -19,12 +19,17 @@ import numpy as np
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 
+def float_type(points: np.ndarray) -> type:
+    """float32 points stay float32 (the kernels read either: a fuse worker's station in half the
+    memory); anything else is float64."""
+    return np.float32 if np.asarray(points).dtype == np.float32 else np.float64
+
+
 class CellGrid:
     """``points`` (N, 3, mm) sorted into cells of ``cell`` mm; float32 points stay float32."""
 
     def __init__(self, points: np.ndarray, cell: float) -> None:
-        dtype = np.float32 if np.asarray(points).dtype == np.float32 else np.float64
-        p = np.ascontiguousarray(points, dtype=dtype)
+        p = np.ascontiguousarray(points, dtype=float_type(points))
         self.cell = float(cell)
         self.origin = p.min(axis=0).astype(np.float64) - cell
         self.dims = (np.floor((p.max(axis=0) - self.origin) / cell) + 2).astype(np.int64)

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scancell.analysis.grid_kernels import CellGrid, grid_nearest, grid_normals, in_box
+from scancell.analysis.grid_kernels import CellGrid, float_type, grid_nearest, grid_normals, in_box
 from scancell.analysis.station_store import StationStore
 from scipy.spatial import cKDTree
 
@@ -41,18 +41,13 @@ def normals(points: np.ndarray, radius: float, grid: CellGrid | None = None) -> 
     bench_metrics on 1 M points: Open3D's ``estimate_normals`` 12.7 s, a scipy k-d tree query
     plus a covariance kernel 5 s; the grid takes well under a second.
     """
-    p = np.ascontiguousarray(points, dtype=_float_type(points))
+    p = np.ascontiguousarray(points, dtype=float_type(points))
     g = grid or CellGrid(p, radius)
     out = np.empty_like(p)
     count = np.empty(len(p), np.int32)
     grid_normals(g.sorted, g.order, g.cell_keys, g.cell_start, g.cell_end, g.dims, float(radius),
                  out, count)
     return out
-
-
-def _float_type(points: np.ndarray) -> type:
-    """float32 points stay float32 (the kernels read either); anything else is float64."""
-    return np.float32 if np.asarray(points).dtype == np.float32 else np.float64
 
 
 def nearest_within(grid: CellGrid, query: np.ndarray, radius: float
@@ -154,7 +149,7 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
     """The points as (N, 3) float64, or float32 as given (a station's world points in the fuse
     worker, as its store keeps them: half the memory of a full-size station's grid and
     normals)."""
-    p = np.asarray(pts) if np.asarray(pts).dtype == np.float32 else np.asarray(pts, float)
+    p = np.asarray(pts, float_type(pts))
     if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
         raise MetricsError(f"{name}: empty cloud or not (N, 3) points")
     bad = ~np.all(np.isfinite(p), axis=1)

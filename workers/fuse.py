@@ -348,7 +348,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 seed=zlib.crc32(station.encode()))
             with self._lock:
                 job.station_uncertainty[station] = su
-        world = to_world(Station(station, cloud, T_world_from_ecs), T_ecs_from_mcs, np.float32)
+        world = to_world(Station(station, cloud, T_world_from_ecs), T_ecs_from_mcs)
         del cloud
         thinned = thin(world, self.settings.display_voxel_mm)
         self._compare(job, station, world, unc, T_ecs_from_mcs)
@@ -408,7 +408,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         T_em = np.asarray(he["T_ecs_from_mcs"], float)
         for name, st in job.fused.items():
             cloud, _, unc = job.mcs.load(name)
-            world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em, np.float32)
+            world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em)
             self._compare(job, name, world, unc, T_em)
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
