@@ -36,6 +36,7 @@ Every limit can be set instead in the pattern spec's ``[limits]`` or the decode 
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass, fields, replace
 
@@ -54,6 +55,8 @@ BEND_FLOOR_PX = 0.05
 ROUGHNESS_VARIANCE = 6.0
 #: 1.4826 · MAD estimates a Gaussian's σ
 MAD_TO_SIGMA = 1.4826
+#: modulation (DN) of the pixels the noise and the residuals' systematic spread are measured on
+HISTOGRAM_MIN_MODULATION_DN = 20.0
 #: the 8-bit quantisation noise, 1/sqrt(12) DN: no camera measures better
 QUANTISATION_DN = 1 / np.sqrt(12)
 
@@ -113,11 +116,6 @@ class DecodeLimits:
         return DecodeLimits.from_mapping(base)
 
 
-def order_sigma_unit(noise_dn: float, ratio: float, steps_coarse: int, steps_fine: int) -> float:
-    """σ_o · B (fringes · DN): the order noise of one unwrapping step at unit modulation."""
-    return float(np.sqrt(ratio ** 2 * 2.0 / steps_coarse + 2.0 / steps_fine) * noise_dn / (2 * np.pi))
-
-
 def heterodyne_levels(periods: list[float]) -> list[list[float]]:
     """Beat periods level by level, e.g. (70, 64, 59) -> [[70, 64, 59], [6, 5], [1]]."""
     levels = [list(map(float, periods))]
@@ -127,43 +125,223 @@ def heterodyne_levels(periods: list[float]) -> list[list[float]]:
     return levels
 
 
+def decision_coefficients(periods: list[float], method: str) -> np.ndarray:
+    """(D, K): the rounding residual of every fringe-order decision (× 2π) as a linear
+    combination of the K groups' wrapped phases, in the order the unwrapping takes them.
+
+    - heterodyne: beats are differences of their children, so each level's phase is a
+      combination of the wrapped phases; a child of p fringes is unwrapped by its parent of p'
+      as ``(p/p')·parent − child`` (70, 64, 59: the beats 6 and 5 by the 1-period beat, both
+      ``5·φ70 − 11·φ64 + 6·φ59``; then 70 by 6, 64 and 59 by 5);
+    - hierarchical: each group by the next coarser one, ``r·φ_coarse − φ_fine``;
+    - gray: the code decides the finest group's order (its phase alone); coarser groups are
+      unwrapped by the finest."""
+    k = len(periods)
+    eye = np.eye(k)
+    order = sorted(range(k), key=lambda i: periods[i])
+    if method == "heterodyne":
+        levels = heterodyne_levels(periods)
+        combos = [[eye[i] for i in range(k)]]
+        for _ in range(1, len(levels)):
+            prev = combos[-1]
+            combos.append([prev[i] - prev[i + 1] for i in range(len(prev) - 1)])
+        rows = []
+        for lvl in range(len(levels) - 2, -1, -1):
+            parents = levels[lvl + 1]
+            for i, p in enumerate(levels[lvl]):
+                j = min(i, len(parents) - 1)
+                rows.append(p / parents[j] * combos[lvl + 1][j] - combos[lvl][i])
+    elif method == "gray":
+        fine = order[-1]
+        rows = [eye[fine]] + [periods[i] / periods[fine] * eye[fine] - eye[i]
+                              for i in reversed(order[:-1])]
+    else:
+        rows = [periods[b] / periods[a] * eye[a] - eye[b] for a, b in itertools.pairwise(order)]
+    return np.array(rows, float).reshape(-1, k)
+
+
 def order_units(periods: list[float], steps: list[int], method: str, noise: float = 1.0
                 ) -> list[float]:
     """σ_o · B (fringes · DN) of every fringe-order decision of one axis's phase groups
     (``periods`` across the projector, ``steps`` each) unwrapped by ``method``, for intensity
-    noise σ_I = ``noise`` (DN).
+    noise σ_I = ``noise`` (DN): a decision's residual ``Σ c_j φ_j / 2π``
+    (:func:`decision_coefficients`) has the variance ``Σ c_j² · 2/N_j · σ_I² / B²``."""
+    c = decision_coefficients(periods, method)
+    if c.size == 0:
+        return [0.0]
+    var = (c ** 2 * (2.0 / np.asarray(steps, float))).sum(axis=1)
+    return [float(v) for v in np.sqrt(var) * noise / (2 * np.pi)]
 
-    - heterodyne: a beat of two phases carries both their variances, so level l of the tree
-      carries 2^l phase variances; each level is unwrapped by its parent of p_child / p_parent
-      times fewer fringes (70, 64, 59: 6 and 5 by the 1-period beat, then 70, 64, 59 by 6, 5);
-    - hierarchical: each group by the next coarser one;
-    - gray: the code decides the finest group's order and adds no phase noise; coarser groups
-      are unwrapped by the finest."""
-    order = sorted(range(len(periods)), key=lambda i: periods[i])
+
+#: how many projector px a frequency's column estimate may stray from the weighted mean before
+#: its fringe order counts as wrong, and the share of a fringe coarse fringes may stray
+#: (:func:`undetected_decisions`; ``DecodeSettings.order_tolerance_px``)
+AGREEMENT_TOLERANCE_PX = 1.0
+AGREEMENT_FRINGE_SHARE = 0.1
+
+
+def agreement_tolerances(periods: list[float], width: float, tolerance_px: float) -> np.ndarray:
+    """Per group, how far (px) its column estimate may stray from the p²-weighted mean: at least
+    ``tolerance_px``, and a tenth of a fringe for coarse fringes (whose own noise is larger)."""
+    return np.maximum(tolerance_px, AGREEMENT_FRINGE_SHARE * width / np.asarray(periods, float))
+
+
+def undetected_decisions(periods: tuple[float, ...], method: str, width: float,
+                         tolerance_px: float = AGREEMENT_TOLERANCE_PX) -> tuple[bool, ...]:
+    """Which fringe-order decisions can go wrong without the frequencies' agreement check
+    seeing it. A decision goes wrong when noise pushes its residual across 1/2. Decisions whose
+    residuals are the same combination of phases (correlation ±1) go wrong together; errors of
+    independent decisions at once would need two z-sigma events and are left out. Below a
+    wrong decision, the decisions unwrapped from its result round a shifted reference, whose
+    residual lands anywhere: they may take −1, 0 or +1 as well. Each such error is played
+    through the unwrapping at 256 columns across the projector (noise-free phases): one the
+    check passes at some column is undetected, and so is each decision it moves.
+
+    With 70, 64, 59 periods the two beats (6 and 5 by the 1-period beat) are both
+    ``5·φ70 − 11·φ64 + 6·φ59`` and flip together; the three frequencies unwrapped from them can
+    then land 13, 12 and 11 fringes away, within 0.07 fringe of agreeing: the beats are
+    undetected. An error of one frequency's own order moves its estimate a whole fringe and is
+    seen."""
+    return _undetected(tuple(map(float, periods)), method, float(width), float(tolerance_px))
+
+
+@functools.lru_cache(maxsize=32)
+def _undetected(periods: tuple[float, ...], method: str, width: float, tolerance_px: float
+                ) -> tuple[bool, ...]:
+    x = np.linspace(0.5, width - 1.5, 256)
+    p = np.asarray(periods)
+    wrapped = [np.mod(2 * np.pi * pj * x / width, 2 * np.pi) for pj in p]
+    c = decision_coefficients(list(periods), method)
+    unit = c / np.linalg.norm(c, axis=1, keepdims=True)
+    rho = unit @ unit.T
+    parents = decision_parents(list(periods), method)
+    tol = agreement_tolerances(list(periods), width, tolerance_px)
+    seen = [False] * len(c)
+    for first in range(len(c)):
+        group = [j for j in range(len(c)) if abs(rho[first, j]) > 0.999]
+        below = [j for j in range(len(c)) if j not in group and _descends(j, group, parents)]
+        for sign in (-1, 1):
+            for free in itertools.product((-1, 0, 1), repeat=len(below)):
+                pattern = [0] * len(c)
+                for j in group:
+                    pattern[j] = int(sign * np.sign(rho[first, j]))
+                for j, e in zip(below, free, strict=True):
+                    pattern[j] = e
+                absolute = _unwrap_with_errors(wrapped, list(periods), method, tuple(pattern))
+                est = np.stack([a * width / (2 * np.pi * pj)
+                                for a, pj in zip(absolute, p, strict=True)])
+                col = (p[:, None] ** 2 * est).sum(0) / (p ** 2).sum()
+                passes = (np.abs(est - col) <= tol[:, None]).all(axis=0) & (np.abs(col - x) > 0.5)
+                if passes.any():
+                    for j in group:
+                        seen[j] = True
+    return tuple(seen)
+
+
+def decision_parents(periods: list[float], method: str) -> list[int | None]:
+    """For every decision (as :func:`decision_coefficients` orders them), the decision whose
+    result it is unwrapped from (None: an absolute phase, the top beat or the coarsest group)."""
     if method == "heterodyne":
-        n = min(steps)
         levels = heterodyne_levels(periods)
-        out = []
+        made: dict[tuple[int, int], int] = {}
+        out: list[int | None] = []
         for lvl in range(len(levels) - 2, -1, -1):
-            parents = levels[lvl + 1]
-            for i, p in enumerate(levels[lvl]):
-                ratio = p / parents[min(i, len(parents) - 1)]
-                out.append(float(np.sqrt(ratio ** 2 * 2 ** (lvl + 1) + 2 ** lvl)
-                                 * np.sqrt(2.0 / n) * noise / (2 * np.pi)))
-        return out or [0.0]
+            for i in range(len(levels[lvl])):
+                j = min(i, len(levels[lvl + 1]) - 1)
+                out.append(made.get((lvl + 1, j)))
+                made[(lvl, i)] = len(out) - 1
+        return out
+    n = len(decision_coefficients(periods, method))
+    if method == "gray":
+        return [None] + [0] * (n - 1)
+    return [None, *range(n - 1)]
+
+
+def _descends(j: int, group: list[int], parents: list[int | None]) -> bool:
+    k = parents[j]
+    while k is not None:
+        if k in group:
+            return True
+        k = parents[k]
+    return False
+
+
+def _unwrap_with_errors(wrapped: list[np.ndarray], periods: list[float], method: str,
+                        errors: tuple[int, ...]) -> list[np.ndarray]:
+    """Absolute phases (rad) of every group, each decision's order moved by ``errors``."""
+    step = iter(errors)
+
+    def unwrap(phi: np.ndarray, ref: np.ndarray, ratio: float) -> np.ndarray:
+        return phi + 2 * np.pi * (np.rint((ref * ratio - phi) / (2 * np.pi)) + next(step))
+
+    if method == "heterodyne":
+        levels = heterodyne_levels(periods)
+        phases = [list(wrapped)]
+        for _ in range(1, len(levels)):
+            prev = phases[-1]
+            phases.append([np.mod(prev[i] - prev[i + 1], 2 * np.pi) for i in range(len(prev) - 1)])
+        absolute = phases[-1]
+        for lvl in range(len(levels) - 2, -1, -1):
+            parents = absolute
+            absolute = [unwrap(phi, parents[min(i, len(parents) - 1)],
+                               levels[lvl][i] / levels[lvl + 1][min(i, len(parents) - 1)])
+                        for i, phi in enumerate(phases[lvl])]
+        return absolute
+    order = sorted(range(len(periods)), key=lambda i: periods[i])
+    out: list[np.ndarray] = [wrapped[i] for i in range(len(periods))]
     if method == "gray":
         fine = order[-1]
-        return [order_sigma_unit(noise, 0.0, 3, steps[fine])] + [
-            order_sigma_unit(noise, periods[i] / periods[fine], steps[fine], steps[i])
-            for i in reversed(order[:-1])]
-    return [order_sigma_unit(noise, periods[b] / periods[a], steps[a], steps[b])
-            for a, b in itertools.pairwise(order)] or [0.0]
+        out[fine] = wrapped[fine] + 2 * np.pi * next(step)  # the code's order: right, or moved
+        for i in reversed(order[:-1]):
+            out[i] = unwrap(wrapped[i], out[fine], periods[i] / periods[fine])
+        return out
+    for a, b in itertools.pairwise(order):
+        out[b] = unwrap(wrapped[b], out[a], periods[b] / periods[a])
+    return out
 
 
-def min_modulation(noise_dn: float, z: float, worst_ratio: float, steps_coarse: int,
-                   steps_fine: int) -> float:
-    """B_min (DN): σ_o ≤ 1/z at the coarsest step, and at least z · σ_I."""
-    return max(z * order_sigma_unit(noise_dn, worst_ratio, steps_coarse, steps_fine), z * noise_dn)
+def min_modulation_for_orders(units: list[float], undetected: tuple[bool, ...], noise_dn: float,
+                              z: float) -> float:
+    """B_min (DN): every decision the agreement check cannot catch is right to z standard
+    deviations (σ_o = unit / B ≤ 1/z), and the fringe stands z · σ_I above the noise."""
+    unseen = [u for u, hidden in zip(units, undetected, strict=True) if hidden]
+    return float(max([z * noise_dn, *(z * u for u in unseen)]))
+
+
+def systematic_spread(residual: np.ndarray, unit: float, modulation: np.ndarray) -> float:
+    """The part of one decision's rounding-residual scatter (fringes) that noise does not
+    explain, from pixels of strong fringes: ``s² = (1.4826 · median|r|)² − median(σ_o²)``,
+    at least 0. A response error left after compensation, global illumination on a coarse
+    group, or defocus that differs between frequencies shift the residual by a function of
+    the scene, not of the pixel's noise."""
+    strong = modulation >= HISTOGRAM_MIN_MODULATION_DN
+    if strong.sum() < 1000:
+        return 0.0
+    spread = MAD_TO_SIGMA * float(np.median(residual[strong]))
+    noise = float(np.median((unit / modulation[strong]) ** 2))
+    return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
+
+
+def order_limits(residual: np.ndarray, unit: float, undetected: bool, modulation: np.ndarray,
+                 z: float, margin: float | None = None, systematic: float | None = 0.0
+                 ) -> np.ndarray:
+    """Pixels whose |rounding residual| (fringes) passes one decision's limit: a fixed
+    ``margin``, or per pixel (σ_o = unit / B)
+    - the residual is what noise and the decision's measured systematic spread s leave:
+      ≤ z · sqrt(σ_o² + s²) (a glint or a vibration that shifts one frequency's phase in a
+      patch leaves far more); ``systematic`` None leaves this test out;
+    - and, for a decision the agreement check cannot catch, a wrong order stays 1/α times less
+      likely than the right one: ≤ 1/2 − (σ_o² + s²) · ln(1/α)."""
+    if margin is not None:
+        return residual <= np.float32(margin)
+    sigma = np.float32(unit) / modulation
+    var = sigma * sigma + np.float32((systematic or 0.0) ** 2)
+    limit = np.full(sigma.shape, 0.5, np.float32)
+    if systematic is not None:
+        limit = np.float32(z) * np.sqrt(var)
+    if undetected:
+        limit = np.minimum(limit, np.float32(0.5) - var * np.float32(np.log(1 / ORDER_ALPHA)))
+    return residual <= np.minimum(limit, np.float32(0.5))
 
 
 def bend_limit(typical_bend_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:

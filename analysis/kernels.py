@@ -141,9 +141,17 @@ def _corrected(phi: float, table: np.ndarray, scale: float) -> float:
 def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np.ndarray,
                        tables: np.ndarray, steps: int, p1: float, p2: float, p3: float,
                        width: float, min_mod: float, tol: float, margin_max: float,
+                       units: np.ndarray, undetected: np.ndarray, systematic: np.ndarray,
+                       z: float, ln_inv_alpha: float,
                        column: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
     """Second pass: remove the phase error ``tables`` (3, bins + 1; zeros for none) from the
     wrapped phases, unwrap by the heterodyne tree and check the frequencies agree.
+
+    The five order decisions (beats 1 and 2 by the top, then p1, p2, p3) are held to
+    ``margin_max`` fringes, or with ``margin_max`` < 0 to the per-pixel limits of
+    :func:`scancell.analysis.decode_limits.order_limits` (``units``: σ_o · B of each decision;
+    ``undetected``: 1 where the agreement check cannot catch its error; ``systematic``: the
+    residual's spread that noise does not explain, fringes).
 
     reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
     counts (H, 5): pixels of each reason per row.
@@ -185,7 +193,16 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
             a1, m3 = _unwrap(ph0, a12, r1)
             a2, m4 = _unwrap(ph1, a23, r2)
             a3, m5 = _unwrap(ph2, a23, r3)
-            margin = max(m1, m2, m3, m4, m5)
+            if margin_max >= 0.0:
+                order_bad = max(m1, m2, m3, m4, m5) > margin_max
+            else:
+                inv_b = 1.0 / mod if mod > 0.0 else 1e30
+                order_bad = False
+                for d, m in enumerate((m1, m2, m3, m4, m5)):
+                    sd = units[d] * inv_b
+                    var = sd * sd + systematic[d] * systematic[d]
+                    lim = min(z * math.sqrt(var), 0.5 - undetected[d] * var * ln_inv_alpha, 0.5)
+                    order_bad = order_bad or m > lim
             e1 = a1 * c1
             e2 = a2 * c2
             e3 = a3 * c3
@@ -193,7 +210,7 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
             spread = max(abs(e1 - col) * s1, abs(e2 - col) * s2, abs(e3 - col) * s3)
             code = 0
             code = 4 if (col < -0.5 or col > width - 0.5) else code
-            code = 3 if (spread > tol or margin > margin_max) else code
+            code = 3 if (spread > tol or order_bad) else code
             code = 2 if saturated[y, x] != 0 else code
             code = 1 if mod < min_mod else code
             reason[y, x] = code

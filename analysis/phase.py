@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scancell.analysis import decode_limits as lim
+from scancell.analysis.decode_limits import AGREEMENT_TOLERANCE_PX
 from scancell.analysis.phase_response import BINS, PhaseCorrection, estimate_correction, folded_histogram
 from scancell.model.patterns import FringeSequence
 
@@ -56,6 +58,9 @@ class PhaseMap:
     reason: np.ndarray | None = None
     #: per pixel the exposure taken (HDR, merge_exposures); None for one exposure
     exposure: np.ndarray | None = None
+    #: the images' measured intensity noise σ_I and the modulation threshold used (DN)
+    noise_dn: float | None = None
+    min_modulation_dn: float | None = None
 
     @property
     def valid_share(self) -> float:
@@ -65,13 +70,18 @@ class PhaseMap:
 @dataclass(frozen=True)
 class DecodeSettings:
     method: str = "heterodyne"  # or "hierarchical"
-    min_modulation_dn: float = 8.0  # with ~1 DN noise, weaker fringes give wrong orders
+    #: the modulation threshold (DN, 8-bit scale); None: derived per image set from the measured
+    #: noise (:func:`order_limits`)
+    min_modulation_dn: float | None = None
     saturation_dn: float = 254.5  # a pixel at or above this in any image is masked
     #: max disagreement between frequency estimates (projector px; coarse fringes get up to a
     #: tenth of their width)
-    order_tolerance_px: float = 1.0
-    #: an order decision closer than this to a tie (fringes from .5) is not trusted
-    order_margin: float = 0.3
+    order_tolerance_px: float = AGREEMENT_TOLERANCE_PX
+    #: the largest rounding residual (fringes) of an order decision; None: per pixel and
+    #: decision from the noise (analysis.decode_limits.order_limits)
+    order_margin: float | None = None
+    #: the images' intensity noise σ_I (DN, 8-bit scale); None: measured from the phases
+    noise_dn: float | None = None
     #: "fast": fused numba kernel for three-frequency heterodyne (else numpy); "numpy": always
     #: the numpy reference
     engine: str = "fast"
@@ -92,7 +102,8 @@ class DecodeSettings:
     #: the decode limits (analysis.decode_limits.DecodeLimits, a cell's ``[scanner]
     #: decode_limits``) these settings take; the others are the pattern-set decoder's alone
     LIMITS_TAKEN = ("min_modulation_dn", "order_margin", "saturation_dn", "bend_limit_px",
-                    "step_limit_px", "border_px", "z_min_mm", "z_max_mm", "confidence_sigmas")
+                    "step_limit_px", "border_px", "z_min_mm", "z_max_mm", "confidence_sigmas",
+                    "noise_dn")
 
     def with_limits(self, limits: dict[str, float]) -> DecodeSettings:
         """These settings with a limits table on top (keys outside LIMITS_TAKEN are left to
@@ -115,7 +126,7 @@ def modulation_floor(min_dn: float) -> float:
 def histogram_min_modulation(st: DecodeSettings) -> float:
     """Modulation (DN) a pixel needs to enter the passive response estimate: weak fringes'
     8-bit quantisation bunches their phases, which the histogram would take for an error."""
-    return modulation_floor(max(st.min_modulation_dn, HISTOGRAM_MIN_MODULATION_DN))
+    return modulation_floor(max(st.min_modulation_dn or 0.0, HISTOGRAM_MIN_MODULATION_DN))
 
 
 def wrapped_phase(images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -145,13 +156,13 @@ def _beat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float,
-                 margin: np.ndarray | None = None) -> np.ndarray:
+                 residuals: list[np.ndarray] | None = None) -> np.ndarray:
     """Absolute phase from wrapped ``phi`` and an absolute ``reference`` of ``ratio`` times
-    fewer periods; ``margin`` keeps the largest distance (fringes) of a rounding from .0."""
+    fewer periods; the decision's |rounding residual| (fringes) is appended to ``residuals``."""
     orders = (reference * np.float32(ratio) - phi) / TWO_PI
     k = np.rint(orders)
-    if margin is not None:
-        np.maximum(margin, np.abs(orders - k), out=margin)
+    if residuals is not None:
+        residuals.append(np.abs(orders - k))
     return phi + TWO_PI * k
 
 
@@ -171,8 +182,10 @@ def heterodyne_tree(periods: Sequence[float]) -> list[list[float]]:
 
 
 def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
-                      margin: np.ndarray | None = None) -> list[np.ndarray]:
-    """Absolute phases of every frequency (same order as given)."""
+                      residuals: list[np.ndarray] | None = None) -> list[np.ndarray]:
+    """Absolute phases of every frequency (same order as given); each order decision's
+    |residual| is appended to ``residuals`` in the order of
+    :func:`~scancell.analysis.decode_limits.decision_coefficients`."""
     levels = heterodyne_tree(periods)
     wrapped = [list(phases)]
     for _ in range(1, len(levels)):
@@ -184,19 +197,19 @@ def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
         absolute = []
         for i, phi in enumerate(wrapped[lvl]):
             j = min(i, len(parents) - 1)
-            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j], margin))
+            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j], residuals))
     return absolute
 
 
 def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float],
-                        margin: np.ndarray | None = None) -> list[np.ndarray]:
+                        residuals: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """Coarse to fine: the first pattern must have at most one period."""
     if periods[0] > 1.0 + 1e-9 or list(periods) != sorted(periods):
         raise DecodeError(f"hierarchical unwrapping needs increasing periods starting at <= 1 "
                           f"(e.g. 1, 8, 64), got {list(periods)}")
     absolute = [phases[0]]
     for j in range(1, len(phases)):
-        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1], margin))
+        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1], residuals))
     return absolute
 
 
@@ -290,6 +303,57 @@ def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
     return WrappedPhases(np.stack(phase_list), modulation, background, saturated, hist)
 
 
+@dataclass(frozen=True)
+class OrderLimits:
+    """What one image set's fringe orders are held to (analysis.decode_limits): the measured
+    noise σ_I (DN), the modulation threshold (DN), and per order decision its σ_o · B
+    (fringes · DN) and whether the frequencies' agreement check can catch its error."""
+
+    noise_dn: float
+    min_modulation_dn: float
+    units: tuple[float, ...]
+    undetected: tuple[bool, ...]
+    #: per decision the residual's spread (fringes) that noise does not explain
+    systematic: tuple[float, ...]
+    margin: float | None  # a fixed margin, else per pixel
+    z: float
+
+
+def order_limits(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
+                 st: DecodeSettings, correction: PhaseCorrection | None = None) -> OrderLimits:
+    """The limits of one image set: fixed where the settings set them, else derived from σ_I
+    (measured along the finest fringes, :func:`~scancell.analysis.decode_limits.measured_noise_dn`)
+    and each decision's systematic spread (measured on every 4th row and column of the strong
+    fringes, after ``correction``)."""
+    periods = list(map(float, sequence.periods))
+    noise = st.noise_dn
+    if noise is None:
+        finest = int(np.argmax(periods))
+        usable = (w.modulation >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated.astype(bool)
+        noise = lim.measured_noise_dn(w.phases[finest], w.modulation, sequence.steps, usable)
+    units = lim.order_units(periods, [sequence.steps] * len(periods), st.method, noise)
+    undetected = lim.undetected_decisions(tuple(periods), st.method, projector_width,
+                                          st.order_tolerance_px)
+    b_min = st.min_modulation_dn
+    if b_min is None:
+        b_min = lim.min_modulation_for_orders(units, undetected, noise, st.confidence_sigmas)
+    sub = (slice(None, None, 4), slice(None, None, 4))
+    strong = (w.modulation[sub] >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated[sub].astype(bool)
+    phases = [phi[sub][strong] for phi in w.phases]
+    if correction:
+        phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
+    residuals: list[np.ndarray] = []
+    if st.method == "heterodyne":
+        unwrap_heterodyne(phases, periods, residuals)
+    else:
+        unwrap_hierarchical(phases, periods, residuals)
+    mod = w.modulation[sub][strong]
+    systematic = tuple(lim.systematic_spread(r, u, mod)
+                       for r, u in zip(residuals, units, strict=True))
+    return OrderLimits(float(noise), float(b_min), tuple(units), undetected, systematic,
+                       st.order_margin, st.confidence_sigmas)
+
+
 def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
                   settings: DecodeSettings | None = None,
                   correction: PhaseCorrection | None = None) -> PhaseMap:
@@ -301,32 +365,38 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
         correction = estimate_correction(w.histograms, n)
     if st.compensation == "off":
         correction = None
+    limits = order_limits(w, sequence, projector_width, st, correction)
     if _fast(st, sequence):
-        return _unwrap_fast(w, sequence, projector_width, st, correction)
+        return _unwrap_fast(w, sequence, projector_width, st, correction, limits)
     modulation = w.modulation
     saturated = w.saturated.astype(bool)
     shape = modulation.shape
-    low = modulation < modulation_floor(st.min_modulation_dn)
+    low = modulation < modulation_floor(limits.min_modulation_dn)
     # only the pixels a decode can keep are unwrapped (a scene's lit, unsaturated part: 18 % of
     # a car-rear station's pixels); the others' reasons are low modulation or saturation anyway
     cand = np.flatnonzero(~low & ~saturated)
     phases = [phi.reshape(-1)[cand] for phi in w.phases]
     if correction:
         phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
-    margin = np.zeros(cand.size, np.float32)
-    absolute = (unwrap_heterodyne(phases, periods, margin) if st.method == "heterodyne"
-                else unwrap_hierarchical(phases, periods, margin))
+    residuals: list[np.ndarray] = []
+    absolute = (unwrap_heterodyne(phases, periods, residuals) if st.method == "heterodyne"
+                else unwrap_hierarchical(phases, periods, residuals))
+    mod_c = modulation.reshape(-1)[cand]
+    order_ok = np.ones(cand.size, bool)
+    for r, unit, hidden, sys in zip(residuals, limits.units, limits.undetected,
+                                    limits.systematic, strict=True):
+        order_ok &= lim.order_limits(r, unit, hidden, mod_c, limits.z, limits.margin, sys)
     wd = np.float32(projector_width)
     estimates = [phi * (wd / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
     weights = np.asarray(periods, np.float32) ** 2
     col = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
-    # How far each frequency's estimate may stray: ``order_tolerance_px``, widened for coarse
-    # fringes whose own noise is larger (a wrong order moves an estimate by a whole fringe, W/p).
+    # How far each frequency's estimate may stray (decode_limits.agreement_tolerances): a wrong
+    # order moves an estimate by a whole fringe, W/p
     spread = np.zeros_like(col)
-    for e, p in zip(estimates, periods, strict=True):
-        tol = max(st.order_tolerance_px, 0.1 * float(wd) / p)
+    tols = lim.agreement_tolerances(list(periods), float(wd), st.order_tolerance_px)
+    for e, tol in zip(estimates, tols, strict=True):
         np.maximum(spread, np.abs(e - col) * np.float32(st.order_tolerance_px / tol), out=spread)
-    inconsistent = (spread > st.order_tolerance_px) | (margin > st.order_margin)
+    inconsistent = (spread > st.order_tolerance_px) | ~order_ok
     outside = ~inconsistent & ((col < -0.5) | (col > wd - 0.5))
     reason = np.zeros(shape, np.uint8)
     flat = reason.reshape(-1)
@@ -337,19 +407,22 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
     column = np.full(shape, np.nan, np.float32)
     keep = ~(outside | inconsistent)
     column.reshape(-1)[cand[keep]] = col[keep]
-    return _phase_map(column, w, reason, correction, sequence)
+    return _phase_map(column, w, reason, correction, sequence, limits)
 
 
 def _phase_map(column: np.ndarray, w: WrappedPhases, reason: np.ndarray,
-               correction: PhaseCorrection | None, sequence: FringeSequence) -> PhaseMap:
+               correction: PhaseCorrection | None, sequence: FringeSequence,
+               limits: OrderLimits) -> PhaseMap:
     counts = np.bincount(reason.ravel(), minlength=5)
     return PhaseMap(column, w.modulation, w.background, reason == 0,
                     {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)},
-                    correction.report(sequence.A, sequence.B) if correction else {}, reason)
+                    correction.report(sequence.A, sequence.B) if correction else {}, reason,
+                    noise_dn=limits.noise_dn, min_modulation_dn=limits.min_modulation_dn)
 
 
 def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
-                 st: DecodeSettings, correction: PhaseCorrection | None) -> PhaseMap:
+                 st: DecodeSettings, correction: PhaseCorrection | None,
+                 limits: OrderLimits) -> PhaseMap:
     from scancell.analysis.kernels import unwrap3_heterodyne
 
     shape = w.modulation.shape
@@ -361,9 +434,13 @@ def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: in
     p1, p2, p3 = (float(p) for p in sequence.periods)
     unwrap3_heterodyne(w.phases, w.modulation, w.saturated.astype(np.uint8, copy=False), tables,
                        sequence.steps, p1, p2, p3, float(projector_width),
-                       modulation_floor(st.min_modulation_dn),
-                       st.order_tolerance_px, st.order_margin, column, reason, per_row)
-    return _phase_map(column, w, reason, correction, sequence)
+                       modulation_floor(limits.min_modulation_dn), st.order_tolerance_px,
+                       -1.0 if limits.margin is None else limits.margin,
+                       np.asarray(limits.units, np.float64),
+                       np.asarray(limits.undetected, np.float64),
+                       np.asarray(limits.systematic, np.float64), limits.z,
+                       float(np.log(1 / lim.ORDER_ALPHA)), column, reason, per_row)
+    return _phase_map(column, w, reason, correction, sequence, limits)
 
 
 def decode_phase(images: Sequence[np.ndarray], sequence: FringeSequence, projector_width: int,
@@ -418,7 +495,7 @@ def merge_exposures(maps: Sequence[PhaseMap]) -> PhaseMap:
         response["exposures"] = len(maps)
     merged = PhaseMap(take("column"), take("modulation"), take("background"), reason == 0,
                       {name: int(counts[i + 1]) for i, name in enumerate(_REASONS)}, response,
-                      reason, pick.astype(np.uint8))
+                      reason, pick.astype(np.uint8), maps[0].noise_dn, maps[0].min_modulation_dn)
     return merged
 
 

@@ -291,7 +291,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="projector columns (default: the DLP's, 1280)")
     p.add_argument("--min-modulation", type=float, default=None,
                    help="fringe amplitude (8-bit DN) below which a pixel is masked "
-                        "(default: the decoder's own, DecodeSettings.min_modulation_dn)")
+                        "(default: derived from the frames' measured noise, "
+                        "docs/how-to/decode-real-captures.md)")
     p.add_argument("--compensation", choices=["passive", "off"], default="passive",
                    help="passive (default): estimate a nonlinear projector response's phase "
                         "error from the fringe images themselves and remove it; off: decode the "
