@@ -228,17 +228,23 @@ def _binocular(args: argparse.Namespace, calib, t0: float) -> int:
     fields = {"quality": c.quality, "intensity": c.intensity}
     if c.uncertainty is not None:
         fields["uncertainty"] = c.uncertainty
+    sides = (("left", result.left), ("right", result.right))
     write_ply(args.out, c.points, fields,
               ascii=args.ascii, comments=[f"frame: {MCS_FRAME}"] + [
                   f"scancell response {side}: {json.dumps(pm.response, separators=(',', ':'))}"
-                  for side, pm in (("left", result.left), ("right", result.right))
-                  if pm.response])
+                  for side, pm in sides if pm.response] + [
+                  f"scancell {side} noise_dn: {pm.noise_dn:.3f} min_modulation_dn: "
+                  f"{pm.min_modulation_dn:.2f}" for side, pm in sides if pm.noise_dn is not None])
     t = result.timings
     steps = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
     exposures = ", ".join(f"{s.exposure_us:g} µs" for s in sets if s.exposure_us is not None)
     print(f"{len(c)} points -> {args.out} (left {result.left.valid_share:.1%} / right "
           f"{result.right.valid_share:.1%} of pixels decoded"
           f"{f'; HDR from {exposures}' if exposures else ''})")
+    for side, pm in sides:
+        if pm.noise_dn is not None:
+            print(f"{side}: noise {pm.noise_dn:.2f} DN, modulation threshold "
+                  f"{pm.min_modulation_dn:.1f} DN")
     if c.uncertainty is not None and len(c):
         u = c.uncertainty[np.isfinite(c.uncertainty)]
         if u.size:

@@ -120,6 +120,10 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
         reply, before = scan({"station": "a", "exposures_us": None})
         assert not reply["precompensated"] and before["ok"], before
         assert before["response"]["left"]["equivalent_gamma"] == pytest.approx(2.2, abs=0.25)
+        # the limits each camera's orders were held to, derived from its measured noise
+        for side in ("left", "right"):
+            held = before["decode_limits"][side]
+            assert 0.3 < held["noise_dn"] < 5 and held["min_modulation_dn"] >= 4 * held["noise_dn"]
 
         # the job: levels through the real path, fitted by the worker, stored next to stereo.yaml
         final = client.run_job("calibrate_projector", {}, timeout_s=120)

@@ -12,11 +12,17 @@ import cv2
 import numpy as np
 import pytest
 from scancell.analysis.cloud_io import read_ply
+from scancell.analysis.decode_limits import (
+    decision_coefficients,
+    order_units,
+    undetected_decisions,
+)
 from scancell.analysis.phase import (
     DecodeError,
     DecodeSettings,
     decode_phase,
     heterodyne_tree,
+    unwrap_heterodyne,
 )
 from scancell.analysis.scanner import ScanDecoder
 from scancell.analysis.stereo import rectify
@@ -80,6 +86,68 @@ def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
     assert wrong.sum() == 0
     with pytest.raises(DecodeError, match="hierarchical"):
         decode_phase(imgs, seq, W, DecodeSettings(method="hierarchical"))
+
+
+@pytest.mark.unit
+def test_order_decisions_their_noise_and_what_the_agreement_check_cannot_see():
+    c = decision_coefficients([70, 64, 59], "heterodyne")
+    # both beats are unwrapped by the 1-period beat with the same residual: they flip together
+    np.testing.assert_allclose(c[:2], [[5, -11, 6], [5, -11, 6]])
+    np.testing.assert_allclose(c[2:], [[70 / 6 - 1, -70 / 6, 0], [0, 64 / 5 - 1, -64 / 5],
+                                       [0, 59 / 5, -59 / 5 - 1]])
+    assert undetected_decisions((70, 64, 59), "heterodyne", W) == (True, True, False, False, False)
+    assert undetected_decisions((1, 8, 64), "hierarchical", W) == (False, False)
+    assert undetected_decisions((1, 16), "hierarchical", 1824) == (True,)  # no second estimate
+    # each decision's residual noise, against a Monte Carlo of noisy wrapped phases
+    rng = np.random.default_rng(7)
+    x = rng.uniform(10, W - 10, 400_000)
+    b, sigma_i = 40.0, 1.0
+    sigma_phi = np.sqrt(2 / 3) * sigma_i / b
+    phases = [np.mod(2 * np.pi * p * x / W + rng.normal(0, sigma_phi, x.size), 2 * np.pi)
+              .astype(np.float32) for p in (70, 64, 59)]
+    residuals: list[np.ndarray] = []
+    unwrap_heterodyne(phases, [70, 64, 59], residuals)
+    measured = [float(np.sqrt(np.mean(r.astype(float) ** 2))) for r in residuals]
+    predicted = [u / b for u in order_units([70, 64, 59], [3, 3, 3], "heterodyne", sigma_i)]
+    np.testing.assert_allclose(measured, predicted, rtol=0.03)
+
+
+@pytest.mark.unit
+def test_the_threshold_follows_the_measured_noise_and_a_set_one_overrides_it():
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
+    maps = {n: decode_phase(synthetic(seq, column, b=60.0, noise=n, seed=2), seq, W)
+            for n in (1.0, 2.5)}
+    # σ_I measured along the fringes (8-bit rounding adds 1/12 DN² to the drawn noise)
+    for n, pm in maps.items():
+        assert pm.noise_dn == pytest.approx(np.sqrt(n ** 2 + 1 / 12), rel=0.08)
+        # the beats' posterior: z · |5, −11, 6| · sqrt(2/3) / 2π = 7.01 σ_I
+        assert pm.min_modulation_dn == pytest.approx(4 * order_units(
+            [70, 64, 59], [3, 3, 3], "heterodyne", pm.noise_dn)[0], rel=1e-6)
+    assert maps[2.5].min_modulation_dn > 2 * maps[1.0].min_modulation_dn
+    fixed = decode_phase(synthetic(seq, column, b=60.0, seed=2), seq, W,
+                         DecodeSettings(min_modulation_dn=30.0, order_margin=0.3, noise_dn=1.0))
+    assert (fixed.min_modulation_dn, fixed.noise_dn) == (30.0, 1.0)
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("gamma", [1.5, 2.2])
+def test_an_uncompensated_nonlinear_projector_gives_no_wrong_order(gamma):
+    """With compensation off, the response's phase error is a systematic spread of every order
+    residual: the beats' orders are refused, never passed on wrong; with it on, nearly every
+    pixel decodes."""
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
+    rng = np.random.default_rng(3)
+    imgs = [np.clip(np.rint(20 + 200 * seq.intensity(k, column, W) ** gamma
+                            + rng.normal(0, 1.0, column.shape)), 0, 255).astype(np.uint8)
+            for k in range(len(seq))]
+    for compensation in ("off", "passive"):
+        pm = decode_phase(imgs, seq, W, DecodeSettings(compensation=compensation))
+        wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
+        assert wrong.sum() == 0, compensation
+        if compensation == "passive":
+            assert pm.valid.mean() > 0.98
 
 
 @pytest.mark.unit

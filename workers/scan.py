@@ -164,6 +164,10 @@ def result_message(scan: PendingScan, result: ScanResult | None, error: str | No
                                                      ("right", result.right))},
                     valid_share={"left": round(result.left.valid_share, 4),
                                  "right": round(result.right.valid_share, 4)},
+                    decode_limits={side: {"noise_dn": round(pm.noise_dn, 4),
+                                          "min_modulation_dn": round(pm.min_modulation_dn, 3)}
+                                   for side, pm in (("left", result.left), ("right", result.right))
+                                   if pm.noise_dn is not None and pm.min_modulation_dn is not None},
                     response={"left": result.left.response, "right": result.right.response},
                     exposures=scan.exposures, precompensated=scan.precompensated,
                     timings_s={k: round(v, 4) for k, v in result.timings.items()})
