@@ -188,54 +188,72 @@ def agreement_tolerances(periods: list[float], width: float, tolerance_px: float
 
 def undetected_decisions(periods: tuple[float, ...], method: str, width: float,
                          tolerance_px: float = AGREEMENT_TOLERANCE_PX) -> tuple[bool, ...]:
-    """Which fringe-order decisions can go wrong without the frequencies' agreement check
-    seeing it. A decision goes wrong when noise pushes its residual across 1/2. Decisions whose
-    residuals are the same combination of phases (correlation ±1) go wrong together; errors of
-    independent decisions at once would need two z-sigma events and are left out. Below a
-    wrong decision, the decisions unwrapped from its result round a shifted reference, whose
-    residual lands anywhere: they may take −1, 0 or +1 as well. Each such error is played
-    through the unwrapping at 256 columns across the projector (noise-free phases): one the
-    check passes at some column is undetected, and so is each decision it moves.
+    """Which fringe-order decisions can go wrong alone without the frequencies' agreement
+    check seeing it (:func:`alias_orders` = 1)."""
+    return tuple(k == 1 for k in alias_orders(periods, method, width, tolerance_px))
+
+
+def alias_orders(periods: tuple[float, ...], method: str, width: float,
+                 tolerance_px: float = AGREEMENT_TOLERANCE_PX) -> tuple[int, ...]:
+    """For every fringe-order decision, how many independent errors an error the frequencies'
+    agreement check cannot see needs, counting this decision's (0: none can hide it).
+
+    A decision goes wrong when its residual crosses 1/2. Decisions whose residuals are the
+    same combination of phases (correlation ±1) form one group and go wrong together. Below a
+    wrong decision, the decisions unwrapped from its result round a shifted reference whose
+    residual lands anywhere: they may take −1, 0 or +1 as well. Every error of ±1 fringe at a
+    set of groups is played through the unwrapping at 256 columns across the projector
+    (noise-free phases); one the check passes at some column is undetected.
 
     With 70, 64, 59 periods the two beats (6 and 5 by the 1-period beat) are both
     ``5·φ70 − 11·φ64 + 6·φ59`` and flip together; the three frequencies unwrapped from them can
-    then land 13, 12 and 11 fringes away, within 0.07 fringe of agreeing: the beats are
-    undetected. An error of one frequency's own order moves its estimate a whole fringe and is
-    seen."""
-    return _undetected(tuple(map(float, periods)), method, float(width), float(tolerance_px))
+    then land 13, 12 and 11 fringes away, within 0.07 fringe of agreeing: order 1. The three
+    frequencies' own orders, all one fringe off at once (70 by the beat 6, 64 and 59 by the beat
+    5: two groups), move the column 18.3, 20.0 and 21.7 px, within the check's 0.1 fringe:
+    order 2. One frequency's order alone moves its estimate a whole fringe and is seen."""
+    return _alias_orders(tuple(map(float, periods)), method, float(width), float(tolerance_px))
 
 
 @functools.lru_cache(maxsize=32)
-def _undetected(periods: tuple[float, ...], method: str, width: float, tolerance_px: float
-                ) -> tuple[bool, ...]:
+def _alias_orders(periods: tuple[float, ...], method: str, width: float, tolerance_px: float
+                  ) -> tuple[int, ...]:
     x = np.linspace(0.5, width - 1.5, 256)
     p = np.asarray(periods)
     wrapped = [np.mod(2 * np.pi * pj * x / width, 2 * np.pi) for pj in p]
     c = decision_coefficients(list(periods), method)
     unit = c / np.linalg.norm(c, axis=1, keepdims=True)
     rho = unit @ unit.T
+    groups: list[list[int]] = []
+    for j in range(len(c)):
+        if not any(j in g for g in groups):
+            groups.append([i for i in range(len(c)) if abs(rho[j, i]) > 0.999])
     parents = decision_parents(list(periods), method)
     tol = agreement_tolerances(list(periods), width, tolerance_px)
-    seen = [False] * len(c)
-    for first in range(len(c)):
-        group = [j for j in range(len(c)) if abs(rho[first, j]) > 0.999]
-        below = [j for j in range(len(c)) if j not in group and _descends(j, group, parents)]
-        for sign in (-1, 1):
-            for free in itertools.product((-1, 0, 1), repeat=len(below)):
-                pattern = [0] * len(c)
-                for j in group:
-                    pattern[j] = int(sign * np.sign(rho[first, j]))
-                for j, e in zip(below, free, strict=True):
-                    pattern[j] = e
-                absolute = _unwrap_with_errors(wrapped, list(periods), method, tuple(pattern))
-                est = np.stack([a * width / (2 * np.pi * pj)
-                                for a, pj in zip(absolute, p, strict=True)])
-                col = (p[:, None] ** 2 * est).sum(0) / (p ** 2).sum()
-                passes = (np.abs(est - col) <= tol[:, None]).all(axis=0) & (np.abs(col - x) > 0.5)
-                if passes.any():
-                    for j in group:
-                        seen[j] = True
-    return tuple(seen)
+    order = [0] * len(c)
+    for size in range(1, len(groups) + 1):
+        for chosen in itertools.combinations(range(len(groups)), size):
+            members = [j for g in chosen for j in groups[g]]
+            below = [j for j in range(len(c))
+                     if j not in members and _descends(j, members, parents)]
+            for signs in itertools.product((-1, 1), repeat=size):
+                for free in itertools.product((-1, 0, 1), repeat=len(below)):
+                    pattern = [0] * len(c)
+                    for g, sign in zip(chosen, signs, strict=True):
+                        lead = groups[g][0]
+                        for j in groups[g]:
+                            pattern[j] = int(sign * np.sign(rho[lead, j]))
+                    for j, e in zip(below, free, strict=True):
+                        pattern[j] = e
+                    absolute = _unwrap_with_errors(wrapped, list(periods), method, tuple(pattern))
+                    est = np.stack([a * width / (2 * np.pi * pj)
+                                    for a, pj in zip(absolute, p, strict=True)])
+                    col = (p[:, None] ** 2 * est).sum(0) / (p ** 2).sum()
+                    hidden = ((np.abs(est - col) <= tol[:, None]).all(axis=0)
+                              & (np.abs(col - x) > 0.5))
+                    if hidden.any():
+                        for j in members:
+                            order[j] = order[j] or size
+    return tuple(order)
 
 
 def decision_parents(periods: list[float], method: str) -> list[int | None]:
@@ -300,12 +318,13 @@ def _unwrap_with_errors(wrapped: list[np.ndarray], periods: list[float], method:
     return out
 
 
-def min_modulation_for_orders(units: list[float], undetected: tuple[bool, ...], noise_dn: float,
+def min_modulation_for_orders(units: list[float], orders: tuple[int, ...], noise_dn: float,
                               z: float) -> float:
-    """B_min (DN): every decision the agreement check cannot catch is right to z standard
-    deviations (σ_o = unit / B ≤ 1/z), and the fringe stands z · σ_I above the noise."""
-    unseen = [u for u, hidden in zip(units, undetected, strict=True) if hidden]
-    return float(max([z * noise_dn, *(z * u for u in unseen)]))
+    """B_min (DN): every decision whose error alone can hide from the agreement check
+    (:func:`alias_orders` 1) is right to z standard deviations (σ_o = unit / B ≤ 1/z), and the
+    fringe stands z · σ_I above the noise."""
+    alone = [u for u, k in zip(units, orders, strict=True) if k == 1]
+    return float(max([z * noise_dn, *(z * u for u in alone)]))
 
 
 def systematic_spread(residual: np.ndarray, unit: float, modulation: np.ndarray) -> float:
@@ -322,16 +341,18 @@ def systematic_spread(residual: np.ndarray, unit: float, modulation: np.ndarray)
     return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
 
 
-def order_limits(residual: np.ndarray, unit: float, undetected: bool, modulation: np.ndarray,
+def order_limits(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
                  z: float, margin: float | None = None, systematic: float | None = 0.0
                  ) -> np.ndarray:
     """Pixels whose |rounding residual| (fringes) passes one decision's limit: a fixed
-    ``margin``, or per pixel (σ_o = unit / B)
-    - the residual is what noise and the decision's measured systematic spread s leave:
-      ≤ z · sqrt(σ_o² + s²) (a glint or a vibration that shifts one frequency's phase in a
-      patch leaves far more); ``systematic`` None leaves this test out;
-    - and, for a decision the agreement check cannot catch, a wrong order stays 1/α times less
-      likely than the right one: ≤ 1/2 − (σ_o² + s²) · ln(1/α)."""
+    ``margin``, or per pixel, with σ² = (unit / B)² + s² (s the decision's measured systematic
+    spread):
+    - the residual is what noise and s leave: ≤ z · σ (a glint or a vibration that shifts one
+      frequency's phase in a patch leaves far more); ``systematic`` None leaves this test out;
+    - where a wrong order can hide from the agreement check together with k − 1 other
+      independent errors (``alias_order`` k ≥ 1), the pattern stays 1/α times less likely than
+      the right orders: each of its k decisions' likelihood ratio at the margin,
+      exp(−(1 − 2m) / 2σ²), at most α^(1/k): ≤ 1/2 − σ² · ln(1/α) / k."""
     if margin is not None:
         return residual <= np.float32(margin)
     sigma = np.float32(unit) / modulation
@@ -339,8 +360,9 @@ def order_limits(residual: np.ndarray, unit: float, undetected: bool, modulation
     limit = np.full(sigma.shape, 0.5, np.float32)
     if systematic is not None:
         limit = np.float32(z) * np.sqrt(var)
-    if undetected:
-        limit = np.minimum(limit, np.float32(0.5) - var * np.float32(np.log(1 / ORDER_ALPHA)))
+    if alias_order:
+        limit = np.minimum(limit, np.float32(0.5)
+                           - var * np.float32(np.log(1 / ORDER_ALPHA) / alias_order))
     return residual <= np.minimum(limit, np.float32(0.5))
 
 

@@ -141,7 +141,7 @@ def _corrected(phi: float, table: np.ndarray, scale: float) -> float:
 def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np.ndarray,
                        tables: np.ndarray, steps: int, p1: float, p2: float, p3: float,
                        width: float, min_mod: float, tol: float, margin_max: float,
-                       units: np.ndarray, undetected: np.ndarray, systematic: np.ndarray,
+                       units: np.ndarray, alias_orders: np.ndarray, systematic: np.ndarray,
                        z: float, ln_inv_alpha: float,
                        column: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
     """Second pass: remove the phase error ``tables`` (3, bins + 1; zeros for none) from the
@@ -150,8 +150,9 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
     The five order decisions (beats 1 and 2 by the top, then p1, p2, p3) are held to
     ``margin_max`` fringes, or with ``margin_max`` < 0 to the per-pixel limits of
     :func:`scancell.analysis.decode_limits.order_limits` (``units``: σ_o · B of each decision;
-    ``undetected``: 1 where the agreement check cannot catch its error; ``systematic``: the
-    residual's spread that noise does not explain, fringes).
+    ``alias_orders``: how many independent errors an error the agreement check cannot see
+    needs, 0 for none; ``systematic``: the residual's spread that noise does not explain,
+    fringes).
 
     reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
     counts (H, 5): pixels of each reason per row.
@@ -201,7 +202,9 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
                 for d, m in enumerate((m1, m2, m3, m4, m5)):
                     sd = units[d] * inv_b
                     var = sd * sd + systematic[d] * systematic[d]
-                    lim = min(z * math.sqrt(var), 0.5 - undetected[d] * var * ln_inv_alpha, 0.5)
+                    lim = min(z * math.sqrt(var), 0.5)
+                    if alias_orders[d] > 0.0:
+                        lim = min(lim, 0.5 - var * ln_inv_alpha / alias_orders[d])
                     order_bad = order_bad or m > lim
             e1 = a1 * c1
             e2 = a2 * c2

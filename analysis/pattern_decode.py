@@ -252,7 +252,7 @@ def decode_view(frames: Sequence[np.ndarray], spec: PatternSet, projector_size: 
     b_min = limits.min_modulation_dn
     if b_min is None:  # on the raw frames' noise: smoothing, which borrows from the
         # neighbours, never makes a pixel valid that its own frames could not decode
-        b_min = max(lim.min_modulation_for_orders(units, (True,) * len(units), noise, z)
+        b_min = max(lim.min_modulation_for_orders(units, (1,) * len(units), noise, z)
                     for units in (order_units(spec, axis, sizes[axis], noise) for axis in spec.axes))
     low = modulation < np.float32(b_min)
     # only the pixels above the threshold are unwrapped (a sixth of a typical scene's)
@@ -313,7 +313,7 @@ def _order_check(residuals: list[np.ndarray], units: list[float], modulation: np
     of 361 k points, 84 % of them within 1 mm of SLStudio's own cloud)."""
     bad = np.zeros(modulation.shape, bool)
     for r, unit in zip(residuals, units, strict=True):
-        bad |= ~lim.order_limits(r, unit, True, modulation, limits.confidence_sigmas,
+        bad |= ~lim.order_limits(r, unit, 1, modulation, limits.confidence_sigmas,
                                  limits.order_margin, systematic=None)
     return bad
 

@@ -312,7 +312,9 @@ class OrderLimits:
     noise_dn: float
     min_modulation_dn: float
     units: tuple[float, ...]
-    undetected: tuple[bool, ...]
+    #: per decision, how many independent errors an error the agreement check cannot see needs
+    #: (analysis.decode_limits.alias_orders; 0: none)
+    alias_orders: tuple[int, ...]
     #: per decision the residual's spread (fringes) that noise does not explain
     systematic: tuple[float, ...]
     margin: float | None  # a fixed margin, else per pixel
@@ -332,25 +334,26 @@ def order_limits(w: WrappedPhases, sequence: FringeSequence, projector_width: in
         usable = (w.modulation >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated.astype(bool)
         noise = lim.measured_noise_dn(w.phases[finest], w.modulation, sequence.steps, usable)
     units = lim.order_units(periods, [sequence.steps] * len(periods), st.method, noise)
-    undetected = lim.undetected_decisions(tuple(periods), st.method, projector_width,
-                                          st.order_tolerance_px)
+    orders = lim.alias_orders(tuple(periods), st.method, projector_width, st.order_tolerance_px)
     b_min = st.min_modulation_dn
     if b_min is None:
-        b_min = lim.min_modulation_for_orders(units, undetected, noise, st.confidence_sigmas)
+        b_min = lim.min_modulation_for_orders(units, orders, noise, st.confidence_sigmas)
     sub = (slice(None, None, 4), slice(None, None, 4))
     strong = (w.modulation[sub] >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated[sub].astype(bool)
     phases = [phi[sub][strong] for phi in w.phases]
     if correction:
         phases = [correction.apply(j, phi) for j, phi in enumerate(phases)]
     residuals: list[np.ndarray] = []
-    if st.method == "heterodyne":
-        unwrap_heterodyne(phases, periods, residuals)
-    else:
-        unwrap_hierarchical(phases, periods, residuals)
-    mod = w.modulation[sub][strong]
-    systematic = tuple(lim.systematic_spread(r, u, mod)
+    absolute = (unwrap_heterodyne(phases, periods, residuals) if st.method == "heterodyne"
+                else unwrap_hierarchical(phases, periods, residuals))
+    # from the pixels whose frequencies agree: a glare or a shadow's edge, where the phases are
+    # garbage, can be most of a scene's strong pixels and would pass for a systematic error
+    agree = agreement(absolute, periods, projector_width, st.order_tolerance_px)[1] \
+        <= st.order_tolerance_px
+    mod = w.modulation[sub][strong][agree]
+    systematic = tuple(lim.systematic_spread(r[agree], u, mod)
                        for r, u in zip(residuals, units, strict=True))
-    return OrderLimits(float(noise), float(b_min), tuple(units), undetected, systematic,
+    return OrderLimits(float(noise), float(b_min), tuple(units), orders, systematic,
                        st.order_margin, st.confidence_sigmas)
 
 
@@ -383,19 +386,11 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
                 else unwrap_hierarchical(phases, periods, residuals))
     mod_c = modulation.reshape(-1)[cand]
     order_ok = np.ones(cand.size, bool)
-    for r, unit, hidden, sys in zip(residuals, limits.units, limits.undetected,
-                                    limits.systematic, strict=True):
-        order_ok &= lim.order_limits(r, unit, hidden, mod_c, limits.z, limits.margin, sys)
+    for r, unit, k, sys in zip(residuals, limits.units, limits.alias_orders,
+                               limits.systematic, strict=True):
+        order_ok &= lim.order_limits(r, unit, k, mod_c, limits.z, limits.margin, sys)
     wd = np.float32(projector_width)
-    estimates = [phi * (wd / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
-    weights = np.asarray(periods, np.float32) ** 2
-    col = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
-    # How far each frequency's estimate may stray (decode_limits.agreement_tolerances): a wrong
-    # order moves an estimate by a whole fringe, W/p
-    spread = np.zeros_like(col)
-    tols = lim.agreement_tolerances(list(periods), float(wd), st.order_tolerance_px)
-    for e, tol in zip(estimates, tols, strict=True):
-        np.maximum(spread, np.abs(e - col) * np.float32(st.order_tolerance_px / tol), out=spread)
+    col, spread = agreement(absolute, periods, projector_width, st.order_tolerance_px)
     inconsistent = (spread > st.order_tolerance_px) | ~order_ok
     outside = ~inconsistent & ((col < -0.5) | (col > wd - 0.5))
     reason = np.zeros(shape, np.uint8)
@@ -408,6 +403,23 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
     keep = ~(outside | inconsistent)
     column.reshape(-1)[cand[keep]] = col[keep]
     return _phase_map(column, w, reason, correction, sequence, limits)
+
+
+def agreement(absolute: Sequence[np.ndarray], periods: Sequence[float], projector_width: int,
+              tolerance_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The column (px, the p²-weighted mean of every frequency's estimate) and how far the
+    estimates stray from it, scaled so that ``tolerance_px`` is each frequency's limit
+    (:func:`~scancell.analysis.decode_limits.agreement_tolerances`: a wrong order moves an
+    estimate by a whole fringe, W/p)."""
+    wd = np.float32(projector_width)
+    estimates = [phi * (wd / (TWO_PI * np.float32(p))) for phi, p in zip(absolute, periods, strict=True)]
+    weights = np.asarray(periods, np.float32) ** 2
+    col = sum(e * wt for e, wt in zip(estimates, weights, strict=True)) / weights.sum()
+    spread = np.zeros_like(col)
+    tols = lim.agreement_tolerances(list(periods), float(wd), tolerance_px)
+    for e, tol in zip(estimates, tols, strict=True):
+        np.maximum(spread, np.abs(e - col) * np.float32(tolerance_px / tol), out=spread)
+    return col, spread
 
 
 def _phase_map(column: np.ndarray, w: WrappedPhases, reason: np.ndarray,
@@ -437,7 +449,7 @@ def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: in
                        modulation_floor(limits.min_modulation_dn), st.order_tolerance_px,
                        -1.0 if limits.margin is None else limits.margin,
                        np.asarray(limits.units, np.float64),
-                       np.asarray(limits.undetected, np.float64),
+                       np.asarray(limits.alias_orders, np.float64),
                        np.asarray(limits.systematic, np.float64), limits.z,
                        float(np.log(1 / lim.ORDER_ALPHA)), column, reason, per_row)
     return _phase_map(column, w, reason, correction, sequence, limits)
