@@ -11,16 +11,20 @@ Every limit follows from two measured quantities and one stated confidence:
 Formulas (N steps, modulation B in DN):
 
 - phase noise ``σ_φ = sqrt(2/N) · σ_I / B`` (rad); coordinate noise ``σ_x = σ_φ · P / 2π`` (px);
-- fringe order of a group of p_f periods unwrapped by a coarser absolute estimate of p_c
-  periods (ratio ``r = p_f/p_c``): ``σ_o = sqrt(r² σ_φc² + σ_φf²) / 2π`` fringes;
-- **order margin** (per pixel): the rounding residual ``m = |o − round(o)|`` is accepted while
-  a wrong order stays ``α`` times less likely than the right one, with Gaussian order noise:
-  ``m ≤ 1/2 − σ_o² · ln(1/α)``, α = 10⁻³ (the likelihood ratio of an error of m against one of
-  1 − m is ``exp(−(1 − 2m) / 2σ_o²)``). A fixed limit is set with ``order_margin``.
-- **modulation threshold**: the smallest B at which the order of the coarsest unwrapping step
-  is still right to z/2 standard deviations (``σ_o ≤ 1/z``):
-  ``B_min = z · sqrt(r² · 2/N_c + 2/N_f) · σ_I / 2π``; never below ``z · σ_I`` (a fringe
-  weaker than the noise's z-sigma is not a fringe);
+- an order decision's rounding residual is a combination of the groups' wrapped phases
+  (:func:`decision_coefficients`), so its noise is ``σ_o = sqrt(Σ c_j² · 2/N_j) · σ_I / (2π B)``
+  fringes (:func:`order_units`); s, its systematic spread, is what its measured scatter adds to
+  that (:func:`systematic_spread`), and σ² = σ_o² + s²;
+- a decision's **alias order** k (:func:`alias_orders`): how many independent errors an error
+  the frequencies' agreement check cannot see needs through it (0: the check sees all);
+- **order margin** (per pixel and decision): a hidden error stays ``1/α`` times less likely
+  than the right orders, each of its k decisions' likelihood ratio at the margin,
+  ``exp(−(1 − 2m) / 2σ²)``, at most ``α^(1/k)``: ``m ≤ 1/2 − σ² · ln(1/α) / k``, α = 10⁻³;
+  where the decoder has an agreement check, also ``m ≤ z · σ`` (the residual is noise). A
+  fixed limit is set with ``order_margin``;
+- **modulation threshold**: the smallest B at which every decision of alias order 1 is still
+  right to z standard deviations (``σ_o ≤ 1/z``): ``B_min = z · max σ_o·B``; never below
+  ``z · σ_I`` (a fringe weaker than the noise's z-sigma is not a fringe);
 - **bend limit** (per pixel): the second difference of the coordinate between neighbouring
   camera pixels is the surface's own curvature (as the step limit below takes its slope: up to
   ``CURVATURE_FACTOR`` times the view's median bend) plus noise, ``sqrt(6) σ_x``; a larger bend
@@ -175,7 +179,7 @@ def order_units(periods: list[float], steps: list[int], method: str, noise: floa
 
 #: how many projector px a frequency's column estimate may stray from the weighted mean before
 #: its fringe order counts as wrong, and the share of a fringe coarse fringes may stray
-#: (:func:`undetected_decisions`; ``DecodeSettings.order_tolerance_px``)
+#: (:func:`alias_orders`; ``DecodeSettings.order_tolerance_px``)
 AGREEMENT_TOLERANCE_PX = 1.0
 AGREEMENT_FRINGE_SHARE = 0.1
 
@@ -184,13 +188,6 @@ def agreement_tolerances(periods: list[float], width: float, tolerance_px: float
     """Per group, how far (px) its column estimate may stray from the p²-weighted mean: at least
     ``tolerance_px``, and a tenth of a fringe for coarse fringes (whose own noise is larger)."""
     return np.maximum(tolerance_px, AGREEMENT_FRINGE_SHARE * width / np.asarray(periods, float))
-
-
-def undetected_decisions(periods: tuple[float, ...], method: str, width: float,
-                         tolerance_px: float = AGREEMENT_TOLERANCE_PX) -> tuple[bool, ...]:
-    """Which fringe-order decisions can go wrong alone without the frequencies' agreement
-    check seeing it (:func:`alias_orders` = 1)."""
-    return tuple(k == 1 for k in alias_orders(periods, method, width, tolerance_px))
 
 
 def alias_orders(periods: tuple[float, ...], method: str, width: float,
