@@ -41,25 +41,39 @@ def closest_points(nominal: Nominal, points_part: np.ndarray, dtype: type = np.f
     """The nominal's closest point to each point (part frame, mm), its normal and the signed
     deviation along it. ``dtype`` of the distance and deviation: float64 for the alignment's
     iterations, whose trimming reads them; float32 (rounded once) for a whole cloud's result."""
+    return closest_points_moved(nominal, points_part, None, dtype)[1]
+
+
+def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
+                         dtype: type = np.float64) -> tuple[np.ndarray | None, ClosestPoints]:
+    """:func:`closest_points` of ``points`` moved by ``T`` (4 x 4, measuring frame to part
+    frame; None: already in it), CHUNK points at a time: each chunk is moved in float64 and
+    its deviation computed from that, so nothing of the whole cloud is held in float64. Also
+    returns the moved points as float32 (N, 3) when ``T`` is given (None otherwise)."""
     import open3d as o3d
 
-    pts = np.asarray(points_part).reshape(-1, 3)
+    pts = np.asarray(points).reshape(-1, 3)
     scene = nominal.scene()
     tn = nominal.triangle_normals
     n = len(pts)
+    moved = np.empty((n, 3), np.float32) if T is not None else None
     q = np.empty((n, 3), np.float32)
     tri = np.empty(n, np.int32)
     distance = np.empty(n, dtype)
     deviation = np.empty(n, dtype)
     for s in range(0, n, CHUNK):
         chunk = slice(s, s + CHUNK)
-        r = scene.compute_closest_points(o3d.core.Tensor(pts[chunk].astype(np.float32)))
+        p = pts[chunk].astype(float)
+        if T is not None:
+            p = p @ T[:3, :3].T + T[:3, 3]
+            moved[chunk] = p
+        r = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
         q[chunk] = r["points"].numpy()
         tri[chunk] = r["primitive_ids"].numpy()
-        d = pts[chunk].astype(float) - q[chunk]
+        d = p - q[chunk]
         distance[chunk] = np.linalg.norm(d, axis=1)
         deviation[chunk] = np.einsum("ij,ij->i", d, tn[tri[chunk]])
-    return ClosestPoints(q, tri, distance, deviation, tn)
+    return moved, ClosestPoints(q, tri, distance, deviation, tn)
 
 
 @dataclass

@@ -14,7 +14,13 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis import alignment as al
-from scancell.analysis.deviation import ClosestPoints, Coverage, closest_points, coverage
+from scancell.analysis.deviation import (
+    CHUNK,
+    ClosestPoints,
+    Coverage,
+    closest_points_moved,
+    coverage,
+)
 from scancell.analysis.nominal import Nominal, check_scale
 from scancell.analysis.tolerance import ToleranceSpec, judge, point_spacing_mm
 
@@ -80,12 +86,21 @@ class Inspection:
     def write_ply(self, path: str) -> None:
         """The measured points in the part frame, input order, with float properties
         ``deviation`` (mm), ``nx``/``ny``/``nz`` (the nominal's normal) and ``in_range``."""
-        from scancell.analysis.cloud_io import write_ply
+        from scancell.analysis.cloud_io import write_ply_chunks
 
-        n = self.closest.normals
-        write_ply(path, self.points, {"deviation": self.deviation, "nx": n[:, 0], "ny": n[:, 1],
-                                      "nz": n[:, 2], "in_range": self.in_range.astype(np.float32)},
-                  comments=["frame: part (nominal), after alignment", "deviation: mm, + outside"])
+        normals = self.closest.triangle_normals.astype(np.float32)
+
+        def chunks():  # CHUNK points at a time: no whole-cloud copy of the normals
+            for s in range(0, len(self.points), CHUNK):
+                part = slice(s, s + CHUNK)
+                n = normals[self.closest.triangle[part]]
+                yield self.points[part], {"deviation": self.deviation[part], "nx": n[:, 0],
+                                          "ny": n[:, 1], "nz": n[:, 2],
+                                          "in_range": self.in_range[part].astype(np.float32)}
+
+        write_ply_chunks(path, len(self.points), ["deviation", "nx", "ny", "nz", "in_range"],
+                         chunks(), comments=["frame: part (nominal), after alignment",
+                                             "deviation: mm, + outside"])
 
     def face_names_of_points(self) -> np.ndarray:
         return self.nominal.face_of_triangle[self.closest.triangle]
@@ -184,23 +199,28 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     """The whole inspection of ``points_measured`` (N, 3, measuring frame, mm)."""
     s = settings or InspectionSettings()
     say = progress or (lambda _msg: None)
-    pts = np.asarray(points_measured, float).reshape(-1, 3)
-    pts_finite = np.isfinite(pts).all(axis=1)
-    if pts_finite.sum() < 10:
-        raise InspectionError(f"the measured cloud has {pts_finite.sum()} usable points")
-    if not pts_finite.all():
-        raise InspectionError(f"{(~pts_finite).sum()} measured points are not finite numbers")
+    # the cloud as given (float32 from a PLY or the fusion): whole-cloud work goes CHUNK
+    # points at a time, so a 50 M-point cloud is never copied whole
+    pts = np.asarray(points_measured).reshape(-1, 3)
+    if not np.issubdtype(pts.dtype, np.floating):
+        pts = pts.astype(float)
+    finite = sum(int(np.isfinite(pts[i:i + CHUNK]).all(axis=1).sum())
+                 for i in range(0, len(pts), CHUNK))
+    if finite < 10:
+        raise InspectionError(f"the measured cloud has {finite} usable points")
+    if finite < len(pts):
+        raise InspectionError(f"{len(pts) - finite} measured points are not finite numbers")
     seconds: dict[str, float] = {}
     t = time.perf_counter()
-    start = pts if s.transform is None else al.apply(np.asarray(s.transform, float), pts)
-    check_scale(nominal, start)
+    every = pts[:: max(1, len(pts) // 1_000_000)]  # the cloud's extent, from ≤ 1 M of its points
+    check_scale(nominal, every if s.transform is None
+                else al.apply(np.asarray(s.transform, float), every))
     say(f"aligning ({s.align}) {len(pts)} points to {len(nominal.triangles)} triangles")
     alignment = _align(nominal, pts, s)
     seconds["align"] = time.perf_counter() - t
     t = time.perf_counter()
     say("signed deviation of every point")
-    part = al.apply(alignment.T_part_from_measured, pts)
-    cp = closest_points(nominal, part, np.float32)
+    part, cp = closest_points_moved(nominal, pts, alignment.T_part_from_measured, np.float32)
     in_range = cp.distance <= s.max_distance_mm
     if in_range.mean() < 0.05:
         raise InspectionError(f"only {in_range.mean():.1%} of the points lie within "
@@ -211,8 +231,8 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     say("tolerances, sections and unmeasured surface")
     tolerances = judge_all(nominal, part, cp, in_range, s.tolerance)
     # every k-th point, at most 1 M: their spacing stays far below the gap threshold
-    measured = part[in_range]
-    cov = coverage(nominal, measured[:: max(1, len(measured) // 1_000_000)], s.coverage_gap_mm)
+    used = np.flatnonzero(in_range)
+    cov = coverage(nominal, part[used[:: max(1, len(used) // 1_000_000)]], s.coverage_gap_mm)
     planes = s.sections if s.sections is not None else sections_with_defects(nominal, tolerances)
     sections = [cut(nominal, a, o, part, s.section_half_width_mm) for a, o in planes]
     seconds["analysis"] = time.perf_counter() - t
@@ -226,18 +246,19 @@ def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: n
                            "defect_area_mm2": spec.defect_area_mm2, "overall": None,
                            "regions": []}
     d = cp.deviation
-    spacing = point_spacing_mm(part[in_range]) if (spec.overall or spec.regions) else 0.0
+    used = np.flatnonzero(in_range)
+    spacing = point_spacing_mm(part, index=used) if (spec.overall or spec.regions) else 0.0
     out["point_spacing_mm"] = round(spacing, 4)
     if spec.overall is not None:
-        out["overall"] = judge(d[in_range], spec.overall, spec.allowed_out_share,
-                               part[in_range], spacing, spec.defect_area_mm2)
+        out["overall"] = judge(d[used], spec.overall, spec.allowed_out_share, part, spacing,
+                               spec.defect_area_mm2, used)
     faces = nominal.face_of_triangle[cp.triangle]
     for region in spec.regions:
-        inside = region.contains(part, faces, nominal) & in_range
+        inside = np.flatnonzero(region.contains(part, faces, nominal) & in_range)
         out["regions"].append({"name": region.name, "kind": region.kind,
                                "where": region.describe(),
                                **judge(d[inside], region.tolerance, spec.allowed_out_share,
-                                       part[inside], spacing, spec.defect_area_mm2)})
+                                       part, spacing, spec.defect_area_mm2, inside)})
     verdicts = [r["pass"] for r in [out["overall"], *out["regions"]] if r and r["pass"] is not None]
     out["pass"] = all(verdicts) if verdicts else None
     return out

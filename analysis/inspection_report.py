@@ -127,7 +127,7 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     ok = inspection.in_range
     pts, dev = inspection.points[ok], inspection.deviation[ok]
-    n_pts = inspection.closest.triangle_normals[inspection.closest.triangle[ok]]
+    tri = inspection.closest.triangle[ok]  # each point's normal is its triangle's
     cov = inspection.coverage
     # cells no finer than the measured points' or the nominal samples' spacing, so that
     # neither shows as speckle
@@ -136,13 +136,13 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     cmap, norm = _scale(inspection)
     out = []
     for view in standard_views(nom.triangle_normals, areas):
-        facing = n_pts @ view.towards_viewer > 0.1
+        facing = (inspection.closest.triangle_normals @ view.towards_viewer > 0.1)[tri]
         if facing.mean() < min_share:
             continue
         # the image's axes carry the part's own coordinates: along -x the axis runs backwards
         sr, su = _axis_sign(view.right), _axis_sign(view.up)
         R = np.stack([sr * view.right, su * view.up, view.towards_viewer])
-        p = pts[facing] @ R.T
+        p = pts[facing] @ R.T.astype(pts.dtype)
         toward = cov.normals @ view.towards_viewer > 0.1
         s = cov.samples[toward] @ R.T
         both = np.concatenate([p, s])

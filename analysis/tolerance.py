@@ -176,26 +176,31 @@ def load_spec(path: str | Path, overall: Tolerance | None = None) -> ToleranceSp
 
 def judge(deviation: np.ndarray, tolerance: Tolerance, allowed_out_share: float,
           points: np.ndarray | None = None, spacing_mm: float | None = None,
-          defect_area_mm2: float = DEFAULT_DEFECT_AREA_MM2) -> dict[str, Any]:
+          defect_area_mm2: float = DEFAULT_DEFECT_AREA_MM2, index: np.ndarray | None = None
+          ) -> dict[str, Any]:
     """Statistics of ``deviation`` (mm) against ``tolerance``: share below, above, the defects
-    (with the points, part frame, mm, and their spacing: :func:`defects`), pass."""
-    d = np.asarray(deviation, float)
+    (with the points, part frame, mm, and their spacing: :func:`defects`; ``index``: the row
+    of ``points`` of each deviation, None: row for row), pass. Sums in float64, whatever the
+    deviations' type, without a float64 copy of them."""
+    d = np.asarray(deviation)
     if d.size == 0:
         return {"points": 0, **tolerance.to_json(), "pass": None,
                 "note": "no measured point in this region"}
     below = float(np.mean(d < tolerance.lower_mm))
     above = float(np.mean(d > tolerance.upper_mm))
-    found = (defects(points, d, tolerance, spacing_mm, defect_area_mm2)
+    found = (defects(points, d, tolerance, spacing_mm, defect_area_mm2, index)
              if points is not None and spacing_mm else [])
-    return {"points": int(d.size), **tolerance.to_json(), "mean_mm": float(d.mean()),
-            "std_mm": float(d.std()), "min_mm": float(d.min()), "max_mm": float(d.max()),
+    return {"points": int(d.size), **tolerance.to_json(),
+            "mean_mm": float(np.mean(d, dtype=np.float64)),
+            "std_mm": float(np.std(d, dtype=np.float64)), "min_mm": float(d.min()),
+            "max_mm": float(d.max()),
             "below_share": below, "above_share": above, "out_share": below + above,
             "defects": found[:MAX_DEFECTS_LISTED], "defect_count": len(found),
             "pass": bool(below + above <= allowed_out_share and not found)}
 
 
 def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spacing_mm: float,
-            min_area_mm2: float) -> list[dict[str, Any]]:
+            min_area_mm2: float, index: np.ndarray | None = None) -> list[dict[str, Any]]:
     """The connected patches of out-of-tolerance points (each side apart) larger than
     ``min_area_mm2``, largest first: where (centroid, mm), how large (area ≈ points x
     spacing², mm²), how deep (the extreme deviation, mm). Patches are Open3D's DBSCAN of the
@@ -209,7 +214,8 @@ def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spa
         n = int(mask.sum())
         if n * per_point <= min_area_mm2:
             continue
-        pts, dev = np.asarray(points, float)[mask], deviation[mask]
+        rows = mask if index is None else index[mask]
+        pts, dev = np.asarray(points[rows], float), np.asarray(deviation[mask], float)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         labels = np.asarray(cloud.cluster_dbscan(DEFECT_LINK_SPACINGS * spacing_mm, 3))
         for label in np.unique(labels[labels >= 0]):
@@ -226,16 +232,29 @@ def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spa
     return sorted(out, key=lambda x: -x["area_mm2"])
 
 
-def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0) -> float:
+#: points per k-d tree of :func:`point_spacing_mm` (a tree and its float64 copy: ~60 MB a million)
+SPACING_CHUNK = 4_000_000
+
+
+def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
+                     index: np.ndarray | None = None) -> float:
     """The cloud's spacing (mm): the square root of the surface area each point stands for,
     from the local density at a subsample, π r₈² / 8 with r₈ the distance to the 8th nearest
     neighbour (right for a scanner's grid, π/4 of its pitch², and for random samples, whose
-    nearest-neighbour distance would understate it 2x)."""
+    nearest-neighbour distance would understate it 2x). ``index``: the rows of ``points`` that
+    form the cloud (None: all). The neighbours are searched SPACING_CHUNK points at a time, a
+    k-d tree each, and merged: the same r₈ as one tree over all, in bounded memory."""
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(points, float)
-    if len(pts) < 9:
+    rows = np.arange(len(points)) if index is None else np.asarray(index)
+    if len(rows) < 9:
         return 0.0
-    idx = np.random.default_rng(seed).choice(len(pts), min(sample, len(pts)), replace=False)
-    r8 = cKDTree(pts).query(pts[idx], k=9, workers=-1)[0][:, 8]  # one vectorised query
+    pick = np.random.default_rng(seed).choice(len(rows), min(sample, len(rows)), replace=False)
+    probe = np.asarray(points[rows[pick]], float)
+    best = np.full((len(probe), 9), np.inf)
+    for s in range(0, len(rows), SPACING_CHUNK):
+        tree = cKDTree(np.asarray(points[rows[s:s + SPACING_CHUNK]], float))
+        d = tree.query(probe, k=min(9, tree.n), workers=-1)[0].reshape(len(probe), -1)
+        best = np.sort(np.concatenate([best, d], axis=1), axis=1)[:, :9]
+    r8 = best[:, 8]
     return float(np.sqrt(np.pi * np.median(r8 ** 2) / 8))
