@@ -131,8 +131,9 @@ def check_ply_length(p: Path) -> None:
                              f"holds {have} ({have / need:.1%}); copy it again")
 
 
-def read_ply(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """(points (N, 3) float64, extra scalar fields) of a PLY file."""
+def read_ply(path: str | Path, dtype: type = np.float64) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(points (N, 3) of ``dtype``, extra scalar fields) of a PLY file (float32: as a scanner's
+    PLY stores them, half the memory of a large cloud)."""
     import open3d as o3d
 
     p = Path(path)
@@ -142,7 +143,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     cloud = o3d.t.io.read_point_cloud(str(p))
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         raise CloudFileError(f"{p}: no points (not a point cloud PLY, or empty)")
-    pts = cloud.point.positions.numpy().astype(np.float64)
+    pts = cloud.point.positions.numpy().astype(dtype)
     fields = {k: cloud.point[k].numpy().reshape(-1) for k in cloud.point
               if k != "positions" and cloud.point[k].numpy().ndim <= 2
               and cloud.point[k].numpy().reshape(len(pts), -1).shape[1] == 1}

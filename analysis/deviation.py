@@ -24,9 +24,11 @@ class ClosestPoints:
     deviation computed in float64 and rounded once. The normals are the triangles'
     (:attr:`normals`)."""
 
-    points: np.ndarray  # (N, 3) float32 closest points on the nominal, part frame, mm
+    #: (N, 3) float32 closest points on the nominal, part frame, mm (None where not kept:
+    #: :func:`closest_points_moved` with ``within_mm``)
+    points: np.ndarray | None
     triangle: np.ndarray  # (N,) int32 index of the closest triangle
-    distance: np.ndarray  # (N,) |p - closest| (mm)
+    distance: np.ndarray | None  # (N,) |p - closest| (mm); None where not kept
     deviation: np.ndarray  # (N,) signed offset along the normal (mm)
     triangle_normals: np.ndarray  # (T, 3) the nominal's outward unit triangle normals
 
@@ -45,21 +47,26 @@ def closest_points(nominal: Nominal, points_part: np.ndarray, dtype: type = np.f
 
 
 def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
-                         dtype: type = np.float64) -> tuple[np.ndarray | None, ClosestPoints]:
+                         dtype: type = np.float64, within_mm: float | None = None
+                         ) -> tuple[np.ndarray | None, ClosestPoints, np.ndarray | None]:
     """:func:`closest_points` of ``points`` moved by ``T`` (4 x 4, measuring frame to part
     frame; None: already in it), CHUNK points at a time: each chunk is moved in float64 and
-    its deviation computed from that, so nothing of the whole cloud is held in float64. Also
-    returns the moved points as float32 (N, 3) when ``T`` is given (None otherwise)."""
+    its deviation computed from that, so nothing of the whole cloud is held in float64.
+    Returns the moved points as float32 (N, 3) (None without ``T``), the closest points, and
+    with ``within_mm`` which points lie that close to the nominal: then the closest points'
+    positions and distances are not kept (9 bytes a point instead of 24)."""
     import open3d as o3d
 
     pts = np.asarray(points).reshape(-1, 3)
     scene = nominal.scene()
     tn = nominal.triangle_normals
     n = len(pts)
+    lean = within_mm is not None
     moved = np.empty((n, 3), np.float32) if T is not None else None
-    q = np.empty((n, 3), np.float32)
+    q = None if lean else np.empty((n, 3), np.float32)
     tri = np.empty(n, np.int32)
-    distance = np.empty(n, dtype)
+    distance = None if lean else np.empty(n, dtype)
+    near = np.empty(n, bool) if lean else None
     deviation = np.empty(n, dtype)
     for s in range(0, n, CHUNK):
         chunk = slice(s, s + CHUNK)
@@ -68,12 +75,16 @@ def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | N
             p = p @ T[:3, :3].T + T[:3, 3]
             moved[chunk] = p
         r = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-        q[chunk] = r["points"].numpy()
         tri[chunk] = r["primitive_ids"].numpy()
-        d = p - q[chunk]
-        distance[chunk] = np.linalg.norm(d, axis=1)
+        d = p - r["points"].numpy()
+        gap = np.linalg.norm(d, axis=1)
+        if lean:
+            near[chunk] = gap.astype(dtype) <= within_mm
+        else:
+            q[chunk] = r["points"].numpy()
+            distance[chunk] = gap
         deviation[chunk] = np.einsum("ij,ij->i", d, tn[tri[chunk]])
-    return moved, ClosestPoints(q, tri, distance, deviation, tn)
+    return moved, ClosestPoints(q, tri, distance, deviation, tn), near
 
 
 @dataclass

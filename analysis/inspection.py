@@ -220,8 +220,8 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     seconds["align"] = time.perf_counter() - t
     t = time.perf_counter()
     say("signed deviation of every point")
-    part, cp = closest_points_moved(nominal, pts, alignment.T_part_from_measured, np.float32)
-    in_range = cp.distance <= s.max_distance_mm
+    part, cp, in_range = closest_points_moved(nominal, pts, alignment.T_part_from_measured,
+                                              np.float32, s.max_distance_mm)
     if in_range.mean() < 0.05:
         raise InspectionError(f"only {in_range.mean():.1%} of the points lie within "
                               f"{s.max_distance_mm} mm of the nominal after the {s.align} "
@@ -231,8 +231,9 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     say("tolerances, sections and unmeasured surface")
     tolerances = judge_all(nominal, part, cp, in_range, s.tolerance)
     # every k-th point, at most 1 M: their spacing stays far below the gap threshold
-    used = np.flatnonzero(in_range)
-    cov = coverage(nominal, part[used[:: max(1, len(used) // 1_000_000)]], s.coverage_gap_mm)
+    every = max(1, int(in_range.sum()) // 1_000_000)
+    cov = coverage(nominal, part[::every] if in_range.all()
+                   else part[np.flatnonzero(in_range)[::every]], s.coverage_gap_mm)
     planes = s.sections if s.sections is not None else sections_with_defects(nominal, tolerances)
     sections = [cut(nominal, a, o, part, s.section_half_width_mm) for a, o in planes]
     seconds["analysis"] = time.perf_counter() - t
@@ -246,12 +247,12 @@ def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: n
                            "defect_area_mm2": spec.defect_area_mm2, "overall": None,
                            "regions": []}
     d = cp.deviation
-    used = np.flatnonzero(in_range)
+    used = None if in_range.all() else np.flatnonzero(in_range)  # None: every point, no copy
     spacing = point_spacing_mm(part, index=used) if (spec.overall or spec.regions) else 0.0
     out["point_spacing_mm"] = round(spacing, 4)
     if spec.overall is not None:
-        out["overall"] = judge(d[used], spec.overall, spec.allowed_out_share, part, spacing,
-                               spec.defect_area_mm2, used)
+        out["overall"] = judge(d if used is None else d[used], spec.overall,
+                               spec.allowed_out_share, part, spacing, spec.defect_area_mm2, used)
     faces = nominal.face_of_triangle[cp.triangle]
     for region in spec.regions:
         inside = np.flatnonzero(region.contains(part, faces, nominal) & in_range)

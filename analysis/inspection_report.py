@@ -19,9 +19,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis.deviation import closest_points
 from scancell.analysis.inspection import Inspection
 
 PIXELS = 700
+#: points rasterised at a time
+RASTER_CHUNK = 2_000_000
 OVER, UNDER, UNMEASURED = "#c000c0", "#00a0c0", "#d0d0d0"
 
 
@@ -95,11 +98,32 @@ def _mean_raster(u: np.ndarray, v: np.ndarray, values: np.ndarray,
     of noisy points shows the deviation of the surface, not one point's noise per pixel."""
     u0, u1, v0, v1 = extent
     nu, nv = int((u1 - u0) / cell) + 1, int((v1 - v0) / cell) + 1
-    idx = ((v - v0) / cell).astype(int) * nu + ((u - u0) / cell).astype(int)
-    total = np.bincount(idx, values, nu * nv)
-    count = np.bincount(idx, None, nu * nv)
+    total = np.zeros(nu * nv)
+    count = np.zeros(nu * nv)
+    for s in range(0, len(u), RASTER_CHUNK):  # bounded temporaries for a cloud of any size
+        part = slice(s, s + RASTER_CHUNK)
+        idx = ((v[part] - v0) / cell).astype(int) * nu + ((u[part] - u0) / cell).astype(int)
+        total += np.bincount(idx, values[part], nu * nv)
+        count += np.bincount(idx, None, nu * nv)
     with np.errstate(invalid="ignore", divide="ignore"):
         return (total / count).reshape(nv, nu)
+
+
+def _facing_uv(pts: np.ndarray, dev: np.ndarray, facing: np.ndarray, axes: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The image coordinates (``axes``: 2 x 3, the view's right and up) and deviations of the
+    points facing the view, RASTER_CHUNK points at a time (no copy of the facing points)."""
+    n = int(facing.sum())
+    u, w, d = np.empty(n, axes.dtype), np.empty(n, axes.dtype), np.empty(n, dev.dtype)
+    at = 0
+    for s in range(0, len(pts), RASTER_CHUNK):
+        part = slice(s, s + RASTER_CHUNK)
+        f = facing[part]
+        uv = pts[part][f] @ axes.T
+        k = len(uv)
+        u[at:at + k], w[at:at + k], d[at:at + k] = uv[:, 0], uv[:, 1], dev[part][f]
+        at += k
+    return u, w, d
 
 
 def _fill_holes(img: np.ndarray, area: np.ndarray) -> np.ndarray:
@@ -126,8 +150,11 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     v = nom.vertices[nom.triangles]
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     ok = inspection.in_range
-    pts, dev = inspection.points[ok], inspection.deviation[ok]
-    tri = inspection.closest.triangle[ok]  # each point's normal is its triangle's
+    if ok.all():  # the usual case: views of the whole cloud, no copies
+        pts, dev, tri = inspection.points, inspection.deviation, inspection.closest.triangle
+    else:
+        pts, dev = inspection.points[ok], inspection.deviation[ok]
+        tri = inspection.closest.triangle[ok]  # each point's normal is its triangle's
     cov = inspection.coverage
     # cells no finer than the measured points' or the nominal samples' spacing, so that
     # neither shows as speckle
@@ -142,13 +169,14 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
         # the image's axes carry the part's own coordinates: along -x the axis runs backwards
         sr, su = _axis_sign(view.right), _axis_sign(view.up)
         R = np.stack([sr * view.right, su * view.up, view.towards_viewer])
-        p = pts[facing] @ R.T.astype(pts.dtype)
+        u, w, d = _facing_uv(pts, dev, facing, R[:2].astype(pts.dtype))
         toward = cov.normals @ view.towards_viewer > 0.1
         s = cov.samples[toward] @ R.T
-        both = np.concatenate([p, s])
-        extent = (both[:, 0].min(), both[:, 0].max(), both[:, 1].min(), both[:, 1].max())
+        extent = (min(u.min(), s[:, 0].min()), max(u.max(), s[:, 0].max()),
+                  min(w.min(), s[:, 1].min()), max(w.max(), s[:, 1].max()))
         cell = max(max(extent[1] - extent[0], extent[3] - extent[2]) / PIXELS, 1.5 * spacing)
-        img = _mean_raster(p[:, 0], p[:, 1], dev[facing], extent, cell)
+        img = _mean_raster(u, w, d, extent, cell)
+        del u, w, d
         # grey is the nominal no measured point comes near (coverage's own test), nearest the
         # viewer: a cell without a point of its own inside a measured area, or a steep wall
         # seen edge on, is measured surface, not a gap
@@ -275,7 +303,9 @@ def sections_figure(inspection: Inspection, whiskers: int = 120) -> bytes | None
         idx = sec.points[inspection.in_range[sec.points]]
         if idx.size:
             cp = inspection.closest
-            q, n, d = _binned(cp.points[idx][:, [i, j]].astype(float),
+            # the closest points of these few again (the whole cloud's are not kept)
+            q = closest_points(inspection.nominal, inspection.points[idx], np.float32).points
+            q, n, d = _binned(q[:, [i, j]].astype(float),
                               cp.triangle_normals[cp.triangle[idx]][:, [i, j]],
                               inspection.deviation[idx], extent / whiskers)
             tips = q + n * (d * gain)[:, None]

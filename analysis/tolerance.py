@@ -246,14 +246,17 @@ def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
     k-d tree each, and merged: the same r₈ as one tree over all, in bounded memory."""
     from scipy.spatial import cKDTree
 
-    rows = np.arange(len(points)) if index is None else np.asarray(index)
-    if len(rows) < 9:
+    n = len(points) if index is None else len(index)
+    if n < 9:
         return 0.0
-    pick = np.random.default_rng(seed).choice(len(rows), min(sample, len(rows)), replace=False)
-    probe = np.asarray(points[rows[pick]], float)
+
+    def take(rows: slice | np.ndarray) -> np.ndarray:
+        return np.asarray(points[rows] if index is None else points[index[rows]], float)
+
+    probe = take(np.random.default_rng(seed).choice(n, min(sample, n), replace=False))
     best = np.full((len(probe), 9), np.inf)
-    for s in range(0, len(rows), SPACING_CHUNK):
-        tree = cKDTree(np.asarray(points[rows[s:s + SPACING_CHUNK]], float))
+    for s in range(0, n, SPACING_CHUNK):
+        tree = cKDTree(take(slice(s, s + SPACING_CHUNK)))
         d = tree.query(probe, k=min(9, tree.n), workers=-1)[0].reshape(len(probe), -1)
         best = np.sort(np.concatenate([best, d], axis=1), axis=1)[:, :9]
     r8 = best[:, 8]

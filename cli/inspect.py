@@ -108,12 +108,13 @@ def parse_sections(text: str) -> list[tuple[str, float]]:
 
 
 def load_measured(source: str):
-    """(points (N, 3) mm, description) of a PLY cloud or a recording."""
+    """(points (N, 3) mm, description) of a PLY cloud (float32, as stored) or a recording."""
+    import numpy as np
     from scancell.analysis.cloud_io import read_ply
 
     p = Path(source)
     if p.suffix.lower() != ".mcap":
-        pts, _ = read_ply(p)
+        pts, _ = read_ply(p, np.float32)
         return pts, str(p)
     from scancell.workers.recorded_stations import recorded_model
 
