@@ -59,7 +59,9 @@ BEND_FLOOR_PX = 0.05
 ROUGHNESS_VARIANCE = 6.0
 #: 1.4826 · MAD estimates a Gaussian's σ
 MAD_TO_SIGMA = 1.4826
-#: modulation (DN) of the pixels the noise and the residuals' systematic spread are measured on
+#: modulation (DN) a pixel needs for the passive response histogram (weak fringes' 8-bit
+#: quantisation bunches their phases, which the histogram would take for an error), and for
+#: measuring the noise and the order residuals' systematic spread
 HISTOGRAM_MIN_MODULATION_DN = 20.0
 #: the 8-bit quantisation noise, 1/sqrt(12) DN: no camera measures better
 QUANTISATION_DN = 1 / np.sqrt(12)
@@ -192,8 +194,9 @@ def agreement_tolerances(periods: list[float], width: float, tolerance_px: float
 
 def alias_orders(periods: tuple[float, ...], method: str, width: float,
                  tolerance_px: float = AGREEMENT_TOLERANCE_PX) -> tuple[int, ...]:
-    """For every fringe-order decision, how many independent errors an error the frequencies'
-    agreement check cannot see needs, counting this decision's (0: none can hide it).
+    """For every fringe-order decision of a heterodyne or hierarchical unwrapping, how many
+    independent errors an error the frequencies' agreement check cannot see needs, counting
+    this decision's (0: none can hide it).
 
     A decision goes wrong when its residual crosses 1/2. Decisions whose residuals are the
     same combination of phases (correlation ±1) form one group and go wrong together. Below a
@@ -214,6 +217,11 @@ def alias_orders(periods: tuple[float, ...], method: str, width: float,
 @functools.lru_cache(maxsize=32)
 def _alias_orders(periods: tuple[float, ...], method: str, width: float, tolerance_px: float
                   ) -> tuple[int, ...]:
+    # the decoder's own unwrapping, each decision's order moved by the error played (phase
+    # imports this module: imported here)
+    from scancell.analysis.phase import unwrap_heterodyne, unwrap_hierarchical
+
+    unwrap = unwrap_heterodyne if method == "heterodyne" else unwrap_hierarchical
     x = np.linspace(0.5, width - 1.5, 256)
     p = np.asarray(periods)
     wrapped = [np.mod(2 * np.pi * pj * x / width, 2 * np.pi) for pj in p]
@@ -241,7 +249,7 @@ def _alias_orders(periods: tuple[float, ...], method: str, width: float, toleran
                             pattern[j] = int(sign * np.sign(rho[lead, j]))
                     for j, e in zip(below, free, strict=True):
                         pattern[j] = e
-                    absolute = _unwrap_with_errors(wrapped, list(periods), method, tuple(pattern))
+                    absolute = unwrap(wrapped, periods, None, iter(pattern))
                     est = np.stack([a * width / (2 * np.pi * pj)
                                     for a, pj in zip(absolute, p, strict=True)])
                     col = (p[:, None] ** 2 * est).sum(0) / (p ** 2).sum()
@@ -254,8 +262,9 @@ def _alias_orders(periods: tuple[float, ...], method: str, width: float, toleran
 
 
 def decision_parents(periods: list[float], method: str) -> list[int | None]:
-    """For every decision (as :func:`decision_coefficients` orders them), the decision whose
-    result it is unwrapped from (None: an absolute phase, the top beat or the coarsest group)."""
+    """For every decision of a heterodyne or hierarchical unwrapping (as
+    :func:`decision_coefficients` orders them), the decision whose result it is unwrapped from
+    (None: an absolute phase, the top beat or the coarsest group)."""
     if method == "heterodyne":
         levels = heterodyne_levels(periods)
         made: dict[tuple[int, int], int] = {}
@@ -266,10 +275,7 @@ def decision_parents(periods: list[float], method: str) -> list[int | None]:
                 out.append(made.get((lvl + 1, j)))
                 made[(lvl, i)] = len(out) - 1
         return out
-    n = len(decision_coefficients(periods, method))
-    if method == "gray":
-        return [None] + [0] * (n - 1)
-    return [None, *range(n - 1)]
+    return [None, *range(len(decision_coefficients(periods, method)) - 1)]
 
 
 def _descends(j: int, group: list[int], parents: list[int | None]) -> bool:
@@ -279,40 +285,6 @@ def _descends(j: int, group: list[int], parents: list[int | None]) -> bool:
             return True
         k = parents[k]
     return False
-
-
-def _unwrap_with_errors(wrapped: list[np.ndarray], periods: list[float], method: str,
-                        errors: tuple[int, ...]) -> list[np.ndarray]:
-    """Absolute phases (rad) of every group, each decision's order moved by ``errors``."""
-    step = iter(errors)
-
-    def unwrap(phi: np.ndarray, ref: np.ndarray, ratio: float) -> np.ndarray:
-        return phi + 2 * np.pi * (np.rint((ref * ratio - phi) / (2 * np.pi)) + next(step))
-
-    if method == "heterodyne":
-        levels = heterodyne_levels(periods)
-        phases = [list(wrapped)]
-        for _ in range(1, len(levels)):
-            prev = phases[-1]
-            phases.append([np.mod(prev[i] - prev[i + 1], 2 * np.pi) for i in range(len(prev) - 1)])
-        absolute = phases[-1]
-        for lvl in range(len(levels) - 2, -1, -1):
-            parents = absolute
-            absolute = [unwrap(phi, parents[min(i, len(parents) - 1)],
-                               levels[lvl][i] / levels[lvl + 1][min(i, len(parents) - 1)])
-                        for i, phi in enumerate(phases[lvl])]
-        return absolute
-    order = sorted(range(len(periods)), key=lambda i: periods[i])
-    out: list[np.ndarray] = [wrapped[i] for i in range(len(periods))]
-    if method == "gray":
-        fine = order[-1]
-        out[fine] = wrapped[fine] + 2 * np.pi * next(step)  # the code's order: right, or moved
-        for i in reversed(order[:-1]):
-            out[i] = unwrap(wrapped[i], out[fine], periods[i] / periods[fine])
-        return out
-    for a, b in itertools.pairwise(order):
-        out[b] = unwrap(wrapped[b], out[a], periods[b] / periods[a])
-    return out
 
 
 def min_modulation_for_orders(units: list[float], orders: tuple[int, ...], noise_dn: float,

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scancell.analysis import decode_limits as lim
-from scancell.analysis.decode_limits import DecodeLimits
+from scancell.analysis.decode_limits import HISTOGRAM_MIN_MODULATION_DN, DecodeLimits
 from scancell.analysis.phase import (
     DecodeError,
     PhaseMap,
@@ -53,8 +53,6 @@ REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_project
 #: a folded period over the periods covered, (2π/N)/(2·F) rad; F ≥ 24 keeps that under 0.05 rad
 #: at N = 3, about the smallest response error worth removing (phase_response.APPLY_ABOVE_PP_RAD)
 MIN_FOLDS = 24
-#: modulation (DN) a pixel needs for the response histogram and for the noise measurement
-HISTOGRAM_MIN_MODULATION_DN = 20.0
 
 
 @dataclass

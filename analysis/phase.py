@@ -22,19 +22,17 @@ one pixel.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from scancell.analysis import decode_limits as lim
-from scancell.analysis.decode_limits import AGREEMENT_TOLERANCE_PX
+from scancell.analysis.decode_limits import AGREEMENT_TOLERANCE_PX, HISTOGRAM_MIN_MODULATION_DN
 from scancell.analysis.phase_response import BINS, PhaseCorrection, estimate_correction, folded_histogram
 from scancell.model.patterns import FringeSequence
 
 TWO_PI = np.float32(2 * np.pi)
-#: see :func:`histogram_min_modulation`
-HISTOGRAM_MIN_MODULATION_DN = 20.0
 
 
 class DecodeError(ValueError):
@@ -156,13 +154,18 @@ def _beat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _unwrap_with(phi: np.ndarray, reference: np.ndarray, ratio: float,
-                 residuals: list[np.ndarray] | None = None) -> np.ndarray:
+                 residuals: list[np.ndarray] | None = None,
+                 moved: Iterator[int] | None = None) -> np.ndarray:
     """Absolute phase from wrapped ``phi`` and an absolute ``reference`` of ``ratio`` times
-    fewer periods; the decision's |rounding residual| (fringes) is appended to ``residuals``."""
+    fewer periods; the decision's |rounding residual| (fringes) is appended to ``residuals``.
+    ``moved`` gives each decision a number of fringes to move its order by (to play an error
+    through the unwrapping: analysis.decode_limits.alias_orders)."""
     orders = (reference * np.float32(ratio) - phi) / TWO_PI
     k = np.rint(orders)
     if residuals is not None:
         residuals.append(np.abs(orders - k))
+    if moved is not None:
+        k += next(moved)
     return phi + TWO_PI * k
 
 
@@ -182,7 +185,8 @@ def heterodyne_tree(periods: Sequence[float]) -> list[list[float]]:
 
 
 def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
-                      residuals: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                      residuals: list[np.ndarray] | None = None,
+                      moved: Iterator[int] | None = None) -> list[np.ndarray]:
     """Absolute phases of every frequency (same order as given); each order decision's
     |residual| is appended to ``residuals`` in the order of
     :func:`~scancell.analysis.decode_limits.decision_coefficients`."""
@@ -197,19 +201,22 @@ def unwrap_heterodyne(phases: Sequence[np.ndarray], periods: Sequence[float],
         absolute = []
         for i, phi in enumerate(wrapped[lvl]):
             j = min(i, len(parents) - 1)
-            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j], residuals))
+            absolute.append(_unwrap_with(phi, parents[j], levels[lvl][i] / parent_p[j], residuals,
+                                         moved))
     return absolute
 
 
 def unwrap_hierarchical(phases: Sequence[np.ndarray], periods: Sequence[float],
-                        residuals: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                        residuals: list[np.ndarray] | None = None,
+                        moved: Iterator[int] | None = None) -> list[np.ndarray]:
     """Coarse to fine: the first pattern must have at most one period."""
     if periods[0] > 1.0 + 1e-9 or list(periods) != sorted(periods):
         raise DecodeError(f"hierarchical unwrapping needs increasing periods starting at <= 1 "
                           f"(e.g. 1, 8, 64), got {list(periods)}")
     absolute = [phases[0]]
     for j in range(1, len(phases)):
-        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1], residuals))
+        absolute.append(_unwrap_with(phases[j], absolute[-1], periods[j] / periods[j - 1],
+                                     residuals, moved))
     return absolute
 
 
@@ -307,7 +314,7 @@ def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
 class OrderLimits:
     """What one image set's fringe orders are held to (analysis.decode_limits): the measured
     noise σ_I (DN), the modulation threshold (DN), and per order decision its σ_o · B
-    (fringes · DN) and whether the frequencies' agreement check can catch its error."""
+    (fringes · DN), its alias order and its systematic spread; or a fixed margin."""
 
     noise_dn: float
     min_modulation_dn: float
@@ -338,6 +345,9 @@ def order_limits(w: WrappedPhases, sequence: FringeSequence, projector_width: in
     b_min = st.min_modulation_dn
     if b_min is None:
         b_min = lim.min_modulation_for_orders(units, orders, noise, st.confidence_sigmas)
+    if st.order_margin is not None:  # a fixed margin: no per-decision limits to measure for
+        return OrderLimits(float(noise), float(b_min), tuple(units), orders,
+                           (0.0,) * len(units), st.order_margin, st.confidence_sigmas)
     sub = (slice(None, None, 4), slice(None, None, 4))
     strong = (w.modulation[sub] >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated[sub].astype(bool)
     phases = [phi[sub][strong] for phi in w.phases]
