@@ -21,7 +21,7 @@ from scancell.analysis.deviation import (
     closest_points_moved,
     coverage,
 )
-from scancell.analysis.nominal import Nominal, check_scale
+from scancell.analysis.nominal import Nominal, check_scale, thinned
 from scancell.analysis.tolerance import ToleranceSpec, judge, point_spacing_mm
 
 ALIGNMENTS = ("asmeasured", "bestfit", "rps")
@@ -212,9 +212,8 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
         raise InspectionError(f"{len(pts) - finite} measured points are not finite numbers")
     seconds: dict[str, float] = {}
     t = time.perf_counter()
-    every = pts[:: max(1, len(pts) // 1_000_000)]  # the cloud's extent, from ≤ 1 M of its points
-    check_scale(nominal, every if s.transform is None
-                else al.apply(np.asarray(s.transform, float), every))
+    check_scale(nominal, pts if s.transform is None
+                else al.apply(np.asarray(s.transform, float), thinned(pts)))
     say(f"aligning ({s.align}) {len(pts)} points to {len(nominal.triangles)} triangles")
     alignment = _align(nominal, pts, s)
     seconds["align"] = time.perf_counter() - t
@@ -231,9 +230,8 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     say("tolerances, sections and unmeasured surface")
     tolerances = judge_all(nominal, part, cp, in_range, s.tolerance)
     # every k-th point, at most 1 M: their spacing stays far below the gap threshold
-    every = max(1, int(in_range.sum()) // 1_000_000)
-    cov = coverage(nominal, part[::every] if in_range.all()
-                   else part[np.flatnonzero(in_range)[::every]], s.coverage_gap_mm)
+    cov = coverage(nominal, thinned(part) if in_range.all()
+                   else part[thinned(np.flatnonzero(in_range))], s.coverage_gap_mm)
     planes = s.sections if s.sections is not None else sections_with_defects(nominal, tolerances)
     sections = [cut(nominal, a, o, part, s.section_half_width_mm) for a, o in planes]
     seconds["analysis"] = time.perf_counter() - t

@@ -259,11 +259,15 @@ def check_scale(nominal: Nominal, points: np.ndarray) -> None:
     check_scale_of(nominal.diagonal_mm, nominal.source, points)
 
 
+def thinned(points: np.ndarray, at_most: int = 1_000_000) -> np.ndarray:
+    """Every k-th point, at most ``at_most`` of them (a view: no copy of a large cloud)."""
+    return points[:: max(1, len(points) // at_most)]
+
+
 def check_scale_of(diagonal_mm: float, source: str, points: np.ndarray) -> None:
-    """:func:`check_scale` for a nominal of ``diagonal_mm`` across (mm), from every k-th point
-    (at most a million: the extent of a 50 M-point cloud, without a copy of it)."""
-    pts = np.asarray(points)
-    pts = np.asarray(pts[:: max(1, len(pts) // 1_000_000)], float)
+    """:func:`check_scale` for a nominal of ``diagonal_mm`` across (mm), from a million of the
+    points at most (:func:`thinned`: the extent of a 50 M-point cloud, without a copy of it)."""
+    pts = np.asarray(thinned(np.asarray(points)), float)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < 2:
         return
