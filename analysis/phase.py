@@ -69,15 +69,16 @@ class PhaseMap:
 class DecodeSettings:
     method: str = "heterodyne"  # or "hierarchical"
     #: the modulation threshold (DN, 8-bit scale); None: derived per image set from the measured
-    #: noise (:func:`order_limits`)
-    min_modulation_dn: float | None = None
+    #: noise (:func:`order_limits`). The fixed default stays until the derived margins stop
+    #: admitting a curved part's rim pixels (docs/how-to/decode-real-captures.md)
+    min_modulation_dn: float | None = 8.0
     saturation_dn: float = 254.5  # a pixel at or above this in any image is masked
     #: max disagreement between frequency estimates (projector px; coarse fringes get up to a
     #: tenth of their width)
     order_tolerance_px: float = AGREEMENT_TOLERANCE_PX
     #: the largest rounding residual (fringes) of an order decision; None: per pixel and
     #: decision from the noise (analysis.decode_limits.order_limits)
-    order_margin: float | None = None
+    order_margin: float | None = 0.3
     #: the images' intensity noise σ_I (DN, 8-bit scale); None: measured from the phases
     noise_dn: float | None = None
     #: "fast": fused numba kernel for three-frequency heterodyne (else numpy); "numpy": always

@@ -80,10 +80,11 @@ def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
     disturbed = synthetic(seq, shifted, seed=1)
     for k in (3, 4, 5):
         imgs[k][10:30, 100:200] = disturbed[k][10:30, 100:200]
-    pm = decode_phase(imgs, seq, W)
-    assert pm.rejected["order_inconsistent"] > 0
-    wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
-    assert wrong.sum() == 0
+    for st in (DecodeSettings(), DecodeSettings(min_modulation_dn=None, order_margin=None)):
+        pm = decode_phase(imgs, seq, W, st)
+        assert pm.rejected["order_inconsistent"] > 0
+        wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
+        assert wrong.sum() == 0
     with pytest.raises(DecodeError, match="hierarchical"):
         decode_phase(imgs, seq, W, DecodeSettings(method="hierarchical"))
 
@@ -118,7 +119,8 @@ def test_order_decisions_their_noise_and_what_the_agreement_check_cannot_see():
 def test_the_threshold_follows_the_measured_noise_and_a_set_one_overrides_it():
     seq = FringeSequence()
     column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
-    maps = {n: decode_phase(synthetic(seq, column, b=60.0, noise=n, seed=2), seq, W)
+    derived = DecodeSettings(min_modulation_dn=None, order_margin=None)
+    maps = {n: decode_phase(synthetic(seq, column, b=60.0, noise=n, seed=2), seq, W, derived)
             for n in (1.0, 2.5)}
     # σ_I measured along the fringes (8-bit rounding adds 1/12 DN² to the drawn noise)
     for n, pm in maps.items():
@@ -145,7 +147,8 @@ def test_an_uncompensated_nonlinear_projector_gives_no_wrong_order(gamma):
                             + rng.normal(0, 1.0, column.shape)), 0, 255).astype(np.uint8)
             for k in range(len(seq))]
     for compensation in ("off", "passive"):
-        pm = decode_phase(imgs, seq, W, DecodeSettings(compensation=compensation))
+        pm = decode_phase(imgs, seq, W, DecodeSettings(min_modulation_dn=None, order_margin=None,
+                                                       compensation=compensation))
         wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
         assert wrong.sum() == 0, compensation
         if compensation == "passive":
@@ -156,10 +159,12 @@ def test_an_uncompensated_nonlinear_projector_gives_no_wrong_order(gamma):
 def test_noisy_weak_fringes_leave_almost_no_wrong_order():
     seq = FringeSequence()
     column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
-    pm = decode_phase(synthetic(seq, column, b=9.0, noise=1.0, seed=5), seq, W)
-    wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
-    assert pm.valid.mean() > 0.3
-    assert wrong.sum() <= 0.001 * pm.valid.sum()
+    imgs = synthetic(seq, column, b=9.0, noise=1.0, seed=5)
+    for st in (DecodeSettings(), DecodeSettings(min_modulation_dn=None, order_margin=None)):
+        pm = decode_phase(imgs, seq, W, st)
+        wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
+        assert pm.valid.mean() > 0.3
+        assert wrong.sum() <= 0.001 * pm.valid.sum()
 
 
 @pytest.mark.unit
