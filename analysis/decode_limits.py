@@ -3,7 +3,8 @@
 Every limit follows from two measured quantities and one stated confidence:
 
 - ``σ_I`` (DN, on the 8-bit scale): the intensity noise of the view, measured from the frames
-  (:func:`measured_noise_dn`);
+  (:func:`measured_noise_dn`); the scanner measures a camera's noise law σ_I(A) against the
+  pixel's level instead (:func:`measured_noise_law`) and holds each pixel to its own noise;
 - the fringe width ``P = W/p`` (projector px) of each phase group;
 - ``z`` (``confidence_sigmas``, default 4): how many standard deviations of pure noise a limit
   lets through (a Gaussian exceeds 4σ in 6·10⁻⁵ of the pixels).
@@ -310,29 +311,60 @@ def systematic_spread(residual: np.ndarray, unit: float, modulation: np.ndarray)
     return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
 
 
+def residual_is_noise(residual: np.ndarray, unit: float, modulation: np.ndarray, z: float,
+                      systematic: float) -> np.ndarray:
+    """Pixels whose |rounding residual| (fringes) is what noise and the systematic spread s
+    leave: ≤ z · σ, σ² = (unit / B)² + s². A glint or a vibration that shifts one frequency's
+    phase in a patch leaves far more."""
+    sigma = np.float32(unit) / modulation
+    var = sigma * sigma + np.float32(systematic ** 2)
+    return residual <= np.float32(z) * np.sqrt(var)
+
+
+def posterior_holds(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
+                    systematic: float) -> np.ndarray:
+    """Pixels whose right orders stay 1/α times likelier than an error the agreement check
+    cannot see (``alias_order`` k ≥ 1, the error needing k independent ones): each of its k
+    decisions' likelihood ratio at the margin, exp(−(1 − 2m) / 2σ²), at most α^(1/k):
+    m ≤ 1/2 − σ² · ln(1/α) / k. Every pixel for k = 0."""
+    if not alias_order:
+        return np.ones(np.shape(residual), bool)
+    sigma = np.float32(unit) / modulation
+    var = sigma * sigma + np.float32(systematic ** 2)
+    return residual <= np.float32(0.5) - var * np.float32(np.log(1 / ORDER_ALPHA) / alias_order)
+
+
 def order_limits(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
                  z: float, margin: float | None = None, systematic: float | None = 0.0
                  ) -> np.ndarray:
     """Pixels whose |rounding residual| (fringes) passes one decision's limit: a fixed
-    ``margin``, or per pixel, with σ² = (unit / B)² + s² (s the decision's measured systematic
-    spread):
-    - the residual is what noise and s leave: ≤ z · σ (a glint or a vibration that shifts one
-      frequency's phase in a patch leaves far more); ``systematic`` None leaves this test out;
-    - where a wrong order can hide from the agreement check together with k − 1 other
-      independent errors (``alias_order`` k ≥ 1), the pattern stays 1/α times less likely than
-      the right orders: each of its k decisions' likelihood ratio at the margin,
-      exp(−(1 − 2m) / 2σ²), at most α^(1/k): ≤ 1/2 − σ² · ln(1/α) / k."""
+    ``margin``, or per pixel :func:`posterior_holds` and :func:`residual_is_noise`
+    (``systematic`` None leaves the second out)."""
     if margin is not None:
         return residual <= np.float32(margin)
-    sigma = np.float32(unit) / modulation
-    var = sigma * sigma + np.float32((systematic or 0.0) ** 2)
-    limit = np.full(sigma.shape, 0.5, np.float32)
+    ok = posterior_holds(residual, unit, alias_order, modulation, systematic or 0.0)
     if systematic is not None:
-        limit = np.float32(z) * np.sqrt(var)
-    if alias_order:
-        limit = np.minimum(limit, np.float32(0.5)
-                           - var * np.float32(np.log(1 / ORDER_ALPHA) / alias_order))
-    return residual <= np.minimum(limit, np.float32(0.5))
+        ok &= residual_is_noise(residual, unit, modulation, z, systematic)
+    return ok
+
+
+def lone_pixels(suspect: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The ``suspect`` pixels (failing only :func:`residual_is_noise`) whose 8 neighbours are
+    all ``valid`` (H x W bool): those are kept. The residual test is for patches (a glint, a
+    vibration), whose wrong orders hide from the stereo step limit inside the patch; a lone
+    wrong order sits a whole alias (238.7 px for 70, 64, 59) from its valid neighbours, and
+    the step limit refuses it. A scene's residuals have heavier tails than noise: on a
+    full-size car-rear station 0.4 % of the strong pixels lay beyond 4 σ, 60 times a
+    Gaussian's share, scattered; refused, each cost the stereo match about 8 points."""
+    h, w = valid.shape
+    around = np.zeros((h, w), np.uint8)
+    v = valid.astype(np.uint8)
+    inner = around[1:-1, 1:-1]
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                inner += v[1 + dy:h - 1 + dy, 1 + dx:w - 1 + dx]
+    return suspect & (around == 8)
 
 
 def bend_limit(typical_bend_px: float, coordinate_sigma: np.ndarray, z: float) -> np.ndarray:
@@ -358,33 +390,116 @@ def wrap_pi(d: np.ndarray) -> np.ndarray:
 ALONG_FRINGE_RAD = 0.15
 
 
-def measured_noise_dn(phase: np.ndarray, modulation: np.ndarray, steps: int,
-                      usable: np.ndarray) -> float:
-    """σ_I (DN, 8-bit scale) of one view, from the phase's roughness along the fringes: where
-    the phase changes by less than ALONG_FRINGE_RAD between neighbours (along camera columns or
-    rows, whichever has more such pixels), the wrapped second difference is noise of variance
-    6 σ_φ² (σ_φ = sqrt(2/N) σ_I / B) and holds no response error, which is a function of the
-    phase: ``σ_I = 1.4826 · MAD(Δ²φ · B) / sqrt(6 · 2/N)`` (the MAD ignores depth edges).
-    (The residual of an N ≥ 4 step fit is no measure: a nonlinear response's harmonics that
-    the fit cannot absorb land in it.) Never below the 8-bit quantisation noise."""
-    best: np.ndarray | None = None
+#: roughness samples a noise measurement needs; fewer: :data:`TYPICAL_NOISE_DN`
+MIN_NOISE_SAMPLES = 1000
+#: σ_I of a typical camera (DN), where too few frames' pixels can be measured
+TYPICAL_NOISE_DN = 1.0
+#: the noise law is fitted over up to this many level bins of at least MIN_BIN_SAMPLES each
+NOISE_BINS = 8
+MIN_BIN_SAMPLES = 250
+
+
+@dataclass(frozen=True)
+class NoiseLaw:
+    """A view's intensity noise against its mean level A (DN, 8-bit scale):
+    ``σ_I² = floor_dn2 + gain_dn · A``, the EMVA 1288 linear camera (read and quantisation
+    noise, and shot noise: K · A DN² at a mean level of A DN, K the system gain in DN/e⁻).
+    ``reference_dn`` is the level the view's noise is quoted at (the median level of the
+    pixels it was measured on); with ``gain_dn`` 0 the noise is the same at every level."""
+
+    floor_dn2: float
+    gain_dn: float = 0.0
+    reference_dn: float = 0.0
+
+    @classmethod
+    def constant(cls, sigma_dn: float) -> NoiseLaw:
+        return cls(float(sigma_dn) ** 2)
+
+    @property
+    def reference_sigma(self) -> float:
+        """σ_I (DN) at ``reference_dn``: the view's noise as one figure."""
+        return float(np.sqrt(self.floor_dn2 + self.gain_dn * max(self.reference_dn, 0.0)))
+
+    def relative(self, level: np.ndarray) -> np.ndarray:
+        """σ_I(A) / σ_I(reference) per pixel (float32): how much noisier than the quoted noise."""
+        if self.gain_dn == 0.0:
+            return np.ones(np.shape(level), np.float32)
+        var = np.float32(self.floor_dn2) + np.float32(self.gain_dn) * np.maximum(
+            np.asarray(level, np.float32), np.float32(0))
+        return np.sqrt(var) / np.float32(self.reference_sigma)
+
+
+def roughness_samples(phase: np.ndarray, modulation: np.ndarray, level: np.ndarray,
+                      usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The phase's roughness along the fringes, ``Δ²φ · B`` (rad · DN), and each sample's mean
+    level A (DN), along camera columns or rows (whichever has more samples). A sample is the
+    wrapped second difference at pixel i where the phase changes by less than
+    ALONG_FRINGE_RAD a pixel between pixels i − 2 and i + 2: chosen by those two pixels alone,
+    so the choice does not depend on the noise of the three it measures (chosen by the first
+    differences themselves, the noise's tails were left out and σ_I read 30 % low on a small
+    scene's steep fringes). All five pixels usable."""
+    best = (np.empty(0, np.float32), np.empty(0, np.float32))
     for axis in (0, 1):
         phi = np.moveaxis(phase, axis, 0)[:, ::2]
+        if phi.shape[0] < 5:
+            continue
         b = np.moveaxis(modulation, axis, 0)[:, ::2]
+        a = np.moveaxis(level, axis, 0)[:, ::2]
         ok = np.moveaxis(usable, axis, 0)[:, ::2]
-        # the usable triplets first: the differences of those alone (a fifth of a scene's)
-        trio = ok[2:] & ok[1:-1] & ok[:-2]
-        centre = phi[1:-1][trio]
-        d_fwd = wrap_pi(phi[2:][trio] - centre)
-        d_back = wrap_pi(centre - phi[:-2][trio])
-        along = (np.abs(d_fwd) < ALONG_FRINGE_RAD) & (np.abs(d_back) < ALONG_FRINGE_RAD)
-        r = ((d_fwd - d_back) * b[1:-1][trio])[along]
-        if best is None or r.size > best.size:
-            best = r
-    if best is None or best.size < 1000:
-        return float(max(1.0, QUANTISATION_DN))  # too little to measure: 1 DN, a typical camera
-    mad = float(np.median(np.abs(best - np.median(best))))
-    return float(max(MAD_TO_SIGMA * mad / np.sqrt(ROUGHNESS_VARIANCE * 2.0 / steps), QUANTISATION_DN))
+        five = ok[4:] & ok[3:-1] & ok[2:-2] & ok[1:-3] & ok[:-4]
+        along = five.copy()
+        along[five] = np.abs(wrap_pi(phi[4:][five] - phi[:-4][five])) < 4 * ALONG_FRINGE_RAD
+        centre = phi[2:-2][along]
+        r = wrap_pi(phi[3:-1][along] - 2 * centre + phi[1:-3][along]) * b[2:-2][along]
+        if r.size > best[0].size:
+            best = (r, a[2:-2][along])
+    return best
+
+
+def measured_noise_law(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                       steps: int) -> NoiseLaw | None:
+    """The noise law of one camera from its frames: ``views`` are (finest phase, modulation,
+    mean level, usable) of any number of exposures at one gain, which the law spans. The
+    roughness ``Δ²φ · B`` is noise of variance ``6 · (2/N) · σ_I(A)²`` (σ_φ = sqrt(2/N) σ_I / B)
+    and holds no response error, a function of the phase; per level bin
+    ``σ_I² = (1.4826 · MAD / sqrt(6 · 2/N))²`` (the MAD ignores depth edges), and a weighted
+    line through the bins gives the floor and the gain (a gain below 0, or one bin: the
+    same noise at every level). Never below the 8-bit quantisation noise. None: fewer than
+    MIN_NOISE_SAMPLES samples. (The residual of an N ≥ 4 step fit is no measure: a
+    nonlinear response's harmonics that the fit cannot absorb land in it.)"""
+    parts = [roughness_samples(*v) for v in views]
+    r = np.concatenate([p[0] for p in parts])
+    level = np.concatenate([p[1] for p in parts])
+    if r.size < MIN_NOISE_SAMPLES:
+        return None
+    to_var = 1.0 / (ROUGHNESS_VARIANCE * 2.0 / steps)
+    order = np.argsort(level, kind="stable")
+    bins = max(1, min(NOISE_BINS, r.size // MIN_BIN_SAMPLES))
+    var, lev, count = [], [], []
+    for idx in np.array_split(order, bins):
+        rb = r[idx]
+        var.append((MAD_TO_SIGMA * float(np.median(np.abs(rb - np.median(rb))))) ** 2 * to_var)
+        lev.append(float(np.median(level[idx])))
+        count.append(idx.size)
+    v, a_, n = np.asarray(var), np.asarray(lev), np.asarray(count, float)
+    reference = float(np.median(level))
+    floor2 = QUANTISATION_DN ** 2
+    if bins > 1 and np.ptp(a_) > 0:
+        gain, floor = np.polyfit(a_, v, 1, w=np.sqrt(n))
+        if floor < floor2:  # the line through the quantisation floor instead
+            floor = floor2
+            gain = float(np.sum(n * (v - floor) * a_) / np.sum(n * a_ * a_))
+        if gain > 0:
+            return NoiseLaw(float(floor), float(gain), reference)
+    return NoiseLaw(float(max(np.average(v, weights=n), floor2)), 0.0, reference)
+
+
+def measured_noise_dn(phase: np.ndarray, modulation: np.ndarray, steps: int,
+                      usable: np.ndarray) -> float:
+    """σ_I (DN, 8-bit scale) of one view as one figure (:func:`measured_noise_law` at one
+    level); TYPICAL_NOISE_DN when too little can be measured."""
+    law = measured_noise_law([(phase, modulation, np.zeros_like(modulation), usable)], steps)
+    return TYPICAL_NOISE_DN if law is None else law.reference_sigma
 
 
 def typical_step(coord: np.ndarray) -> float:

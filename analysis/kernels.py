@@ -68,10 +68,12 @@ def _unwrap(phi: float, ref: float, ratio: float) -> tuple[float, float]:
 
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
 def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float,
-             hist_min_mod: float, phases: np.ndarray, modulation: np.ndarray, background: np.ndarray,
-             saturated: np.ndarray, hist: np.ndarray) -> None:
+             hist_min_mod: float, finest: int, phases: np.ndarray, modulation: np.ndarray,
+             finest_modulation: np.ndarray, background: np.ndarray, saturated: np.ndarray,
+             hist: np.ndarray) -> None:
     """First pass of the three-frequency decode of (3·steps, H, W) images: wrapped phases
-    (3, H, W) in [0, 2π), the smallest modulation and the background (DN), the saturation flag,
+    (3, H, W) in [0, 2π), the smallest modulation, the modulation of group ``finest`` and the
+    background (DN), the saturation flag,
     and ``hist`` (blocks, 3, bins): the phases folded modulo 2π/steps of the pixels with at
     least ``hist_min_mod`` modulation and no saturation (see :mod:`scancell.analysis.phase_response`)."""
     h, w = images.shape[1:]
@@ -112,6 +114,7 @@ def wrapped3(images: np.ndarray, steps: int, dn_scale: float, sat_level: float,
             for x in range(w):
                 mod = math.sqrt(min(q[0, x], q[1, x], q[2, x])) * mod_scale
                 modulation[y, x] = mod
+                finest_modulation[y, x] = math.sqrt(q[finest, x]) * mod_scale
                 background[y, x] = a_sum[x] * bg_scale
                 saturated[y, x] = 1 if sat[x] > 0.0 else 0
                 if mod >= hist_min_mod and sat[x] == 0.0:
@@ -137,10 +140,16 @@ def _corrected(phi: float, table: np.ndarray, scale: float) -> float:
     return out
 
 
+#: the reason of a pixel that fails only the residual-is-noise test, until :func:`settle_suspects`
+SUSPECT = 5
+
+
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
 def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np.ndarray,
                        tables: np.ndarray, steps: int, p1: float, p2: float, p3: float,
-                       width: float, min_mod: float, tol: float, margin_max: float,
+                       width: float, min_mod: float, tol: float,
+                       background: np.ndarray, noise_floor: float, noise_gain: float,
+                       noise_ref: float, threshold_on_snr: bool, margin_max: float,
                        units: np.ndarray, alias_orders: np.ndarray, systematic: np.ndarray,
                        z: float, ln_inv_alpha: float,
                        column: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
@@ -152,7 +161,9 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
     :func:`scancell.analysis.decode_limits.order_limits` (``units``: σ_o · B of each decision;
     ``alias_orders``: how many independent errors an error the agreement check cannot see
     needs, 0 for none; ``systematic``: the residual's spread that noise does not explain,
-    fringes).
+    fringes). Every noise is σ_I / B, with σ_I² = ``noise_floor`` + ``noise_gain`` · A at the
+    pixel's ``background`` A (DN) and the units quoted at σ_I = ``noise_ref``; with
+    ``threshold_on_snr`` the modulation is compared with ``min_mod`` as if at ``noise_ref``.
 
     reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
     counts (H, 5): pixels of each reason per row.
@@ -183,6 +194,10 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
                 ph1 = _corrected(ph1, tables[1], scale)
                 ph2 = _corrected(ph2, tables[2], scale)
             mod = modulation[y, x]
+            if noise_gain > 0.0:  # the modulation at which σ_ref gives this pixel's SNR
+                eff = mod * noise_ref / math.sqrt(noise_floor + noise_gain * max(background[y, x], 0.0))
+            else:
+                eff = mod
             w12 = ph0 - ph1
             w12 += TWO_PI if w12 < 0.0 else 0.0
             w23 = ph1 - ph2
@@ -194,18 +209,18 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
             a1, m3 = _unwrap(ph0, a12, r1)
             a2, m4 = _unwrap(ph1, a23, r2)
             a3, m5 = _unwrap(ph2, a23, r3)
+            noise_bad = False
             if margin_max >= 0.0:
                 order_bad = max(m1, m2, m3, m4, m5) > margin_max
             else:
-                inv_b = 1.0 / mod if mod > 0.0 else 1e30
+                inv_b = 1.0 / eff if eff > 0.0 else 1e30
                 order_bad = False
                 for d, m in enumerate((m1, m2, m3, m4, m5)):
                     sd = units[d] * inv_b
                     var = sd * sd + systematic[d] * systematic[d]
-                    lim = min(z * math.sqrt(var), 0.5)
+                    noise_bad = noise_bad or m > z * math.sqrt(var)
                     if alias_orders[d] > 0.0:
-                        lim = min(lim, 0.5 - var * ln_inv_alpha / alias_orders[d])
-                    order_bad = order_bad or m > lim
+                        order_bad = order_bad or m > 0.5 - var * ln_inv_alpha / alias_orders[d]
             e1 = a1 * c1
             e2 = a2 * c2
             e3 = a3 * c3
@@ -213,12 +228,42 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
             spread = max(abs(e1 - col) * s1, abs(e2 - col) * s2, abs(e3 - col) * s3)
             code = 0
             code = 4 if (col < -0.5 or col > width - 0.5) else code
+            code = SUSPECT if (code == 0 and noise_bad) else code
             code = 3 if (spread > tol or order_bad) else code
-            code = 2 if saturated[y, x] != 0 else code
-            code = 1 if mod < min_mod else code
+            code = 1 if (eff if threshold_on_snr else mod) < min_mod else code
+            code = 2 if saturated[y, x] != 0 else code  # over low: a clipped fringe is weak
             reason[y, x] = code
-            counts[y, code] += 1
-            column[y, x] = col if code == 0 else np.nan
+            counts[y, min(code, 3)] += 1
+            column[y, x] = col if (code == 0 or code == SUSPECT) else np.nan
+
+
+
+@numba.njit(parallel=True, cache=True)
+def settle_suspects(reason: np.ndarray, column: np.ndarray, counts: np.ndarray) -> None:
+    """Each SUSPECT pixel of :func:`unwrap3_heterodyne` (counted there as order inconsistent):
+    valid (0) when its 8 neighbours are valid, else order inconsistent (3) and its column NaN
+    (:func:`scancell.analysis.decode_limits.lone_pixels`)."""
+    h, w = reason.shape
+    lone = np.zeros((h, w), np.bool_)
+    for y in numba.prange(1, h - 1):
+        for x in range(1, w - 1):
+            if reason[y, x] == SUSPECT:
+                ok = True
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        if (dy != 0 or dx != 0) and reason[y + dy, x + dx] != 0:
+                            ok = False
+                lone[y, x] = ok
+    for y in numba.prange(h):
+        for x in range(w):
+            if reason[y, x] == SUSPECT:
+                if lone[y, x]:
+                    reason[y, x] = 0
+                    counts[y, 3] -= 1
+                    counts[y, 0] += 1
+                else:
+                    reason[y, x] = 3
+                    column[y, x] = np.nan
 
 
 @numba.njit(parallel=True, cache=True)

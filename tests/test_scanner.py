@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scancell.analysis.cloud_io import read_ply
 from scancell.analysis.decode_limits import (
+    NoiseLaw,
     alias_orders,
     decision_coefficients,
     order_units,
@@ -20,8 +21,11 @@ from scancell.analysis.decode_limits import (
 from scancell.analysis.phase import (
     DecodeError,
     DecodeSettings,
+    decode_exposures,
     decode_phase,
     heterodyne_tree,
+    measure_phases,
+    noise_law,
     unwrap_heterodyne,
 )
 from scancell.analysis.scanner import ScanDecoder
@@ -33,6 +37,8 @@ from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.optics_profile import optics_profile
 
 W = 1280
+#: the fixed limits a cell may set instead of the derived ones
+FIXED_LIMITS = DecodeSettings(min_modulation_dn=8.0, order_margin=0.3)
 
 
 def synthetic(seq: FringeSequence, column: np.ndarray, b: float = 80.0, noise: float = 1.0,
@@ -80,13 +86,36 @@ def test_wrong_fringe_orders_are_masked_not_passed_on(cycles):
     disturbed = synthetic(seq, shifted, seed=1)
     for k in (3, 4, 5):
         imgs[k][10:30, 100:200] = disturbed[k][10:30, 100:200]
-    for st in (DecodeSettings(), DecodeSettings(min_modulation_dn=None, order_margin=None)):
+    for st in (FIXED_LIMITS, DecodeSettings()):
         pm = decode_phase(imgs, seq, W, st)
         assert pm.rejected["order_inconsistent"] > 0
         wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
         assert wrong.sum() == 0
     with pytest.raises(DecodeError, match="hierarchical"):
         decode_phase(imgs, seq, W, DecodeSettings(method="hierarchical"))
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("engine", ["fast", "numpy"])
+def test_a_lone_pixel_off_the_noise_is_kept_a_patch_is_refused(engine):
+    """Pixels whose 64-period images are 0.02 fringe off: their residuals are 10 σ beyond the
+    noise while their orders are right. Lone ones among valid neighbours are a scene's tail and
+    kept (a lone wrong order would be a whole alias from its neighbours, for the stereo step
+    limit); a patch of them is refused."""
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (60, 1))
+    imgs = synthetic(seq, column)
+    off = synthetic(seq, column + 0.02 * W / 64, seed=1)
+    lone = [(5 + 4 * i, 20 + 9 * i) for i in range(8)]
+    patch = (slice(40, 50), slice(200, 260))
+    for k in (3, 4, 5):
+        for y, x in lone:
+            imgs[k][y, x] = off[k][y, x]
+        imgs[k][patch] = off[k][patch]
+    pm = decode_phase(imgs, seq, W, DecodeSettings(engine=engine))
+    assert all(pm.valid[y, x] for y, x in lone)
+    assert not pm.valid[patch].any() and pm.rejected["order_inconsistent"] >= 600
+    assert np.abs(pm.column - column)[pm.valid].max() < 0.5
 
 
 @pytest.mark.unit
@@ -119,7 +148,7 @@ def test_order_decisions_their_noise_and_what_the_agreement_check_cannot_see():
 def test_the_threshold_follows_the_measured_noise_and_a_set_one_overrides_it():
     seq = FringeSequence()
     column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
-    derived = DecodeSettings(min_modulation_dn=None, order_margin=None)
+    derived = DecodeSettings()
     maps = {n: decode_phase(synthetic(seq, column, b=60.0, noise=n, seed=2), seq, W, derived)
             for n in (1.0, 2.5)}
     # σ_I measured along the fringes (8-bit rounding adds 1/12 DN² to the drawn noise)
@@ -135,6 +164,51 @@ def test_the_threshold_follows_the_measured_noise_and_a_set_one_overrides_it():
 
 
 @pytest.mark.unit
+@pytest.mark.parametrize("slant", [0.0, 0.02])
+def test_the_noise_law_of_a_camera_is_read_from_its_fringes(slant):
+    """Shot noise grows with the level (EMVA 1288: σ_I² = floor + K·A). The law is read from
+    the phase's roughness along the fringes, at every level of a ramp from 40 to 200 DN, on
+    upright and slanted fringes; a set noise_dn holds at every level."""
+    seq = FringeSequence()
+    rows, cols = np.mgrid[0:200, 0:400].astype(float)
+    column = 2 + cols * (W - 5) / 400 + slant * W * rows / 400
+    level = 40 + 160 * cols / 400
+    k_dn, floor = 255 / 10700, (255 / 10700 * 2.95) ** 2
+    sigma = np.sqrt(floor + k_dn * level)
+    rng = np.random.default_rng(4)
+    imgs = [np.clip(np.rint(level + 30 * (2 * seq.intensity(k, column, W) - 1)
+                            + rng.normal(0, 1, column.shape) * sigma), 0, 255).astype(np.uint8)
+            for k in range(len(seq))]
+    st = DecodeSettings()
+    law = noise_law([measure_phases(imgs, seq, st)], seq, st)
+    for a in (60, 120, 180):
+        truth = np.sqrt(floor + k_dn * a + 1 / 12)  # 8-bit rounding adds 1/12 DN²
+        assert np.sqrt(law.floor_dn2 + law.gain_dn * a) == pytest.approx(truth, rel=0.06), a
+    assert noise_law([], seq, DecodeSettings(noise_dn=1.5)) == NoiseLaw.constant(1.5)
+
+
+@pytest.mark.unit
+def test_hdr_takes_the_best_exposures_decode_refused_or_not():
+    """Each pixel takes its strongest unsaturated exposure's decode: where that refuses the
+    orders (here a patch of the 64-period images off by 0.45 fringe), a weaker exposure that
+    passes them is not taken instead; where it saturates, the weaker one is."""
+    seq = FringeSequence()
+    column = np.tile(np.linspace(2, W - 3, 400), (60, 1))
+    strong = synthetic(seq, column, b=80.0, seed=1)
+    disturbed = synthetic(seq, column + 0.45 * W / 64, b=80.0, seed=2)
+    for k in (3, 4, 5):
+        strong[k][10:30, 100:200] = disturbed[k][10:30, 100:200]
+    for k in range(9):
+        strong[k][40:50, 250:300] = 255
+    weak = synthetic(seq, column, b=25.0, seed=3)
+    pm = decode_exposures([strong, weak], seq, W)
+    patch, hot = (slice(10, 30), slice(100, 200)), (slice(40, 50), slice(250, 300))
+    assert not pm.valid[patch].any() and (pm.exposure[patch] == 0).all()
+    assert pm.valid[hot].all() and (pm.exposure[hot] == 1).all()
+    assert pm.valid.mean() > 0.85
+
+
+@pytest.mark.unit
 @pytest.mark.parametrize("gamma", [1.5, 2.2])
 def test_an_uncompensated_nonlinear_projector_gives_no_wrong_order(gamma):
     """With compensation off, the response's phase error is a systematic spread of every order
@@ -147,8 +221,7 @@ def test_an_uncompensated_nonlinear_projector_gives_no_wrong_order(gamma):
                             + rng.normal(0, 1.0, column.shape)), 0, 255).astype(np.uint8)
             for k in range(len(seq))]
     for compensation in ("off", "passive"):
-        pm = decode_phase(imgs, seq, W, DecodeSettings(min_modulation_dn=None, order_margin=None,
-                                                       compensation=compensation))
+        pm = decode_phase(imgs, seq, W, DecodeSettings(compensation=compensation))
         wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
         assert wrong.sum() == 0, compensation
         if compensation == "passive":
@@ -160,7 +233,7 @@ def test_noisy_weak_fringes_leave_almost_no_wrong_order():
     seq = FringeSequence()
     column = np.tile(np.linspace(2, W - 3, 400), (200, 1))
     imgs = synthetic(seq, column, b=9.0, noise=1.0, seed=5)
-    for st in (DecodeSettings(), DecodeSettings(min_modulation_dn=None, order_margin=None)):
+    for st in (FIXED_LIMITS, DecodeSettings()):
         pm = decode_phase(imgs, seq, W, st)
         wrong = pm.valid & (np.abs(pm.column - column) > W / (2 * 70))
         assert pm.valid.mean() > 0.3
