@@ -152,18 +152,20 @@ def check_lines(checks: list[dict[str, Any]]) -> list[str]:
     """The report's scanner-check table: the ball bar's length error and scale, the spheres'
     form and size, and the warnings."""
     lines = ["", "## Scanner checks (the cell's ball bar)", "",
-             "| check | when | length error (mm) | scale (ppm) | form (mm) | size error (mm) | "
-             "settled after (s) | verdict |", "|---|---|---|---|---|---|---|---|"]
+             "| check | when | length error (mm) | scale (ppm) | form (mm) | form by noise alone "
+             "(mm) | size error (mm) | settled after (s) | verdict |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for c in checks:
         settle = "-" if c.get("settle_s") is None else f"{c['settle_s']:.2f}"
         if "error" in c:
-            lines.append(f"| {c['station']} | {c['label']} | | | | | {settle} | "
+            lines.append(f"| {c['station']} | {c['label']} | | | | | | {settle} | "
                          f"no result: {c['error']} |")
             continue
         verdict = "; ".join(c["warnings"]) or "ok"
+        noise = f"{c['form_noise_mm']:.4f}" if "form_noise_mm" in c else "-"
         lines.append(f"| {c['station']} | {c['label']} | {c['length_error_mm']:+.4f} | "
-                     f"{c['scale_ppm']:+.0f} | {c['form_mm']:.4f} | {c['size_error_mm']:+.4f} | "
-                     f"{settle} | {verdict} |")
+                     f"{c['scale_ppm']:+.0f} | {c['form_mm']:.4f} | {noise} | "
+                     f"{c['size_error_mm']:+.4f} | {settle} | {verdict} |")
     return lines
 
 

@@ -690,6 +690,8 @@ def table(s: dict[str, Any]) -> str:
         else:
             lines += [f"scanner check {c['label']}: ball bar {c['length_error_mm']:+.4f} mm "
                       f"({c['scale_ppm']:+.0f} ppm), sphere form {c['form_mm']:.4f} mm"
+                      + (f" (noise alone {c['form_noise_mm']:.4f} mm)" if "form_noise_mm" in c
+                         else "")
                       + "".join(f"; WARNING {w}" for w in c["warnings"])]
     return "\n".join(lines)
 

@@ -45,6 +45,24 @@ def test_length_error_scale_and_form_of_a_ball_bar():
 
 
 @pytest.mark.unit
+def test_the_form_noise_alone_gives_tells_the_noise_from_a_shape():
+    pts = bar_scan(200.0, 15.0, noise=0.02)
+    sigma = np.full(len(pts), 0.02)
+    noisy = evaluate_check(pts, 200.0, 30.0, 100, 0.05, sigma)
+    assert noisy["form_noise_mm"] == pytest.approx(noisy["form_mm"], rel=0.2), noisy
+    assert "noise alone gives" in noisy["warnings"][0]
+    # a 0.3 mm dent at one sphere's front: the form is the shape, far beyond the noise
+    pole = np.array([-100.0, 10.0, 600.0 - 15.0])
+    near = np.linalg.norm(pts - pole, axis=1) < 6.0
+    dented = pts.copy()
+    dented[near] += 0.3 * (np.array([-100.0, 10.0, 600.0]) - pole) / 15.0
+    dent = evaluate_check(dented, 200.0, 30.0, 100, 0.05, sigma)
+    assert dent["form_mm"] > dent["form_noise_mm"] + 0.15, dent
+    with pytest.raises(CheckError, match="noise figures for"):
+        evaluate_check(pts, 200.0, 30.0, 100, 0.05, sigma[:-1])
+
+
+@pytest.mark.unit
 def test_a_scan_without_the_bar_is_a_clear_error():
     with pytest.raises(CheckError, match="too few"):
         evaluate_check(np.zeros((10, 3)), 200.0, 30.0, 100, 0.05)

@@ -105,6 +105,8 @@ class JobStations:
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: (float32, MCS mm; an empty array once evaluated: only its figures are kept)
     check_clouds: dict[str, np.ndarray] = field(default_factory=dict)
+    #: each check cloud's stated 1-sigma noise per point (mm), while it is kept
+    check_noise: dict[str, np.ndarray] = field(default_factory=dict)
     #: the checks the job's final event lists
     announced_checks: set[str] = field(default_factory=set)
     #: station -> the scan id of the cloud fused for it
@@ -231,6 +233,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if kind == CHECK_KIND:
             with self._lock:
                 self._job(job_id).check_clouds[station] = pts
+                if unc is not None:
+                    self._job(job_id).check_noise[station] = unc
             self.submit(("check", f"{job_id}\0{station}"))
             return
         unc = None if unc is None else unc.astype(np.float32, copy=False)
@@ -419,7 +423,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             record, cloud = job.checks.get(station), job.check_clouds.get(station)
             if record is None or cloud is None or station in job.check_results:
                 return job.check_results.get(station)
-        result = check_figures(job_id, station, record, cloud)
+            noise = job.check_noise.pop(station, None)
+        result = check_figures(job_id, station, record, cloud, noise)
         with self._lock:
             job.check_results[station] = result
             job.check_clouds[station] = np.zeros((0, 3), np.float32)
@@ -531,10 +536,10 @@ def publish_model(bus: BusLike, model: ModelFile, meta: dict[str, Any]) -> None:
                        {**meta, "part": i, "parts": parts, "points": model.count}))
 
 
-def check_figures(job_id: str, station: str, c: dict[str, Any], cloud: np.ndarray | None
-                  ) -> dict[str, Any]:
-    """A scanner check's figures from its record ``c`` and its cloud (None: never came), or
-    its error; its warnings logged."""
+def check_figures(job_id: str, station: str, c: dict[str, Any], cloud: np.ndarray | None,
+                  noise: np.ndarray | None = None) -> dict[str, Any]:
+    """A scanner check's figures from its record ``c`` and its cloud (None: never came) with
+    its points' stated noise (mm, None: not known), or its error; its warnings logged."""
     from scancell.analysis.scanner_check import CheckError, evaluate_check
 
     rec: dict[str, Any] = {"station": station, "label": c.get("label"),
@@ -545,7 +550,8 @@ def check_figures(job_id: str, station: str, c: dict[str, Any], cloud: np.ndarra
         a = c["artefact"]
         try:
             rec.update(evaluate_check(cloud, a["length_mm"], a["sphere_diameter_mm"],
-                                      a.get("warn_ppm", 100.0), a.get("warn_form_mm", 0.05)))
+                                      a.get("warn_ppm", 100.0), a.get("warn_form_mm", 0.05),
+                                      noise))
         except CheckError as exc:
             rec["error"] = str(exc)
     for w in rec.get("warnings", []) + ([rec["error"]] if "error" in rec else []):
