@@ -405,11 +405,16 @@ class NoiseLaw:
     ``σ_I² = floor_dn2 + gain_dn · A``, the EMVA 1288 linear camera (read and quantisation
     noise, and shot noise: K · A DN² at a mean level of A DN, K the system gain in DN/e⁻).
     ``reference_dn`` is the level the view's noise is quoted at (the median level of the
-    pixels it was measured on); with ``gain_dn`` 0 the noise is the same at every level."""
+    pixels it was measured on); with ``gain_dn`` 0 the noise is the same at every level. The
+    law holds between ``lowest_dn`` and ``highest_dn``, the levels it was measured over: a
+    pixel outside them takes the noise at the nearer one (a line is not extrapolated beyond
+    its samples: the darkest pixels' fringes are too weak to be among them)."""
 
     floor_dn2: float
     gain_dn: float = 0.0
     reference_dn: float = 0.0
+    lowest_dn: float = 0.0
+    highest_dn: float = 255.0
 
     @classmethod
     def constant(cls, sigma_dn: float) -> NoiseLaw:
@@ -424,8 +429,8 @@ class NoiseLaw:
         """σ_I(A) / σ_I(reference) per pixel (float32): how much noisier than the quoted noise."""
         if self.gain_dn == 0.0:
             return np.ones(np.shape(level), np.float32)
-        var = np.float32(self.floor_dn2) + np.float32(self.gain_dn) * np.maximum(
-            np.asarray(level, np.float32), np.float32(0))
+        var = np.float32(self.floor_dn2) + np.float32(self.gain_dn) * np.clip(
+            np.asarray(level, np.float32), np.float32(self.lowest_dn), np.float32(self.highest_dn))
         return np.sqrt(var) / np.float32(self.reference_sigma)
 
 
@@ -490,7 +495,7 @@ def measured_noise_law(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.
             floor = floor2
             gain = float(np.sum(n * (v - floor) * a_) / np.sum(n * a_ * a_))
         if gain > 0:
-            return NoiseLaw(float(floor), float(gain), reference)
+            return NoiseLaw(float(floor), float(gain), reference, float(a_.min()), float(a_.max()))
     return NoiseLaw(float(max(np.average(v, weights=n), floor2)), 0.0, reference)
 
 

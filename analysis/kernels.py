@@ -149,7 +149,8 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
                        tables: np.ndarray, steps: int, p1: float, p2: float, p3: float,
                        width: float, min_mod: float, tol: float,
                        background: np.ndarray, noise_floor: float, noise_gain: float,
-                       noise_ref: float, threshold_on_snr: bool, margin_max: float,
+                       noise_ref: float, noise_lowest: float, noise_highest: float,
+                       threshold_on_snr: bool, margin_max: float,
                        units: np.ndarray, alias_orders: np.ndarray, systematic: np.ndarray,
                        z: float, ln_inv_alpha: float,
                        column: np.ndarray, reason: np.ndarray, counts: np.ndarray) -> None:
@@ -162,7 +163,8 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
     ``alias_orders``: how many independent errors an error the agreement check cannot see
     needs, 0 for none; ``systematic``: the residual's spread that noise does not explain,
     fringes). Every noise is σ_I / B, with σ_I² = ``noise_floor`` + ``noise_gain`` · A at the
-    pixel's ``background`` A (DN) and the units quoted at σ_I = ``noise_ref``; with
+    pixel's ``background`` A (DN, held within ``noise_lowest`` … ``noise_highest``, the levels
+    the law was measured over) and the units quoted at σ_I = ``noise_ref``; with
     ``threshold_on_snr`` the modulation is compared with ``min_mod`` as if at ``noise_ref``.
 
     reason: 0 valid, 1 low modulation, 2 saturated, 3 order inconsistent, 4 outside projector;
@@ -195,7 +197,8 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
                 ph2 = _corrected(ph2, tables[2], scale)
             mod = modulation[y, x]
             if noise_gain > 0.0:  # the modulation at which σ_ref gives this pixel's SNR
-                eff = mod * noise_ref / math.sqrt(noise_floor + noise_gain * max(background[y, x], 0.0))
+                level = min(max(background[y, x], noise_lowest), noise_highest)
+                eff = mod * noise_ref / math.sqrt(noise_floor + noise_gain * level)
             else:
                 eff = mod
             w12 = ph0 - ph1
