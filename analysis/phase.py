@@ -540,8 +540,8 @@ def decode_exposures(exposures: Sequence[Sequence[np.ndarray]], sequence: Fringe
                      projector_width: int, settings: DecodeSettings | None = None,
                      names: Sequence[Sequence[str]] | None = None) -> PhaseMap:
     """HDR: one camera's image sets at several exposures into one phase map. One response
-    estimate from all exposures' strong fringes; then every pixel takes the exposure whose
-    decode is valid with the strongest modulation (saturated exposures are never valid)."""
+    estimate and one noise law from all exposures' strong fringes; then every pixel takes the
+    decode of its strongest unsaturated exposure, valid or refused (:func:`merge_exposures`)."""
     st = settings or DecodeSettings()
     if not exposures:
         raise DecodeError("no exposures to decode")
