@@ -104,11 +104,19 @@ def _facing_inliers(points: np.ndarray, normals: np.ndarray, centre: np.ndarray,
     return int((np.abs(np.einsum("ij,ij->i", normals[near], d[near]) / dist[near]) > 0.9).sum())
 
 
+#: points a sphere's hypotheses are drawn from: the ball's share of them is its share of the
+#: scan, which the background sets. 30 000 of a quarter-size hand-eye scan (130 000 points once
+#: its dark background decodes) kept 30–90 of the ball's, and the votes missed it in 3 of 5
+#: scans; 200 000 find it in all five, 0.4–0.55 s each
+SPHERE_SAMPLE = 200_000
+
+
 def detect_sphere(points: np.ndarray, radius: float | None = None,
                   radius_range: tuple[float, float] = (5.0, 100.0), inlier_mm: float = 0.15,
-                  iterations: int = 1500, sample: int = 30000, seed: int = 0,
+                  iterations: int = 1500, sample: int = SPHERE_SAMPLE, seed: int = 0,
                   known_radius: bool = False) -> SphereDetection:
-    """Find the sphere in a cloud with background, a stand and a corner-cube opening.
+    """Find the sphere in a cloud with background, a stand and a corner-cube opening; the
+    hypotheses come from a random ``sample`` of the points.
 
     Hypotheses: with a known ``radius``, every point proposes the centre one radius behind it
     along its normal and the proposals are voted; otherwise RANSAC on 4-point samples drawn
