@@ -311,51 +311,49 @@ def systematic_spread(residual: np.ndarray, unit: float, modulation: np.ndarray)
     return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
 
 
-def residual_is_noise(residual: np.ndarray, unit: float, modulation: np.ndarray, z: float,
-                      systematic: float) -> np.ndarray:
-    """Pixels whose |rounding residual| (fringes) is what noise and the systematic spread s
-    leave: ≤ z · σ, σ² = (unit / B)² + s². A glint or a vibration that shifts one frequency's
-    phase in a patch leaves far more."""
+def order_tests(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
+                z: float, systematic: float) -> tuple[np.ndarray, np.ndarray]:
+    """The two per-pixel tests of one decision's |rounding residual| m (fringes), with
+    σ² = (unit / B)² + s² (s the decision's measured systematic spread):
+
+    - the posterior: where a wrong order can hide from the agreement check together with
+      k − 1 other independent errors (``alias_order`` k ≥ 1), the right orders stay 1/α times
+      likelier: each of its k decisions' likelihood ratio at the margin, exp(−(1 − 2m) / 2σ²),
+      at most α^(1/k): m ≤ 1/2 − σ² · ln(1/α) / k (every pixel for k = 0);
+    - the residual is noise: m ≤ z · σ (a glint or a vibration that shifts one frequency's
+      phase in a patch leaves far more).
+
+    Returns (posterior holds, residual is noise)."""
     sigma = np.float32(unit) / modulation
     var = sigma * sigma + np.float32(systematic ** 2)
-    return residual <= np.float32(z) * np.sqrt(var)
-
-
-def posterior_holds(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
-                    systematic: float) -> np.ndarray:
-    """Pixels whose right orders stay 1/α times likelier than an error the agreement check
-    cannot see (``alias_order`` k ≥ 1, the error needing k independent ones): each of its k
-    decisions' likelihood ratio at the margin, exp(−(1 − 2m) / 2σ²), at most α^(1/k):
-    m ≤ 1/2 − σ² · ln(1/α) / k. Every pixel for k = 0."""
+    noise_ok = residual <= np.float32(z) * np.sqrt(var)
     if not alias_order:
-        return np.ones(np.shape(residual), bool)
-    sigma = np.float32(unit) / modulation
-    var = sigma * sigma + np.float32(systematic ** 2)
-    return residual <= np.float32(0.5) - var * np.float32(np.log(1 / ORDER_ALPHA) / alias_order)
+        return np.ones(np.shape(residual), bool), noise_ok
+    return (residual <= np.float32(0.5) - var * np.float32(np.log(1 / ORDER_ALPHA) / alias_order),
+            noise_ok)
 
 
 def order_limits(residual: np.ndarray, unit: float, alias_order: int, modulation: np.ndarray,
                  z: float, margin: float | None = None, systematic: float | None = 0.0
                  ) -> np.ndarray:
     """Pixels whose |rounding residual| (fringes) passes one decision's limit: a fixed
-    ``margin``, or per pixel :func:`posterior_holds` and :func:`residual_is_noise`
-    (``systematic`` None leaves the second out)."""
+    ``margin``, or per pixel both :func:`order_tests` (``systematic`` None: the posterior
+    alone)."""
     if margin is not None:
         return residual <= np.float32(margin)
-    ok = posterior_holds(residual, unit, alias_order, modulation, systematic or 0.0)
-    if systematic is not None:
-        ok &= residual_is_noise(residual, unit, modulation, z, systematic)
-    return ok
+    posterior, noise = order_tests(residual, unit, alias_order, modulation, z, systematic or 0.0)
+    return posterior if systematic is None else posterior & noise
 
 
 def lone_pixels(suspect: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The ``suspect`` pixels (failing only :func:`residual_is_noise`) whose 8 neighbours are
-    all ``valid`` (H x W bool): those are kept. The residual test is for patches (a glint, a
-    vibration), whose wrong orders hide from the stereo step limit inside the patch; a lone
-    wrong order sits a whole alias (238.7 px for 70, 64, 59) from its valid neighbours, and
-    the step limit refuses it. A scene's residuals have heavier tails than noise: on a
-    full-size car-rear station 0.4 % of the strong pixels lay beyond 4 σ, 60 times a
-    Gaussian's share, scattered; refused, each cost the stereo match about 8 points."""
+    """The ``suspect`` pixels (failing only the residual-is-noise test of
+    :func:`order_tests`) whose 8 neighbours are all ``valid`` (H x W bool): those are kept.
+    The residual test is for patches (a glint, a vibration), whose wrong orders hide from the
+    stereo step limit inside the patch; a lone wrong order sits a whole alias (238.7 px for
+    70, 64, 59) from its valid neighbours, and the step limit refuses it. A scene's residuals
+    have heavier tails than noise: on a full-size car-rear station 0.4 % of the strong pixels
+    lay beyond 4 σ, 60 times a Gaussian's share, scattered; refused, each cost the stereo
+    match about 8 points."""
     h, w = valid.shape
     around = np.zeros((h, w), np.uint8)
     v = valid.astype(np.uint8)

@@ -240,7 +240,6 @@ def unwrap3_heterodyne(phases: np.ndarray, modulation: np.ndarray, saturated: np
             column[y, x] = col if (code == 0 or code == SUSPECT) else np.nan
 
 
-
 @numba.njit(parallel=True, cache=True)
 def settle_suspects(reason: np.ndarray, column: np.ndarray, counts: np.ndarray) -> None:
     """Each SUSPECT pixel of :func:`unwrap3_heterodyne` (counted there as order inconsistent):

@@ -335,10 +335,10 @@ class OrderLimits:
     margin: float | None  # a fixed margin, else per pixel
     z: float
     #: σ_I against the pixel's level; ``noise_dn`` and ``units`` are quoted at its reference
-    noise: lim.NoiseLaw = field(default_factory=lambda: lim.NoiseLaw.constant(1.0))
+    noise: lim.NoiseLaw
     #: the threshold compares the modulation as if at the reference noise (B · σ_ref / σ_I(A))
     #: when it is derived; a threshold set in DN compares the modulation as measured
-    threshold_on_snr: bool = False
+    threshold_on_snr: bool
 
     def effective_modulation(self, modulation: np.ndarray, level: np.ndarray) -> np.ndarray:
         """B · σ_I(reference) / σ_I(A): the modulation at which the reference noise gives this
@@ -448,8 +448,9 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
         if limits.margin is not None:
             order_ok &= r <= np.float32(limits.margin)
         else:
-            order_ok &= lim.posterior_holds(r, unit, k, mod_c, sys)
-            noise_ok &= lim.residual_is_noise(r, unit, mod_c, limits.z, sys)
+            posterior, noise = lim.order_tests(r, unit, k, mod_c, limits.z, sys)
+            order_ok &= posterior
+            noise_ok &= noise
     wd = np.float32(projector_width)
     col, spread = agreement(absolute, periods, projector_width, st.order_tolerance_px)
     inconsistent = (spread > st.order_tolerance_px) | ~order_ok
@@ -466,10 +467,8 @@ def unwrap_phases(w: WrappedPhases, sequence: FringeSequence, projector_width: i
     kept = lim.lone_pixels(kept, reason == 0)
     reason[kept] = 0
     column = np.full(shape, np.nan, np.float32)
-    keep = ~(outside | inconsistent | suspect)
+    keep = ~(outside | inconsistent | suspect) | kept.reshape(-1)[cand]
     column.reshape(-1)[cand[keep]] = col[keep]
-    lone = kept.reshape(-1)[cand]
-    column.reshape(-1)[cand[lone]] = col[lone]
     return _phase_map(column, w, reason, correction, sequence, limits)
 
 
