@@ -54,6 +54,28 @@ def test_fk_ik_round_trip():
 
 
 @pytest.mark.unit
+def test_the_iks_rotation_error_and_jacobian_match_scipy_and_finite_differences():
+    from scancell.model.robot_model import _left_jacobian_inverse, _rotvec
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    for R in Rotation.random(500, random_state=7):
+        np.testing.assert_allclose(_rotvec(R.as_matrix()), R.as_rotvec(), atol=1e-9)
+    for angle in (1e-9, 1e-3, 3.1, np.pi - 1e-4):
+        R = Rotation.from_rotvec(angle * np.array([0.6, 0.0, 0.8]))
+        np.testing.assert_allclose(_rotvec(R.as_matrix()), R.as_rotvec(), atol=1e-9)
+    for _ in range(20):  # d log(exp(d^) E) / d d against central differences
+        E = Rotation.from_rotvec(rng.uniform(-1.2, 1.2, 3)).as_matrix()
+        J = np.empty((3, 3))
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-6
+            J[:, k] = (_rotvec(Rotation.from_rotvec(d).as_matrix() @ E)
+                       - _rotvec(Rotation.from_rotvec(-d).as_matrix() @ E)) / 2e-6
+        np.testing.assert_allclose(_left_jacobian_inverse(_rotvec(E)), J, atol=1e-6)
+
+
+@pytest.mark.unit
 def test_projection_matches_opencv_and_rays_invert_it():
     cam = default_rig().right.scaled(8)
     pts = np.random.default_rng(0).normal(size=(500, 3)) * 80 + [0, 0, 650]
