@@ -94,12 +94,13 @@ class PlanReport:
 UNMEASURED_REASONS = ("beam", "reach", "view", "overlap")
 
 
-def _tilted(v: np.ndarray, deg: float) -> list[np.ndarray]:
+def _tilted(v: np.ndarray, *degs: float) -> list[np.ndarray]:
+    """``v`` and ``v`` tilted by each of ``degs`` four ways (about the horizontal and about
+    the axis across it)."""
     a = np.cross(v, [0.0, 0.0, 1.0])
     a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-6 else np.array([0.0, 1.0, 0.0])
     b = np.cross(v, a)
-    t = np.radians(deg)
-    return [v] + [np.cos(t) * v + np.sin(t) * d for d in (a, -a, b, -b)]
+    return [v] + [np.cos(t) * v + np.sin(t) * d for t in np.radians(degs) for d in (a, -a, b, -b)]
 
 
 #: J6 rolls (deg) a cluster view may take to bring a face of the cluster round to the tracker,
@@ -158,9 +159,9 @@ class Planner:
         pcd = mesh.sample_points_uniformly(samples, use_triangle_normal=True)
         self.points = np.asarray(pcd.points)
         n = np.asarray(pcd.normals)
-        base = geometry.T_world_from_base[:3, 3]
-        flip = np.einsum("ij,ij->i", n, base - self.points) < 0  # normals face the robot
-        n[flip] *= -1
+        if not _closed_and_outward(mesh):  # a sheet: its normals towards the robot
+            base = geometry.T_world_from_base[:3, 3]
+            n[np.einsum("ij,ij->i", n, base - self.points) < 0] *= -1
         self.normals = n
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
@@ -173,15 +174,20 @@ class Planner:
         self.tracker_moves = tracker_moves
 
     def _tracker_candidates(self, n: int = 8, min_nests: int = 4) -> dict[str, np.ndarray]:
-        """Tracker stations on a ring around the part at home's horizontal distance and height,
-        each at least 1 m from every nest and 1.5 m from the robot's base, seeing ``min_nests``
-        nests with no part in the beam."""
+        """The cell's tracker stations (``tracker_stations_mm``), else stations on a ring
+        around the part at home's horizontal distance and height, each at least 1 m from every
+        nest and 1.5 m from the robot's base; those seeing ``min_nests`` nests with no part in
+        the beam."""
         home = self.trackers[HOME_TRACKER]
+        nests = np.array(list(self.nests.values()))
+        if self.g.tracker_stations_mm:  # the cell's own marks
+            return {n: np.asarray(p, float) for n, p in self.g.tracker_stations_mm.items()
+                    if int(self._clear(nests, np.repeat(np.asarray(p, float)[None], len(nests),
+                                                        0)).sum()) >= min_nests}
         centre = 0.5 * (self.points.min(axis=0) + self.points.max(axis=0))
         radius = float(np.linalg.norm((home - centre)[:2]))
         a0 = np.arctan2(*(home - centre)[1::-1])
         bases = [self.g.base_at(r)[:3, 3] for r in (list(self.g.rail_positions_mm) or [None])]
-        nests = np.array(list(self.nests.values()))
         out = {}
         for k in range(1, n):
             a = a0 + 2 * np.pi * k / n
@@ -327,15 +333,14 @@ class Planner:
         out: list[Candidate] = []
         tried = 0
         seed = None
-        rails: list[float | None] = list(g.rail_positions_mm) or [None]
         for c, n in zip(centres, normals, strict=True):
-            for view in _tilted(-n / np.linalg.norm(n), 20.0):
+            for view in _tilted(-n / np.linalg.norm(n), *g.view_tilts_deg):
                 T = look_at_flange(c, view, g.standoff_mm, g.rig_mid_in_flange)
+                if g.below_floor(T):
+                    continue  # not a view at all: no robot takes the scanner there
                 sees = self.seen(T)
                 if sees.sum() < 20:
                     continue
-                # the rail position nearest the target first: the arm works best mid-reach
-                along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis or (0, 0, 0))
                 self.seen_by_view |= sees
                 found = self._in_sight(T)  # from home, else the first tracker station
                 if found is None:
@@ -350,7 +355,7 @@ class Planner:
                     sees = self.seen(T)  # the roll turns the field about the view
                 self.seen_in_beam_by.setdefault(tracker, np.zeros(len(self.points), bool))
                 self.seen_in_beam_by[tracker] |= sees
-                for rail in sorted(rails, key=lambda r: abs((r or 0.0) - along)):
+                for rail in g.rail_nearest(c):
                     tried += 1
                     q = self.reachable(T, seed, rail, sign)
                     if q is not None:
@@ -377,7 +382,7 @@ class Planner:
         return None
 
     def plan(self, coverage: float = 0.90, overlap: float = 0.25, name: str = "plan",
-             max_stations: int = 60, speed: float = 0.2) -> tuple[Plan, PlanReport]:
+             max_stations: int | None = None, speed: float = 0.2) -> tuple[Plan, PlanReport]:
         """``speed``: the arm's between stations, a fraction of its joints' maximum speeds (the
         plan's; it orders the stations by the moves' time)."""
         cands, tried = self.candidates(overlap)
@@ -387,38 +392,24 @@ class Planner:
                                 f"the part in reach of the robot (world frame, mm)?")
         min_gain = max(5, len(self.points) // 1000)
         all_cands = list(cands)
-        used = [HOME_TRACKER]
-        # a view from a tracker station not used yet scores MOVE_DISCOUNT of its gain
-        possible = np.any([c.sees for c in cands], axis=0)
-        covered = np.zeros(len(self.points), bool)
-        chosen: list[Candidate] = []
-        while covered[possible].mean() < coverage and len(chosen) < max_stations and cands:
-            moves_left = len(used) <= self.tracker_moves
-            score = [self._score(c, chosen, covered,
-                                 1.0 if c.tracker in used else MOVE_DISCOUNT)
-                     if (c.tracker in used or moves_left)
-                     and (c.sees & ~covered).sum() >= min_gain else -1.0
-                     for c in cands]
-            best = int(np.argmax(score))
-            if score[best] < 0:
-                break
-            chosen.append(cands.pop(best))
-            covered |= chosen[-1].sees
-            if chosen[-1].tracker not in used:
-                used.append(chosen[-1].tracker)
+        chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
+        chosen_ids = {id(c) for c in chosen}
+        cands = [c for c in cands if id(c) not in chosen_ids]
+        covered = np.any([np.zeros(len(self.points), bool), *(c.sees for c in chosen)], axis=0)
         chosen = [c for t in used
                   for c in self._toured([c for c in chosen if c.tracker == t], speed)]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
                                      c.rail_mm, None, int(c.j6_sign), tracker=c.tracker)
                          for i, c in enumerate(chosen))
         overlaps = []
-        for i in range(len(chosen)):
-            shares = [((chosen[i].sees & chosen[j].sees).sum()
-                       / min(chosen[i].sees.sum(), chosen[j].sees.sum()), j)
-                      for j in range(len(chosen)) if j != i]
-            if shares:
-                share, j = max(shares)
-                overlaps.append((stations[i].name, stations[j].name, float(share)))
+        if len(chosen) > 1:
+            S = _sees_matrix(chosen)
+            n = np.asarray(S.sum(axis=1)).ravel()
+            shares = (S @ S.T).toarray() / np.minimum(n[:, None], n[None, :])
+            np.fill_diagonal(shares, -np.inf)
+            last = len(chosen) - 1 - np.argmax(shares[:, ::-1], axis=1)  # ties: the later one
+            overlaps = [(stations[i].name, stations[j].name, float(shares[i, j]))
+                        for i, j in enumerate(last)]
         missed = ~covered
         # by the tracker stations the plan uses: what another station would see is "beam"
         zero = np.zeros(len(self.points), bool)
@@ -444,6 +435,49 @@ class Planner:
                     extra=extra, ecs=self.ecs, trackers=trackers)
         return plan, report
 
+    def _greedy(self, cands: list[Candidate], coverage: float, min_gain: int,
+                max_stations: int | None) -> tuple[list[Candidate], list[str]]:
+        """The views chosen one by one until ``coverage`` of what the views see, and the
+        tracker stations they use (home first). Each step takes the view of most new coverage,
+        ranked first by how it overlaps the stations chosen so far (its largest overlap with one
+        of them): the paper's 10-40 % first, then near it (5-60 %), then anything. A view from
+        a tracker station not used yet scores MOVE_DISCOUNT of its gain, and only while moves
+        are left. The views' samples are a sparse matrix: a view's new coverage and its overlap
+        with the stations chosen are its row's products (a loop over views and chosen stations
+        took most of the car body's planning)."""
+        S = _sees_matrix(cands)
+        n = np.maximum(1.0, np.asarray(S.sum(axis=1)).ravel())
+        trackers = np.array([c.tracker for c in cands])
+        possible = np.asarray(S.sum(axis=0)).ravel() > 0
+        covered = np.zeros(S.shape[1], bool)
+        overlap = np.zeros(len(cands))  # the largest share of a view one chosen station sees
+        alive = np.ones(len(cands), bool)
+        chosen: list[int] = []
+        used = [HOME_TRACKER]
+        while (covered[possible].mean() < coverage and alive.any()
+               and (max_stations is None or len(chosen) < max_stations)):
+            in_use = np.isin(trackers, used)
+            weight = np.where(in_use, 1.0, MOVE_DISCOUNT)
+            gain = S @ (~covered).astype(np.float64)
+            score = weight * gain
+            if chosen:
+                score = np.where((overlap >= 0.10) & (overlap <= 0.40), 2e9 + score,
+                                 np.where((overlap >= 0.05) & (overlap <= 0.60), 1e9 + score,
+                                          score))
+            ok = alive & (in_use | (len(used) <= self.tracker_moves)) & (gain >= min_gain)
+            score = np.where(ok, score, -1.0)
+            best = int(np.argmax(score))
+            if score[best] < 0:
+                break
+            chosen.append(best)
+            alive[best] = False
+            row = S[best]
+            covered[row.indices] = True
+            overlap = np.maximum(overlap, (S @ row.T).toarray().ravel() / n)
+            if trackers[best] not in used:
+                used.append(str(trackers[best]))
+        return [cands[i] for i in chosen], used
+
     def _toured(self, cands: list[Candidate], speed: float) -> list[Candidate]:
         def seconds(a: Candidate, b: Candidate) -> float:
             rail = abs((a.rail_mm or 0.0) - (b.rail_mm or 0.0)) / self.g.rail_speed_mm_s
@@ -453,22 +487,24 @@ class Planner:
         return [cands[i] for i in _tour(cost)]
 
 
-    @staticmethod
-    def _score(c: Candidate, chosen: list[Candidate], covered: np.ndarray,
-               weight: float = 1.0) -> float:
-        """New coverage (times ``weight``), ranked first by how the view overlaps the stations
-        chosen so far (its largest overlap with one of them): the paper's 10-40 % first, then
-        near it (5-60 %), then anything."""
-        gain = weight * float((c.sees & ~covered).sum())
-        if not chosen:
-            return gain
-        n = max(1, int(c.sees.sum()))
-        best = max(float((c.sees & s.sees).sum()) / n for s in chosen)
-        if 0.10 <= best <= 0.40:
-            return 2e9 + gain
-        if 0.05 <= best <= 0.60:
-            return 1e9 + gain
-        return gain
+def _closed_and_outward(mesh: o3d.geometry.TriangleMesh) -> bool:
+    """Whether the mesh bounds a solid, wound outward: its area vectors sum to nothing (a
+    closed surface's flux of a constant field) and its signed volume is positive."""
+    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])  # 2 x area vectors
+    area = float(np.linalg.norm(cross, axis=1).sum())
+    volume = float(np.einsum("ij,ij->i", v[t[:, 0]], cross).sum())  # 6 x signed volume
+    return float(np.linalg.norm(cross.sum(axis=0))) < 1e-6 * area and volume > 0
+
+
+def _sees_matrix(cands: list[Candidate]):
+    """(views, samples) sparse 0/1 matrix of what each view sees."""
+    from scipy import sparse
+
+    cols = [np.flatnonzero(c.sees) for c in cands]
+    rows = np.repeat(np.arange(len(cands)), [len(c) for c in cols])
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, np.concatenate(cols))),
+                             shape=(len(cands), len(cands[0].sees)))
 
 
 def _tour(cost: np.ndarray) -> list[int]:

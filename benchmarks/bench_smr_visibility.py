@@ -41,8 +41,7 @@ def reachable_views(pl: Planner, g: CellGeometry) -> list[np.ndarray]:
             T = look_at_flange(c, view, g.standoff_mm, g.rig_mid_in_flange)
             if pl.seen(T).sum() < 20:
                 continue
-            along = (c - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis)
-            for rail in sorted(g.rail_positions_mm, key=lambda r: abs(r - along)):
+            for rail in g.rail_nearest(c):
                 Tb = np.linalg.inv(g.base_at(rail)) @ T
                 if not g.robot.within_reach(Tb):
                     continue

@@ -9,6 +9,10 @@ from pathlib import Path
 
 from scancell.cli._common import default_cell_config, fail
 
+#: the planner's default surface sampling: one sample per this much of the part's area (mm²):
+#: about 80 in the field of one view
+SAMPLE_AREA_MM2 = 1300.0
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--part", required=True,
@@ -23,7 +27,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "near-duplicate stations)")
     p.add_argument("--overlap", type=float, default=0.25,
                    help="overlap aimed at between neighbours, 0.10-0.40 (default 0.25)")
-    p.add_argument("--samples", type=int, default=6000, help="surface samples")
+    p.add_argument("--samples", type=int, default=None,
+                   help="surface samples (default: one per 1300 mm² of the part, at least 6000: "
+                        "some 80 in a view's field)")
+    p.add_argument("--max-stations", type=int, default=None, metavar="N",
+                   help="stop at N stations (default: at the coverage, or when no view adds "
+                        "enough)")
     p.add_argument("--ecs", choices=("j6", "cluster"), default="j6",
                    help="how the stations' scanner pose is measured: j6 (the paper's J6 turns of "
                         "the rear SMR, default) or cluster (>= 3 SMRs of the scanner's cluster "
@@ -61,6 +70,10 @@ def main(args: argparse.Namespace) -> int:
 
     if not 0.10 <= args.overlap <= 0.40 or not 0 < args.coverage <= 1:
         return fail("plan", "--overlap must be in [0.10, 0.40] and --coverage in (0, 1]")
+    if args.max_stations is not None and args.max_stations < 1:
+        return fail("plan", f"--max-stations must be >= 1, got {args.max_stations}")
+    if args.samples is not None and args.samples < 100:
+        return fail("plan", f"--samples must be >= 100, got {args.samples}")
     if not 0 < args.speed <= 1:
         return fail("plan", f"--speed must be in (0, 1] (a fraction of the robot's maximum "
                             f"joint speeds), got {args.speed}")
@@ -74,10 +87,11 @@ def main(args: argparse.Namespace) -> int:
         if args.tracker_moves and len(nests) < 4:
             return fail("plan", "--tracker-moves needs the cell's reference nests ([metrology] "
                                 "nests, at least 4): a moved tracker is located on them")
-        planner = Planner(mesh, geometry, samples=args.samples, ecs=args.ecs, nests_world=nests,
+        samples = args.samples or max(6000, round(mesh.get_surface_area() / SAMPLE_AREA_MM2))
+        planner = Planner(mesh, geometry, samples=samples, ecs=args.ecs, nests_world=nests,
                           tracker_moves=max(0, args.tracker_moves))
         plan, report = planner.plan(args.coverage, args.overlap, name=part.stem,
-                                    speed=args.speed)
+                                    speed=args.speed, max_stations=args.max_stations)
     except (PlanningError, ConfigError) as exc:
         return fail("plan", str(exc))
     Path(args.out).write_text(plan.to_toml())

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 from scancell.model.config_keys import REQUIRED, KeySpec
+from scancell.model.rail_path import RailPath
 from scancell.model.robot_model import RobotModel
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
 
@@ -44,6 +45,13 @@ PLANNER_KEYS: dict[str, KeySpec] = {
     "smr_opening_in_mcs": KeySpec("3 numbers", "the direction the rear SMR's opening faces (MCS)",
                                   [0, 0, -1]),
     "tracker_world_mm": KeySpec("3 numbers", "the tracker's head (home set-up)", REQUIRED, "mm"),
+    "tracker_stations_mm": KeySpec("table name = [x, y, z]", "where a moved tracker's head may "
+                                   "stand (its tripod's marks, world); absent: a ring round the "
+                                   "part at home's distance and heights", {}, "mm"),
+    "floor_z_mm": KeySpec("number", "the floor (world z): the scanner keeps clearance_mm above it",
+                          None, "mm"),
+    "view_tilts_deg": KeySpec("list of numbers", "how far the planner tilts a view from a "
+                                                 "patch's normal (four ways each)", [20.0], "°"),
     "smr_acceptance_deg": KeySpec("number", "the SMR's acceptance half-angle", 30.0, "°"),
     "standoff_mm": KeySpec("number", "the scanner's working distance", 650.0, "mm"),
     "field_mm": KeySpec("2 numbers", "the usable field at the standoff (x, y)", [380.0, 280.0],
@@ -51,6 +59,9 @@ PLANNER_KEYS: dict[str, KeySpec] = {
     "depth_mm": KeySpec("2 numbers", "the usable depth around the standoff", [-90.0, 90.0], "mm"),
     "rail_axis": KeySpec("3 numbers", "the external linear axis carrying the robot (unit vector, "
                                       "world); absent: no rail"),
+    "rail_path": KeySpec("list of {length_mm, turn_deg}", "a track of straight and curved "
+                         "modules from the base's position along rail_axis (+ turns left); "
+                         "absent: a straight rail", [], "mm, °"),
     "rail_positions_mm": KeySpec("list of numbers", "the rail positions the planner may use", [],
                                  "mm"),
     "rail_speed_mm_s": KeySpec("number", "the rail's speed between stations", 250.0, "mm/s"),
@@ -118,6 +129,8 @@ class CellGeometry:
     #: the planner may use; empty: no axis.
     rail_axis: tuple[float, float, float] | None = None
     rail_positions_mm: tuple[float, ...] = ()
+    #: the axis's track when it is not straight (curved modules turn the base with it)
+    rail_path: RailPath | None = None
     #: how fast the rail moves between stations (mm/s): what a move along it costs
     rail_speed_mm_s: float = 250.0
     robot: RobotModel = field(default_factory=RobotModel)
@@ -128,6 +141,12 @@ class CellGeometry:
     #: cell objects the scanner keeps ``clearance_mm`` from (the part: its standoff)
     obstacles: tuple[Obstacle, ...] = ()
     clearance_mm: float = DEFAULT_CLEARANCE_MM
+    #: where a moved tracker may stand (world, mm); empty: a ring round the part
+    tracker_stations_mm: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    #: the floor's height (world z, mm), None: not stated
+    floor_z_mm: float | None = None
+    #: the planner's view tilts from a patch's normal (deg)
+    view_tilts_deg: tuple[float, ...] = (20.0,)
 
     def optical_centres_in_flange(self) -> np.ndarray:
         """(3, 3) the left camera (MCS origin), the rig midpoint (the projector sits near it)
@@ -136,8 +155,26 @@ class CellGeometry:
         mid = np.asarray(self.rig_mid_in_flange, float)
         return np.stack([left, mid, 2 * mid - left])
 
+    def below_floor(self, T_world_from_flange: np.ndarray) -> bool:
+        """The scanner's optical centres at this flange pose come nearer the floor than
+        ``clearance_mm`` (never, when the floor is not stated)."""
+        return self.floor_clearance(T_world_from_flange) < self.clearance_mm
+
+    def floor_clearance(self, T_world_from_flange: np.ndarray) -> float:
+        """How far (mm) the scanner's lowest optical centre stands above the floor (inf when
+        the floor is not stated)."""
+        if self.floor_z_mm is None:
+            return float("inf")
+        T = np.asarray(T_world_from_flange, float)
+        return float((self.optical_centres_in_flange() @ T[2, :3] + T[2, 3]).min()
+                     - self.floor_z_mm)
+
     def clearance_problem(self, T_world_from_flange: np.ndarray) -> str | None:
-        """Why the scanner at this flange pose is too near a cell object, or None."""
+        """Why the scanner at this flange pose is too near a cell object or the floor, or
+        None."""
+        if self.below_floor(T_world_from_flange):
+            return (f"the scanner passes {self.floor_clearance(T_world_from_flange):.0f} mm "
+                    f"above the floor (clearance {self.clearance_mm:g} mm)")
         if not self.obstacles:
             return None
         T = np.asarray(T_world_from_flange, float)
@@ -197,10 +234,18 @@ class CellGeometry:
                 if angle <= self.smr_acceptance_deg - margin_deg}
 
     def base_at(self, rail_mm: float | None) -> np.ndarray:
-        T = np.array(self.T_world_from_base, float)
-        if rail_mm:
-            T[:3, 3] += np.asarray(self.rail_axis or (0.0, 1.0, 0.0), float) * rail_mm
-        return T
+        """The robot base's pose (world, mm) at rail position ``rail_mm`` (None: no rail)."""
+        path = self.rail_path or RailPath(tuple(self.rail_axis or (0.0, 1.0, 0.0)))
+        return path.base_at(self.T_world_from_base, rail_mm)
+
+    def rail_nearest(self, target: np.ndarray) -> list[float | None]:
+        """The rail positions the planner may use, the base nearest ``target`` (world, mm)
+        first: the arm works best mid-reach. [None] without a rail."""
+        if not self.rail_positions_mm:
+            return [None]
+        t = np.asarray(target, float)[:2]
+        return sorted(self.rail_positions_mm,
+                      key=lambda r: float(np.linalg.norm(self.base_at(r)[:2, 3] - t)))
 
     @classmethod
     def from_table(cls, t: dict[str, Any]) -> CellGeometry:
@@ -224,11 +269,18 @@ class CellGeometry:
                     tuple(t.get("depth_mm", (-90.0, 90.0))),
                     rail_axis=tuple(t["rail_axis"]) if t.get("rail_axis") else None,
                     rail_positions_mm=tuple(float(v) for v in t.get("rail_positions_mm", ())),
+                    rail_path=(RailPath.from_table(t.get("rail_axis"), t["rail_path"])
+                               if t.get("rail_path") else None),
                     rail_speed_mm_s=float(t.get("rail_speed_mm_s", 250.0)),
                     smr_cluster=_cluster(t.get("smr_cluster", {})),
                     obstacles=tuple(Obstacle.from_table(o, f"obstacles[{i}]")
                                     for i, o in enumerate(t.get("obstacles", []))),
-                    clearance_mm=float(t.get("clearance_mm", DEFAULT_CLEARANCE_MM)))
+                    clearance_mm=float(t.get("clearance_mm", DEFAULT_CLEARANCE_MM)),
+                    tracker_stations_mm={str(k): tuple(float(x) for x in np.reshape(v, 3))
+                                         for k, v in (t.get("tracker_stations_mm") or {}).items()},
+                    floor_z_mm=(float(t["floor_z_mm"]) if t.get("floor_z_mm") is not None
+                                else None),
+                    view_tilts_deg=tuple(float(v) for v in t.get("view_tilts_deg", (20.0,))))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:

@@ -95,6 +95,12 @@ def car_rear_shape():
     return sewing.SewedShape(), [(sewing.Modified(f), name) for f, name in built]
 
 
+def _car_body_shape():
+    from scancell.sim.car_body import car_body_shape
+
+    return car_body_shape()
+
+
 def write_step(path: str | Path, shape, named_faces: list[tuple[object, str]],
                product: str) -> Path:
     """A STEP AP214 file of ``shape`` (mm) with each named face's name in its ADVANCED_FACE."""
@@ -135,8 +141,9 @@ def export_nominal(part: str, folder: str | Path) -> dict[str, str]:
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
-    if nominal == "car_rear":
-        shape, named = car_rear_shape()
+    shapes = {"car_rear": car_rear_shape, "car_body": _car_body_shape}
+    if nominal in shapes:
+        shape, named = shapes[nominal]()
         files["step"] = str(write_step(out / f"{nominal}.step", shape, named, nominal))
     mesh = parts.PARTS[nominal]()
     mesh.compute_vertex_normals()

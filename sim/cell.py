@@ -26,6 +26,7 @@ import numpy as np
 import open3d as o3d
 from scancell.model.ecs import ecs_from_points
 from scancell.model.patterns import FringeSequence
+from scancell.model.rail_path import RailModule, RailPath
 from scancell.model.robot_model import RobotModel
 from scancell.model.transforms import apply_T, look_at_flange, make_T, rot_x, rot_y
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG
@@ -167,6 +168,9 @@ def default_mount(rig: StereoRig) -> np.ndarray:
     return T_flange_from_rig @ np.linalg.inv(T_mcs_from_rig)
 
 
+#: the floor's height in world (the tracker's head stands 1.2 m above it), mm
+FLOOR_Z_MM = -1200.0
+
 #: the simulated cell's reference nests (world, mm): on the floor and on stands around the part,
 #: in the tracker's sight past the robot and the part
 DEFAULT_NESTS: dict[str, tuple[float, float, float]] = {
@@ -189,6 +193,16 @@ class SimCellConfig:
     T_world_from_rail0: np.ndarray = field(default_factory=lambda: make_T(t=[1800.0, 0.0, -1200.0]))
     rail_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     rail_limits_mm: tuple[float, float] = (-1500.0, 1500.0)
+    #: the track's modules from rail 0 along ``rail_axis`` (empty: a straight rail)
+    rail_path: tuple[RailModule, ...] = ()
+    #: the rail positions the cell's planner may use (mm)
+    rail_positions_mm: tuple[float, ...] = (-800.0, -400.0, 0.0, 400.0, 800.0)
+    #: where a moved tracker may stand (world, mm; the planner's ``tracker_stations_mm``)
+    tracker_stations_mm: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    #: the planner's view tilts from a patch's normal (deg)
+    view_tilts_deg: tuple[float, ...] = (20.0,)
+    #: what the scanner looks at when the cell starts (world, mm); None: the part's origin
+    start_target_world: tuple[float, float, float] | None = None
     joint_repeatability_deg: float = 0.002  # 1 sigma per joint (~±0.07 mm at the flange)
     j6_repeatability_deg: float = 0.003  # extra 1 sigma on J6 (the ECS rotations)
     j6_angles_deg: tuple[float, float] = DEFAULT_J6_ANGLES_DEG  # J6 turns for P2 and P3
@@ -218,6 +232,14 @@ class SimCellConfig:
     #: and its axis; None: none. Where ``[metrology.scanner_check]`` of sim.toml looks.
     check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
         DEFAULT_CHECK_BAR)
+
+
+    @classmethod
+    def for_part(cls, part: str | None, **kwargs: Any) -> SimCellConfig:
+        """The cell laid out for ``part`` (sim/layouts.py), with ``kwargs`` on top."""
+        from scancell.sim.layouts import cell_layout
+
+        return cls(part=part, **{**cell_layout(part), **kwargs})
 
 
 @dataclass
@@ -271,6 +293,7 @@ class SimCell:
         self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
         self.q = self.q_commanded.copy()
         self.rail_mm = 0.0
+        self.rail = RailPath(tuple(map(float, self.cfg.rail_axis)), tuple(self.cfg.rail_path))
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
         self.precompensation: np.ndarray | None = None
@@ -308,9 +331,7 @@ class SimCell:
     # ------------------------------------------------------------------ poses (ground truth)
     @property
     def T_world_from_base(self) -> np.ndarray:
-        T = self.cfg.T_world_from_rail0.copy()
-        T[:3, 3] += self.cfg.rail_axis * self.rail_mm
-        return T
+        return self.rail.base_at(self.cfg.T_world_from_rail0, self.rail_mm)
 
     def T_world_from_flange(self, q_rad: np.ndarray | None = None) -> np.ndarray:
         """The flange's true pose: at joints ``q_rad`` at rest (the arm bent by the payload and
@@ -367,12 +388,17 @@ class SimCell:
         return T_world_from_flange @ T_fm
 
     def start_joints(self, down_deg: float = 20.0) -> np.ndarray:
-        """Joints (rad) with the scanner looking at the part's centre from ``down_deg`` above the
-        horizontal: the part is in view, the SMR faces the tracker, and a calibration ball in
-        front of the scanner is seen by the tracker below the scanner's housing."""
+        """Joints (rad) with the scanner looking at the part (its centre, or the layout's start
+        target), away from the tracker and ``down_deg`` down from the horizontal: the part is in
+        view, the SMR faces the tracker, and a calibration ball in front of the scanner is seen
+        by the tracker below the scanner's housing."""
         t = np.radians(down_deg)
+        target = (self.cfg.T_world_from_part[:3, 3] if self.cfg.start_target_world is None
+                  else np.asarray(self.cfg.start_target_world, float))
+        away = (target - self.tracker.home)[:2]  # the SMR's opening faces back along the view
+        away /= np.linalg.norm(away)
         return self.ik_for_mcs(self.mcs_pose_looking_at(
-            self.cfg.T_world_from_part[:3, 3], view_dir=np.array([np.cos(t), 0.0, -np.sin(t)])))
+            target, view_dir=np.array([np.cos(t) * away[0], np.cos(t) * away[1], -np.sin(t)])))
 
     def ik_for_mcs(self, T_world_from_mcs: np.ndarray, seed_rad: np.ndarray | None = None
                    ) -> np.ndarray:
@@ -411,7 +437,12 @@ class SimCell:
                 "tracker_world_mm": self.tracker.home.tolist(),
                 "smr_acceptance_deg": self.cfg.tracker.acceptance_half_angle_deg,
                 "rail_axis": self.cfg.rail_axis.tolist(),
-                "rail_positions_mm": [-800.0, -400.0, 0.0, 400.0, 800.0],
+                "rail_positions_mm": list(self.cfg.rail_positions_mm),
+                **({"rail_path": self.rail.to_table()} if self.cfg.rail_path else {}),
+                **({"tracker_stations_mm": {n: list(p) for n, p in
+                                            self.cfg.tracker_stations_mm.items()}}
+                   if self.cfg.tracker_stations_mm else {}),
+                "view_tilts_deg": list(self.cfg.view_tilts_deg), "floor_z_mm": FLOOR_Z_MM,
                 # the simulated drive's 500 mm/s at the speed a job moves the rail (0.5)
                 "rail_speed_mm_s": 250.0,
                 # as drawn: the true nests sit where the housing's machining put them

@@ -133,9 +133,11 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
     worker compares against)."""
     optics, mechanics = sim_profiles(options)
     cluster = options.get("smr_cluster")  # the schema admits "housing" or none
-    return SimCell(SimCellConfig(
-        seed=int(options.get("seed", 0)), camera_scale=float(options.get("camera_scale", 1.0)),
-        part=options.get("part", "car_rear") or None, optics=optics, mechanics=mechanics,
+    part = options.get("part", "car_rear") or None
+    return SimCell(SimCellConfig.for_part(
+        part, seed=int(options.get("seed", 0)),
+        camera_scale=float(options.get("camera_scale", 1.0)),
+        optics=optics, mechanics=mechanics,
         smr_cluster=dict(HOUSING_SMR_CLUSTER) if cluster == "housing" else {}))
 
 

@@ -5,6 +5,7 @@
   recess with steep walls. It faces -x (the viewer stands at negative x).
 - ``car_rear_defects``: the car rear with three known form errors (:data:`CAR_REAR_DEFECTS`): a
   dent, a twist and the right flank (a flange) out of position; its nominal is ``car_rear``.
+- ``car_body``: a whole body-in-white-like car, 4600 x 1800 x 1400 mm (sim/car_body.py).
 - ``flat``: a 300 x 300 mm plate facing -x (VDI/VDE 2634-2 flatness artefact).
 - ``dumbbell``: two 30 mm spheres, 200 mm apart on a bar (sphere-spacing artefact).
 - ``smr``: a 38.1 mm (1.5") SMR whose corner-cube opening (approximated by a cone to the
@@ -263,8 +264,15 @@ ARTEFACTS = {
     "ballbar3": lambda: dumbbell(BALLBAR3_SPHERE_DIAMETER_MM / 2, BALLBAR3_LENGTH_MM),
 }
 
+def car_body() -> o3d.geometry.TriangleMesh:
+    """The whole car body (sim/car_body.py): its STEP's tessellation, built on first use."""
+    from scancell.sim.car_body import car_body as mesh
+
+    return mesh()
+
+
 PARTS = {"car_rear": car_rear, "car_rear_defects": car_rear_defects, "flat": flat,
-         "dumbbell": dumbbell}
+         "dumbbell": dumbbell, "car_body": car_body}
 #: the nominal (CAD) of each part that has one other than itself
 NOMINAL_OF = {"car_rear_defects": "car_rear"}
 

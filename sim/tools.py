@@ -35,7 +35,7 @@ def render(args: argparse.Namespace) -> int:
         print(f"scancell sim render: unknown part {args.part!r}; known: {', '.join(PARTS)}",
               file=sys.stderr)
         return 2
-    cell = SimCell(SimCellConfig(seed=args.seed, camera_scale=args.scale, part=args.part))
+    cell = SimCell(SimCellConfig.for_part(args.part, seed=args.seed, camera_scale=args.scale))
     if args.joints_deg:
         q = np.radians(_floats(args.joints_deg, 6, "--joints-deg"))
     else:
@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"scancell sim part: unknown part {args.part!r}; known: {', '.join(PARTS)}",
                   file=sys.stderr)
             return 2
-        mesh = SimCell(SimCellConfig(part=args.part, camera_scale=8)).part_mesh_world()
+        mesh = SimCell(SimCellConfig.for_part(args.part, camera_scale=8)).part_mesh_world()
         if not o3d.io.write_triangle_mesh(args.out, mesh):
             print(f"scancell sim part: cannot write {args.out}", file=sys.stderr)
             return 2
@@ -237,7 +237,8 @@ def nominal(args: argparse.Namespace) -> int:
         print(f"scancell sim nominal: {exc}", file=sys.stderr)
         return 2
     pose = Path(args.out) / "T_world_from_part.json"
-    pose.write_text(json.dumps({"T_world_from_part": SimCellConfig().T_world_from_part.tolist()}))
+    T = SimCellConfig.for_part(args.part).T_world_from_part
+    pose.write_text(json.dumps({"T_world_from_part": T.tolist()}))
     for kind, path in {**files, "pose": str(pose)}.items():
         print(f"{kind}: {path}")
     return 0

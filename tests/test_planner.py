@@ -223,6 +223,31 @@ def test_surface_coverage_counts_the_part_within_2_mm_of_a_measured_point():
         surface_coverage(o3d.geometry.TriangleMesh(), top_left_half)
 
 
+@pytest.mark.unit
+def test_the_measurable_surface_leaves_out_what_stands_on_the_floor_and_what_is_hidden():
+    import open3d as o3d
+    from scancell.analysis.surface_coverage import measurable, surface_coverage
+
+    box = o3d.geometry.TriangleMesh.create_box(400.0, 400.0, 400.0)  # on the floor at z = 0
+    ok = measurable(box, 650.0, 65.0, floor_z_mm=0.0, samples=12_000)
+    o3d.utility.random.seed(0)  # the same samples as measurable's
+    normals = np.asarray(box.sample_points_uniformly(12_000, use_triangle_normal=True).normals)
+    assert not ok[normals[:, 2] < -0.9].any()  # its underside
+    assert ok[normals[:, 2] > 0.9].all() and ok[np.abs(normals[:, 0]) > 0.9].all()
+    assert ok.mean() == pytest.approx(5 / 6, abs=0.01)
+    assert measurable(box, 650.0, 65.0, samples=12_000).all()  # no floor: a box in the air
+    # a plate 20 mm over another: the gap's faces are hidden from every direction
+    sandwich = box + o3d.geometry.TriangleMesh.create_box(400.0, 400.0, 10.0).translate(
+        [0.0, 0.0, 420.0])
+    hidden = measurable(sandwich, 650.0, 65.0, floor_z_mm=0.0, samples=12_000)
+    assert hidden.mean() < 5 / 6 - 0.1
+    top = ok & (normals[:, 2] > 0.9)
+    assert surface_coverage(box, [[200.0, 200.0, 400.0]], within_mm=1e4, samples=12_000,
+                            only=top) == 1.0
+    with pytest.raises(ValueError, match="mask"):
+        surface_coverage(box, [[0.0, 0.0, 0.0]], samples=12_000, only=np.zeros(5, bool))
+
+
 def test_the_station_tour_takes_the_shorter_way_round():
     """Nearest neighbour from 0 on a line goes 0, 1, 2, 3, then back past 0 to -1, -2 (8);
     2-opt goes down first (7). Random instances: never longer than nearest neighbour, and

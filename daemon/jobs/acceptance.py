@@ -123,10 +123,7 @@ def station_looking_at(name: str, target: np.ndarray, g: CellGeometry) -> PlanSt
 
     T = look_at_flange(target, np.array([1.0, 0.0, 0.0]), g.standoff_mm, g.rig_mid_in_flange)
     T = T @ g.T_flange_from_mcs
-    rail = None
-    if g.rail_axis is not None and g.rail_positions_mm:
-        along = float((target - g.T_world_from_base[:3, 3]) @ np.asarray(g.rail_axis))
-        rail = min(g.rail_positions_mm, key=lambda r: abs(r - along))
+    rail = g.rail_nearest(target)[0] if g.rail_axis is not None else None
     pose = (*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True))
     return PlanStation(name, None, rail, tuple(float(v) for v in pose))
 

@@ -1,0 +1,83 @@
+"""The simulated whole car body: its STEP is the surface the simulator renders, a closed solid
+wound outward with named faces, and its cell puts the robot on both sides of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scancell.analysis.nominal import load_nominal
+from scancell.cli import main as scancell
+from scancell.model.cell_geometry import CellGeometry
+from scancell.sim import car_body, parts
+from scancell.sim.cell import SimCellConfig
+from scancell.sim.host import sim_cell
+
+pytestmark = [pytest.mark.unit, pytest.mark.timeout(300)]
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    out = tmp_path_factory.mktemp("car_body")
+    assert scancell(["sim", "nominal", "--part", "car_body", "--out", str(out)]) == 0
+    return out
+
+
+def test_the_step_is_the_rendered_surface_and_names_its_panels(exported):
+    nominal = load_nominal(exported / "car_body.step",
+                           chordal_tolerance_mm=car_body.RENDER_CHORDAL_MM)
+    lo, hi = nominal.vertices.min(axis=0), nominal.vertices.max(axis=0)
+    np.testing.assert_allclose(lo, [-900.0, -2300.0, 0.0], atol=0.05)
+    np.testing.assert_allclose(hi, [900.0, 2300.0, 1400.0], atol=0.05)
+    named = set(nominal.face_names)
+    assert {"roof", "bonnet", "boot_lid", "windscreen", "rear_window", "side", "front", "rear",
+            "wheel_arch", "underbody", "blend"} <= named, named
+    rendered = parts.PARTS["car_body"]()
+    np.testing.assert_array_equal(np.asarray(rendered.vertices), nominal.vertices)
+    np.testing.assert_array_equal(np.asarray(rendered.triangles), nominal.triangles)
+
+
+def test_the_rendered_surface_is_a_closed_solid_wound_outward():
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+
+    mesh = parts.PARTS["car_body"]()
+    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    signed = float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6)
+    props = GProp_GProps()
+    BRepGProp.VolumeProperties_s(car_body.car_body_solid(), props)
+    assert signed == pytest.approx(props.Mass(), rel=1e-4)  # outward: positive, and all of it
+
+
+def test_the_cell_reaches_round_the_body_and_its_tracker_stations_see_the_nests():
+    cell = sim_cell({"part": "car_body", "camera_scale": 16})
+    assert cell.cfg.T_world_from_part[:3, 3].tolist() == [3800.0, 0.0, -850.0]
+    g = CellGeometry.from_table(cell.planner_table())
+    centre = cell.cfg.T_world_from_part[:3, 3]
+    lo, hi = cell.cfg.rail_limits_mm
+    for s in (lo, (lo + hi) / 2, hi):  # near side, round the front, far side
+        T = g.base_at(s)
+        to_body = np.array([centre[0], np.clip(T[1, 3], -2300.0, 2300.0)]) - T[:2, 3]
+        assert T[:2, 0] @ to_body / np.linalg.norm(to_body) > 0.7, s  # the robot faces it
+    assert g.floor_z_mm == -1200.0 and g.view_tilts_deg == (20.0, 45.0)
+    assert len(g.tracker_stations_mm) >= 6
+    # the default cell is the car rear's, laid out as before
+    assert SimCellConfig.for_part("car_rear").rail_path == ()
+
+
+def test_the_car_body_cell_config_states_the_simulated_layout():
+    from scancell.config import load_cell_config
+    from scancell.deploy import cell_config_path
+    from scancell.sim.layouts import CAR_BODY_CHECK_BAR, CAR_BODY_NESTS
+
+    cfg = load_cell_config(cell_config_path("sim-car-body"))
+    assert cfg.simulator["part"] == "car_body"
+    assert {k: tuple(v) for k, v in cfg.raw["metrology"]["nests"].items()} == CAR_BODY_NESTS
+    g = cfg.geometry
+    assert cfg.raw["devices"]["axis"]["limits"] == [0.0, pytest.approx(g.rail_path.length_mm,
+                                                                       abs=1.0)]
+    # the taught scanner-check pose sees the bar in its depth of field, the rear SMR facing home
+    check = cfg.raw["metrology"]["scanner_check"]
+    T = g.T_world_from_mcs(np.radians(check["joints_deg"]), check["axis_mm"])
+    bar = np.linalg.inv(T) @ [*CAR_BODY_CHECK_BAR[0], 1.0]
+    assert g.standoff_mm + g.depth_mm[0] < bar[2] < g.standoff_mm + g.depth_mm[1]
+    assert g.smr_positions_at(T)["rear"][1] < g.smr_acceptance_deg
