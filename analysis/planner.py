@@ -110,6 +110,9 @@ CLUSTER_ROLLS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0, 
 #: a view from a tracker station the plan does not use yet scores this share of its new
 #: coverage: a move is taken when it adds more than twice what the stations without it would
 MOVE_DISCOUNT = 0.5
+#: a view is taken only if it adds this much surface not measured yet (mm²; 5 samples at the
+#: least): a 30 mm square, under 1 % of the field
+MIN_GAIN_MM2 = 900.0
 #: the job measures the SMRs facing the tracker within the acceptance less this (deg)
 FACING_MARGIN_DEG = 3.0
 
@@ -157,6 +160,7 @@ class Planner:
         mesh.compute_triangle_normals()
         o3d.utility.random.seed(seed)
         pcd = mesh.sample_points_uniformly(samples, use_triangle_normal=True)
+        self.area_per_sample_mm2 = mesh.get_surface_area() / samples
         self.points = np.asarray(pcd.points)
         n = np.asarray(pcd.normals)
         if not _closed_and_outward(mesh):  # a sheet: its normals towards the robot
@@ -390,7 +394,7 @@ class Planner:
             raise PlanningError(f"none of {tried} candidate views is reachable with the tracker "
                                 f"seeing {'3 SMRs' if self.ecs == 'cluster' else 'the SMR'}: is "
                                 f"the part in reach of the robot (world frame, mm)?")
-        min_gain = max(5, len(self.points) // 1000)
+        min_gain = max(5, int(np.ceil(MIN_GAIN_MM2 / self.area_per_sample_mm2)))
         all_cands = list(cands)
         chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
         chosen_ids = {id(c) for c in chosen}
