@@ -9,9 +9,9 @@ client. Stages:
    pre-compensated fringes;
 3. hand-eye calibration, a ``calibrate_hand_eye`` job with 15 ball positions (and the
    scanner's SMR cluster);
-4. station planning for the whole car-body rear (``scancell plan --ecs cluster``, up to 2
-   tracker moves, speed 0.5; ``--ecs j6``: the paper's J6 turns, from home only), run while
-   the hand-eye job measures;
+4. station planning for the whole part (``scancell plan --ecs cluster``, up to 2 tracker moves
+   or, where the cell marks its tracker stations, one to each, speed 0.5; ``--ecs j6``: the
+   paper's J6 turns, from home only), run while the hand-eye job measures;
 5. the ``scan_part`` job, fused by the fuse worker into a mesh, E57 and a report;
 6. the inspection of the fused model against the part's CAD (STEP) by the inspect worker;
 7. the VDI/VDE 2634 acceptance test of the scanner (Part 2: sphere, ball bar in 7 positions,
@@ -25,6 +25,11 @@ docs/explanation/simulation.md) and the scans take the exposures its ``[scanner]
 
 ``--quick`` runs the same path at 1/4 camera resolution, with 5 balls, the plan's first 3
 stations and the first of each other tracker station.
+
+``--part car_body`` runs it on the whole car body's cell (``deploy/cells/sim-car-body.toml``):
+the robot on a track round the body, the tracker moved round it, and the coverage reported
+over the surface a scanner can measure at all (the body stands on its underbody). Its
+recordings keep clouds and results but no camera frames unless ``--frames`` says otherwise.
 """
 
 from __future__ import annotations
@@ -117,8 +122,16 @@ def print_progress(e: dict[str, Any], prefix: str = "   ") -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default=None, help="cell config (default: packaged sim cell)")
+    p.add_argument("--config", default=None, help="cell config (default: the packaged "
+                                                  "simulated cell of --part)")
+    p.add_argument("--part", choices=sorted(PART_CELLS), default=None,
+                   help="the simulated part: car_rear (default; deploy/cells/sim.toml) or "
+                        "car_body (a whole body on a track round it; sim-car-body.toml)")
     p.add_argument("--quick", action="store_true", help="reduced size, for tests")
+    p.add_argument("--frames", choices=("all", "first_exposure", "none"), default=None,
+                   help="which camera frames the recorder keeps (default: all; none for the "
+                        "car body: its ~320 full-size stations' frames would be ~67 GB, its "
+                        "clouds and results are kept)")
     p.add_argument("--no-acceptance", action="store_true",
                    help="skip the VDI/VDE 2634 acceptance stage (ablation runs)")
     p.add_argument("--ecs", choices=("j6", "cluster"), default=None,
@@ -138,16 +151,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the two (true error, time)")
 
 
+#: the packaged cell config of each simulated part the demo runs
+PART_CELLS = {"car_rear": "sim", "car_body": "sim-car-body"}
+
+
 def main(args: argparse.Namespace) -> int:
     from scancell.config import ConfigError, load_cell_config
+    from scancell.deploy import cell_config_path
 
-    config = Path(args.config) if args.config else default_cell_config()
+    config = (Path(args.config) if args.config
+              else cell_config_path(PART_CELLS[args.part]) if args.part
+              else default_cell_config())
     try:
         cfg = load_cell_config(config)
     except ConfigError as exc:
         return fail("demo", str(exc))
     if cfg.simulator is None:
         return fail("demo", f"{config} has no [simulator]: the demo runs on the simulated cell")
+    part_name = str(cfg.simulator.get("part", "car_rear") or "")
+    if not part_name:
+        return fail("demo", f"{config}: [simulator] part is empty: the demo measures a part")
+    if args.part and part_name != args.part:
+        return fail("demo", f"--part {args.part}, but {config} simulates {part_name!r}: give one "
+                            f"of them")
     from scancell.sim.host import flatten_overrides, relocated_ports, sim_cell
 
     if args.compare_ecs and args.ecs == "cluster":
@@ -189,13 +215,14 @@ def main(args: argparse.Namespace) -> int:
                             connect_wait_s=60.0, timeout_s=300.0)
         wait_for(lambda: all(s["state"] == "connected" for s in
                              client.status()["devices"].values()), 90, "connected devices")
+        frames = args.frames or ("none" if part_name == "car_body" else "all")
         procs.start("recorder", ["record", "--dir", str(run_dir / "recordings"),
-                                 "--job-linger-s", "30"], env)
+                                 "--job-linger-s", "30", "--frames", frames], env)
 
         stage("stereo calibration from rendered chessboard views")
         nominal_dir = run_dir / "nominal"  # the part's CAD for the inspection, exported beside
-        exported = background.submit(run, ["sim", "nominal", "--part", str(cfg.simulator.get(
-            "part", "car_rear")), "--out", str(nominal_dir)], env, "exporting the part's CAD")
+        exported = background.submit(run, ["sim", "nominal", "--part", part_name, "--out",
+                                           str(nominal_dir)], env, "exporting the part's CAD")
         # the views are the cell's: another simulator seed, another set of board poses and noise
         print("   " + run(["sim", "targets", "--out", str(run_dir / "targets"), "--scale",
                             str(scale), "--count", "12" if quick else "18", "--seed",
@@ -208,7 +235,7 @@ def main(args: argparse.Namespace) -> int:
 
         stage("workers: scan, calibrate, fuse, inspect (the part's CAD: STEP and STL)")
         exported.result()
-        step = (nominal_dir / "car_rear.step").resolve()
+        step = next(nominal_dir.glob("*.step")).resolve()
         # On one 2-core machine the workers' station-by-station work would slow the
         # simulator's rendering (the cell's time), which on a real cell is the cameras' own
         # hardware: the workers yield to the simulator, the fuse worker to the scan worker.
@@ -249,11 +276,12 @@ def main(args: argparse.Namespace) -> int:
 
         # the stations are planned while the cell calibrates: planning needs only the part
         # and the cell's geometry
-        part = run_dir / "car_rear.ply"
+        part = run_dir / f"{part_name}.ply"
+        marks = len(cfg.geometry.tracker_stations_mm) if cfg.geometry is not None else 0
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
-                       "--coverage", "0.995", "--tracker-moves", "2", "--speed", "0.5"]
-                      if ecs == "cluster" else [])
-        planned = background.submit(plan_part, part, run_dir, config, by_cluster, env)
+                       "--coverage", "0.995", "--tracker-moves", str(max(2, marks)),
+                       "--speed", "0.5"] if ecs == "cluster" else [])
+        planned = background.submit(plan_part, part_name, part, run_dir, config, by_cluster, env)
         stage(f"hand-eye calibration: {balls} ball positions (the stations planned beside it)")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
@@ -281,7 +309,8 @@ def main(args: argparse.Namespace) -> int:
               f"against the true left camera {cam['rotation_error_arcsec']:.1f}\" (the "
               f"stereo calibration puts MCS {cam['calibration_offset_arcsec']:.1f}\" off it)")
 
-        stage("station planning for the car-body rear (done beside the hand-eye)")
+        stage(f"station planning for the {part_name.replace('_', ' ')} (done beside the "
+              f"hand-eye)")
         print("   " + planned.result().strip().replace("\n", "\n   "))
 
         stage("measurement job (scan_part), fused live by the fuse worker")
@@ -321,7 +350,8 @@ def main(args: argparse.Namespace) -> int:
                                f"{report['files_error']}")
         summary.update(metrology_summary(final.get("result") or {}))
 
-        stage("inspection: the fused model against the car rear's CAD (STEP), bestfit")
+        stage(f"inspection: the fused model against the {part_name.replace('_', ' ')}'s CAD "
+              f"(STEP), bestfit")
         t_inspect = time.monotonic()
         inspection = wait_for(lambda: [r for r in inspections if r.get("job_id") == job], 600,
                               "inspection report")[-1]
@@ -341,7 +371,7 @@ def main(args: argparse.Namespace) -> int:
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
         summary["station_timing_s"] = station_timing(final.get("result") or {})
-        summary["surface_coverage_2mm"] = part_coverage(part, report)
+        summary.update(part_coverage(part, report, cfg.geometry))
         if report.get("ecs_comparison"):
             summary["ecs_comparison"] = report["ecs_comparison"]
         summary["scanner"] = scanner_summary([r for r in scan_results
@@ -392,11 +422,11 @@ ACCEPTANCE_POSITIONS = {"sphere": 3, "ballbar": 7, "plane": 6}
 QUICK_ACCEPTANCE_POSITIONS = {"sphere": 1, "ballbar": 2, "plane": 2}
 
 
-def plan_part(part: Path, run_dir: Path, config: Path, options: list[str],
+def plan_part(name: str, part: Path, run_dir: Path, config: Path, options: list[str],
               env: dict[str, str]) -> str:
-    """The simulated part exported to ``part`` and ``scancell plan`` on it (plan.toml and
-    plan.json in ``run_dir``); what the planner printed."""
-    run(["sim", "part", "--out", str(part)], env, "exporting the part")
+    """The simulated part ``name`` exported to ``part`` and ``scancell plan`` on it (plan.toml
+    and plan.json in ``run_dir``); what the planner printed."""
+    run(["sim", "part", "--part", name, "--out", str(part)], env, "exporting the part")
     return run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"), "--cell",
                 str(config), "--json", str(run_dir / "plan.json"), *options], env, "planning")
 
@@ -571,18 +601,25 @@ def quick_stations(plan: dict[str, Any], n: int = 3) -> list[str]:
     return names
 
 
-def part_coverage(part: Path, report: dict[str, Any]) -> float | None:
-    """The share of the part's surface (``car_rear.ply``, kept in the run folder) within 2 mm
-    of a point of the fused model (``fused.ply``)."""
+def part_coverage(part: Path, report: dict[str, Any], geometry: Any) -> dict[str, Any]:
+    """The share of the part's surface (``<part>.ply``, kept in the run folder) within 2 mm of
+    a point of the fused model (``fused.ply``), of all of it and of the surface a scanner can
+    measure at all (the cell's floor, standoff and incidence: ``measurable``), and how much of
+    the part that is."""
     import open3d as o3d
     from scancell.analysis.cloud_io import read_ply
-    from scancell.analysis.surface_coverage import surface_coverage
+    from scancell.analysis.surface_coverage import measurable, surface_coverage
 
     ply = (report.get("files") or {}).get("ply")
     if not ply:
-        return None
+        return {"surface_coverage_2mm": None}
     points, _ = read_ply(ply)
-    return round(surface_coverage(o3d.io.read_triangle_mesh(str(part)), points), 4)
+    mesh = o3d.io.read_triangle_mesh(str(part))
+    can = measurable(mesh, geometry.standoff_mm, geometry.max_incidence_deg,
+                     geometry.floor_z_mm, geometry.clearance_mm)
+    return {"surface_coverage_2mm": round(surface_coverage(mesh, points), 4),
+            "measurable_share": round(float(can.mean()), 4),
+            "measurable_coverage_2mm": round(surface_coverage(mesh, points, only=can), 4)}
 
 
 def station_timing(result: dict[str, Any]) -> dict[str, Any]:
@@ -624,6 +661,10 @@ def table(s: dict[str, Any]) -> str:
             ("true error of the fused model, mean / max (mm)",
              f"{f(e['mean'], '.4f')} / {f(e['max'], '.4f')}", "not measurable"),
             ("stations / points", f"{s['stations']} / {s['points']}", "~22 / ~2 M")]
+    if s.get("measurable_coverage_2mm") is not None and s.get("measurable_share", 1.0) < 1.0:
+        rows.append(("measurable surface within 2 mm of a fused point",
+                     f"{s['measurable_coverage_2mm']:.1%} (of the {s['measurable_share']:.1%} "
+                     f"of the part a scanner can see)", "whole measurable part"))
     if s.get("surface_coverage_2mm") is not None:
         rows.append(("part surface within 2 mm of a fused point", f"{s['surface_coverage_2mm']:.1%}",
                      "whole part"))

@@ -52,9 +52,11 @@ CAR_BODY_TRACKER_STATIONS: dict[str, tuple[float, float, float]] = {
 #: the scanner-check ball bar on a stand behind the body's rear, in reach from rail 0 and
 #: across the view from there (``[metrology.scanner_check]`` of sim-car-body.toml)
 CAR_BODY_CHECK_BAR = ((3200.0, -4500.0, -450.0), (0.81, 0.58, 0.0))
-#: the scanner looks at the near side's rear door from rail 0 when the cell starts (the hand-eye
-#: job's balls go in front of it there)
-CAR_BODY_START_TARGET = (2900.0, -2000.0, -350.0)
+#: the scanner looks at a point 150 mm in front of the near side's rear door from rail 0 when
+#: the cell starts, a little below the tracker's head as at the car rear: the hand-eye job's
+#: balls (560-680 mm out) go there, clear of the body, in the tracker's sight under the
+#: scanner's housing
+CAR_BODY_START_TARGET = (2750.0, -2000.0, -200.0)
 #: the planner tilts views further than the car rear's 20 deg: the roof's and the lids' views
 #: lean 45 deg towards a tracker so that the scanner's SMR faces it
 CAR_BODY_VIEW_TILTS_DEG = (20.0, 45.0)

@@ -81,3 +81,14 @@ def test_the_car_body_cell_config_states_the_simulated_layout():
     bar = np.linalg.inv(T) @ [*CAR_BODY_CHECK_BAR[0], 1.0]
     assert g.standoff_mm + g.depth_mm[0] < bar[2] < g.standoff_mm + g.depth_mm[1]
     assert g.smr_positions_at(T)["rear"][1] < g.smr_acceptance_deg
+
+
+def test_the_demo_names_a_part_its_config_does_not_simulate(tmp_path, capsys, monkeypatch):
+    from scancell.deploy import cell_config_path
+
+    monkeypatch.chdir(tmp_path)
+    code = scancell(["demo", "--part", "car_body", "--config", str(cell_config_path("sim"))])
+    assert code != 0
+    err = capsys.readouterr().err
+    assert "--part car_body" in err and "car_rear" in err
+    assert not (tmp_path / "runs").exists()  # nothing started, nothing half-written
