@@ -115,6 +115,9 @@ MOVE_DISCOUNT = 0.5
 MIN_GAIN_MM2 = 900.0
 #: the job measures the SMRs facing the tracker within the acceptance less this (deg)
 FACING_MARGIN_DEG = 3.0
+#: how far a moved tracker's tripod, set up by eye on its mark, may land off it (mm): 3 x the
+#: 30 mm (1-sigma) a person places a tripod within (the simulated cell's PLACEMENT_SIGMA_MM)
+TRACKER_SETUP_MM = 90.0
 
 
 def _segment_distance(p0: np.ndarray, p1: np.ndarray, a: np.ndarray, b: np.ndarray
@@ -240,13 +243,24 @@ class Planner:
     def smrs_in_sight(self, T_world_from_flange: np.ndarray,
                       head: np.ndarray | None = None) -> list[str]:
         """The scanner's SMRs (rear and cluster) facing the tracker head at ``head`` (world, mm;
-        default home) within the acceptance less FACING_MARGIN_DEG, with no part in the beam."""
+        default home) within the acceptance less FACING_MARGIN_DEG, with no part in the beam.
+        A moved tracker stands where a tripod set up by eye lands, up to TRACKER_SETUP_MM off
+        its mark: the beam to an SMR r away may turn by atan(TRACKER_SETUP_MM / r) more, so
+        its SMRs keep that much more margin (the job, knowing where the tracker landed, measures
+        those within FACING_MARGIN_DEG)."""
         g = self.g
+        moved = head is not None and not np.allclose(head, self.trackers[HOME_TRACKER])
         head = self.trackers[HOME_TRACKER] if head is None else head
         T_wt = np.eye(4)  # the head at ``head``: readings' frame shifted from home's
         T_wt[:3, 3] = head - np.asarray(g.tracker_world_mm, float)
         pos = g.smr_positions_at(T_world_from_flange @ g.T_flange_from_mcs, T_wt)
-        names = [n for n, (_, a) in pos.items() if a <= g.smr_acceptance_deg - FACING_MARGIN_DEG]
+
+        def margin(p: np.ndarray) -> float:
+            r = float(np.linalg.norm(head - (p + T_wt[:3, 3])))
+            return FACING_MARGIN_DEG + (np.degrees(np.arctan(TRACKER_SETUP_MM / r)) if moved
+                                        else 0.0)
+
+        names = [n for n, (p, a) in pos.items() if a <= g.smr_acceptance_deg - margin(p)]
         if not names:
             return []
         pts = np.array([pos[n][0] for n in names]) + T_wt[:3, 3]
