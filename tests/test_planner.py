@@ -321,3 +321,32 @@ def test_plans_keep_their_clearance_from_the_cells_objects_or_are_refused_by_sta
     for s2 in plan2.stations:
         T2 = crowded.base_at(s2.axis_mm) @ crowded.robot.fk(np.radians(s2.joints_deg))
         assert crowded.clearance_problem(T2) is None, s2.name
+
+
+@pytest.mark.unit
+def test_a_moved_trackers_smrs_keep_room_for_where_its_tripod_lands():
+    """From home an SMR is in sight within the acceptance less the job's margin; from a moved
+    tracker, within atan(TRACKER_SETUP_MM / range) less again, so that a tripod set up by eye
+    off its mark still sees it within the job's margin."""
+    from scancell.analysis.planner import FACING_MARGIN_DEG, TRACKER_SETUP_MM
+    from scancell.sim.host import sim_cell
+
+    cell = sim_cell({"part": "car_rear", "camera_scale": 16, "smr_cluster": "housing"})
+    g = CellGeometry.from_table(cell.planner_table())
+    planner = Planner(cell.part_mesh_world(), g, samples=500, ecs="cluster")
+    T = g.base_at(0.0) @ g.robot.fk(cell.start_joints())
+    limit = g.smr_acceptance_deg - FACING_MARGIN_DEG
+    in_band = 0
+    for a in np.radians(np.arange(0.0, 360.0, 5.0)):  # heads round the scanner, 3 m out
+        head = T[:3, 3] + 3000.0 * np.array([np.cos(a), np.sin(a), 0.0])
+        T_wt = np.eye(4)
+        T_wt[:3, 3] = head
+        seen = set(planner.smrs_in_sight(T, head))
+        for name, (p, angle) in g.smr_positions_at(T @ g.T_flange_from_mcs, T_wt).items():
+            extra = np.degrees(np.arctan(TRACKER_SETUP_MM / np.linalg.norm(-p)))
+            if name in seen:
+                assert angle <= limit - extra, (name, angle)
+            if limit - extra < angle <= limit:  # home's margin would take it
+                in_band += 1
+                assert name not in seen
+    assert in_band >= 3  # the test saw the band it is about
