@@ -41,26 +41,16 @@ ARCH_R, ARCH_Y, ARCH_CENTRE_Z, ARCH_DEPTH = 340.0, 1450.0, 60.0, 300.0
 RENDER_CHORDAL_MM = 0.01
 
 
-def _edges(shape) -> list:
-    from OCP.TopAbs import TopAbs_EDGE
+def _sub_shapes(shape, kind: str) -> list:
+    """The shape's edges (``kind`` "edge") or faces ("face"), in OpenCASCADE's order."""
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
     from OCP.TopExp import TopExp_Explorer
     from OCP.TopoDS import TopoDS
 
-    out, ex = [], TopExp_Explorer(shape, TopAbs_EDGE)
+    cast = TopoDS.Edge if kind == "edge" else TopoDS.Face
+    out, ex = [], TopExp_Explorer(shape, TopAbs_EDGE if kind == "edge" else TopAbs_FACE)
     while ex.More():
-        out.append(TopoDS.Edge(ex.Current()))
-        ex.Next()
-    return out
-
-
-def _faces(shape) -> list:
-    from OCP.TopAbs import TopAbs_FACE
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
-
-    out, ex = [], TopExp_Explorer(shape, TopAbs_FACE)
-    while ex.More():
-        out.append(TopoDS.Face(ex.Current()))
+        out.append(cast(ex.Current()))
         ex.Next()
     return out
 
@@ -82,7 +72,7 @@ def _filleted(shape, radius_of) -> object:
 
     fillet = BRepFilletAPI_MakeFillet(shape)
     n = 0
-    for e in _edges(shape):
+    for e in _sub_shapes(shape, "edge"):
         r = radius_of(*_edge_mid_and_direction(e))
         if r:
             fillet.Add(float(r), e)
@@ -181,7 +171,7 @@ def _face_name(face) -> str:
 def car_body_shape():
     """The solid and, per face, its name (for :func:`scancell.sim.cad.write_step`)."""
     solid = car_body_solid()
-    return solid, [(f, _face_name(f)) for f in _faces(solid)]
+    return solid, [(f, _face_name(f)) for f in _sub_shapes(solid, "face")]
 
 
 @lru_cache(maxsize=1)
