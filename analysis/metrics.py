@@ -10,6 +10,7 @@ lies within r count as overlap.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,7 +72,12 @@ class Distribution:
 
     def __init__(self, top: float, bins: int, marks: tuple[float, ...] = ()) -> None:
         self.top, self.bins, self.marks = float(top), int(bins), tuple(marks)
-        self.n, self.total, self.squares = 0, 0.0, 0.0
+        self.n = 0
+        #: each add's sum and sum of squares, added up exactly (math.fsum) when asked: the
+        #: figures do not depend on the order the pairs came in (live, as stations arrive, or
+        #: reprocessed from a recording)
+        self._sums: list[float] = []
+        self._squares: list[float] = []
         self.lo, self.hi = float("inf"), float("-inf")
         self.below = [0] * len(self.marks)
         self.counts = np.zeros(self.bins, np.int64)
@@ -81,13 +87,21 @@ class Distribution:
         if not len(v):
             return
         self.n += len(v)
-        self.total += float(v.sum())
-        self.squares += float(np.dot(v, v))
+        self._sums.append(float(v.sum()))
+        self._squares.append(float(np.dot(v, v)))
         self.lo, self.hi = min(self.lo, float(v.min())), max(self.hi, float(v.max()))
         for i, m in enumerate(self.marks):
             self.below[i] += int(np.count_nonzero(v < m))
         k = np.minimum((v * (self.bins / self.top)).astype(np.int64), self.bins - 1)
         self.counts += np.bincount(k, minlength=self.bins)
+
+    @property
+    def total(self) -> float:
+        return math.fsum(self._sums)
+
+    @property
+    def squares(self) -> float:
+        return math.fsum(self._squares)
 
     @property
     def mean(self) -> float:
