@@ -409,10 +409,7 @@ class Planner:
                                 f"seeing {'3 SMRs' if self.ecs == 'cluster' else 'the SMR'}: is "
                                 f"the part in reach of the robot (world frame, mm)?")
         min_gain = max(5, int(np.ceil(MIN_GAIN_MM2 / self.area_per_sample_mm2)))
-        all_cands = list(cands)
         chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
-        chosen_ids = {id(c) for c in chosen}
-        cands = [c for c in cands if id(c) not in chosen_ids]
         covered = np.any([np.zeros(len(self.points), bool), *(c.sees for c in chosen)], axis=0)
         chosen = [c for t in used
                   for c in self._toured([c for c in chosen if c.tracker == t], speed)]
@@ -432,7 +429,7 @@ class Planner:
         # by the tracker stations the plan uses: what another station would see is "beam"
         zero = np.zeros(len(self.points), bool)
         in_beam = np.any([zero, *(self.seen_in_beam_by.get(t, zero) for t in used)], axis=0)
-        possible = np.any([zero, *(c.sees for c in all_cands if c.tracker in used)], axis=0)
+        possible = np.any([zero, *(c.sees for c in cands if c.tracker in used)], axis=0)
         reasons = {"beam": missed & self.seen_by_view & ~in_beam,
                    "reach": missed & in_beam & ~possible,
                    "view": missed & ~self.seen_by_view,
@@ -440,7 +437,7 @@ class Planner:
         trackers = {t: TrackerStation(t, tuple(float(v) for v in self.trackers[t]))
                     for t in used[1:]}
         report = PlanReport(len(stations), float(covered[possible].mean()),
-                            float(possible.mean()), overlaps, tried, len(cands) + len(chosen),
+                            float(possible.mean()), overlaps, tried, len(cands),
                             {"share": float(missed.mean()),
                              **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}},
                             {t: [float(v) for v in self.trackers[t]]

@@ -18,14 +18,11 @@ def _samples(mesh, samples: int, seed: int):
     return mesh.sample_points_uniformly(samples, use_triangle_normal=True)
 
 
-def surface_coverage(mesh, points_mm: np.ndarray, within_mm: float = 2.0,
-                     samples: int = 50_000, seed: int = 0,
-                     only: np.ndarray | None = None) -> float:
-    """Share of ``samples`` points drawn uniformly by area over ``mesh`` (an open3d
-    TriangleMesh, mm, the frame of ``points_mm``) whose nearest measured point is within
-    ``within_mm``; with ``only`` (a mask over those samples, e.g. :func:`measurable`'s) the
-    share of the samples it keeps. Raises ValueError for a mesh without triangles, no points or
-    an empty mask."""
+def sample_distances(mesh, points_mm: np.ndarray, samples: int = 50_000,
+                     seed: int = 0) -> np.ndarray:
+    """For ``samples`` points drawn uniformly by area over ``mesh`` (an open3d TriangleMesh,
+    mm, the frame of ``points_mm``), the distance (mm) to the nearest measured point. Raises
+    ValueError for a mesh without triangles or no points."""
     import open3d as o3d
 
     points_mm = np.asarray(points_mm, float).reshape(-1, 3)
@@ -33,7 +30,17 @@ def surface_coverage(mesh, points_mm: np.ndarray, within_mm: float = 2.0,
         raise ValueError("surface coverage: no measured points")
     sample = _samples(mesh, samples, seed)
     measured = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
-    d = np.asarray(sample.compute_point_cloud_distance(measured))
+    return np.asarray(sample.compute_point_cloud_distance(measured))
+
+
+def surface_coverage(mesh, points_mm: np.ndarray, within_mm: float = 2.0,
+                     samples: int = 50_000, seed: int = 0,
+                     only: np.ndarray | None = None) -> float:
+    """Share of :func:`sample_distances`'s samples whose nearest measured point is within
+    ``within_mm``; with ``only`` (a mask over those samples, e.g. :func:`measurable`'s) the
+    share of the samples it keeps. Raises ValueError for a mesh without triangles, no points or
+    an empty mask."""
+    d = sample_distances(mesh, points_mm, samples, seed)
     if only is None:
         return float(np.mean(d <= within_mm))
     if only.shape != d.shape or not only.any():

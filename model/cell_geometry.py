@@ -5,6 +5,7 @@ states it in ``[planner]``; the simulated cell supplies its own."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -243,9 +244,13 @@ class CellGeometry:
         first: the arm works best mid-reach. [None] without a rail."""
         if not self.rail_positions_mm:
             return [None]
-        t = np.asarray(target, float)[:2]
-        return sorted(self.rail_positions_mm,
-                      key=lambda r: float(np.linalg.norm(self.base_at(r)[:2, 3] - t)))
+        d = np.linalg.norm(self._rail_bases_xy - np.asarray(target, float)[:2], axis=1)
+        return [self.rail_positions_mm[i] for i in np.argsort(d, kind="stable")]
+
+    @cached_property
+    def _rail_bases_xy(self) -> np.ndarray:
+        """(positions, 2) where the base stands at each planner rail position (world, mm)."""
+        return np.array([self.base_at(r)[:2, 3] for r in self.rail_positions_mm])
 
     @classmethod
     def from_table(cls, t: dict[str, Any]) -> CellGeometry:

@@ -75,10 +75,7 @@ class RobotModel:
         return bool(np.linalg.norm(wrist - [0.0, 0.0, self.dh[0].d]) <= self.reach_mm)
 
     def fk(self, q_rad: np.ndarray) -> np.ndarray:
-        T = np.eye(4)
-        for row, q in zip(self.dh, np.asarray(q_rad, float), strict=True):
-            T = T @ dh_matrix(row, q)
-        return T
+        return self._frames(q_rad)[-1]
 
     def _frames(self, q_rad: np.ndarray) -> list[np.ndarray]:
         """The base frame and each link's frame after it (7 poses, base frame, mm)."""

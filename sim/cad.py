@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from scancell.analysis.nominal import quiet_opencascade
 from scancell.sim import parts
+from scancell.sim.car_body import car_body_shape
 
 #: breaks of the B-spline patches: the plate recess's body edges and the crease at z = -120
 _Y_BREAKS = (parts.CAR_REAR_Y[0], *parts.PLATE_BODY_EDGES[0], parts.CAR_REAR_Y[1])
@@ -95,12 +96,6 @@ def car_rear_shape():
     return sewing.SewedShape(), [(sewing.Modified(f), name) for f, name in built]
 
 
-def _car_body_shape():
-    from scancell.sim.car_body import car_body_shape
-
-    return car_body_shape()
-
-
 def write_step(path: str | Path, shape, named_faces: list[tuple[object, str]],
                product: str) -> Path:
     """A STEP AP214 file of ``shape`` (mm) with each named face's name in its ADVANCED_FACE."""
@@ -141,7 +136,7 @@ def export_nominal(part: str, folder: str | Path) -> dict[str, str]:
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
-    shapes = {"car_rear": car_rear_shape, "car_body": _car_body_shape}
+    shapes = {"car_rear": car_rear_shape, "car_body": car_body_shape}
     if nominal in shapes:
         shape, named = shapes[nominal]()
         files["step"] = str(write_step(out / f"{nominal}.step", shape, named, nominal))

@@ -233,7 +233,6 @@ class SimCellConfig:
     check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
         DEFAULT_CHECK_BAR)
 
-
     @classmethod
     def for_part(cls, part: str | None, **kwargs: Any) -> SimCellConfig:
         """The cell laid out for ``part`` (sim/layouts.py), with ``kwargs`` on top."""

@@ -35,6 +35,7 @@ CAR_BODY_BASE0 = (2000.0, -3300.0, -700.0)
 CAR_BODY_TRACK_RADIUS = 1800.0
 CAR_BODY_TRACK = (RailModule(6000.0), RailModule(math.pi * CAR_BODY_TRACK_RADIUS, -180.0),
                   RailModule(6000.0))
+CAR_BODY_TRACK_MM = sum(m.length_mm for m in CAR_BODY_TRACK)
 CAR_BODY_NESTS: dict[str, tuple[float, float, float]] = {
     "N1": (800.0, -3800.0, -1150.0), "N2": (800.0, 3800.0, -1150.0),
     "N3": (6800.0, -3800.0, -1150.0), "N4": (6800.0, 3800.0, -1150.0),
@@ -63,21 +64,19 @@ CAR_BODY_VIEW_TILTS_DEG = (20.0, 45.0)
 
 
 def _track_positions(step_mm: float = 400.0) -> tuple[float, ...]:
-    total = sum(m.length_mm for m in CAR_BODY_TRACK)
-    n = int(total // step_mm)
-    return tuple(round(i * total / n, 1) for i in range(n + 1))
+    n = int(CAR_BODY_TRACK_MM // step_mm)
+    return tuple(round(i * CAR_BODY_TRACK_MM / n, 1) for i in range(n + 1))
 
 
 def cell_layout(part: str | None) -> dict[str, Any]:
     """:class:`SimCellConfig` keyword arguments placing ``part``'s cell ({}: the defaults)."""
     if part != "car_body":
         return {}
-    total = sum(m.length_mm for m in CAR_BODY_TRACK)
     return {"T_world_from_part": make_T(t=list(CAR_BODY_ORIGIN)),
             "T_world_from_rail0": make_T(t=list(CAR_BODY_BASE0)),
             "rail_axis": np.array([0.0, 1.0, 0.0]),
             "rail_path": CAR_BODY_TRACK,
-            "rail_limits_mm": (0.0, float(np.ceil(total))),
+            "rail_limits_mm": (0.0, float(np.ceil(CAR_BODY_TRACK_MM))),
             "rail_positions_mm": _track_positions(),
             "nests_world_mm": dict(CAR_BODY_NESTS),
             "check_bar_world": CAR_BODY_CHECK_BAR,

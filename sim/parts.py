@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scancell.model.ecs import SMR_RADIUS_MM
+from scancell.sim.car_body import car_body
 
 SMR_OPENING_HALF_ANGLE_DEG = 35.0
 
@@ -263,12 +264,6 @@ ARTEFACTS = {
     "plane": plane_artefact,
     "ballbar3": lambda: dumbbell(BALLBAR3_SPHERE_DIAMETER_MM / 2, BALLBAR3_LENGTH_MM),
 }
-
-def car_body() -> o3d.geometry.TriangleMesh:
-    """The whole car body (sim/car_body.py): its STEP's tessellation, built on first use."""
-    from scancell.sim.car_body import car_body as mesh
-
-    return mesh()
 
 
 PARTS = {"car_rear": car_rear, "car_rear_defects": car_rear_defects, "flat": flat,
