@@ -341,7 +341,10 @@ def main(args: argparse.Namespace) -> int:
         # the cell is free: its acceptance test runs while the workers fuse and inspect
         accepted = (None if args.no_acceptance
                     else background.submit(run_acceptance, client, quick, "   [acceptance] "))
-        report = wait_for(lambda: [r for r in reports if r.get("job_id") == job], 600,
+        # writing the model, the mesh and the report, and inspecting the model, grow with the
+        # stations (about 0.25 M fused points each): 10 min, and 6 s more per station
+        after_s = 600.0 + 6.0 * n_stations
+        report = wait_for(lambda: [r for r in reports if r.get("job_id") == job], after_s,
                           "fusion report")[-1]
         if report.get("error"):
             raise RuntimeError(f"fusion failed: {report['error']}")
@@ -353,8 +356,8 @@ def main(args: argparse.Namespace) -> int:
         stage(f"inspection: the fused model against the {part_name.replace('_', ' ')}'s CAD "
               f"(STEP), bestfit")
         t_inspect = time.monotonic()
-        inspection = wait_for(lambda: [r for r in inspections if r.get("job_id") == job], 600,
-                              "inspection report")[-1]
+        inspection = wait_for(lambda: [r for r in inspections if r.get("job_id") == job],
+                              after_s, "inspection report")[-1]
         if inspection.get("error"):
             raise RuntimeError(f"inspection failed: {inspection['error']}")
         summary["inspection"] = inspection_summary(inspection, time.monotonic() - t_inspect)
