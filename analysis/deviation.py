@@ -8,6 +8,7 @@ the nominal, - inside (a dent).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,20 +47,63 @@ def closest_points(nominal: Nominal, points_part: np.ndarray, dtype: type = np.f
     return closest_points_moved(nominal, points_part, None, dtype)[1]
 
 
-def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
-                         dtype: type = np.float64, within_mm: float | None = None
-                         ) -> tuple[np.ndarray | None, ClosestPoints, np.ndarray | None]:
-    """:func:`closest_points` of ``points`` moved by ``T`` (4 x 4, measuring frame to part
-    frame; None: already in it), CHUNK points at a time: each chunk is moved in float64 and
-    its deviation computed from that, so nothing of the whole cloud is held in float64.
-    Returns the moved points as float32 (N, 3) (None without ``T``), the closest points, and
-    with ``within_mm`` which points lie that close to the nominal: then the closest points'
-    positions and distances are not kept (9 bytes a point instead of 24)."""
+@dataclass
+class Tile:
+    """:func:`closest_tile`'s answer for one tile of points (the fields of
+    :func:`closest_points_moved`'s answer, for these points)."""
+    moved: np.ndarray | None  # (n, 3) float32, part frame; None without T
+    triangle: np.ndarray  # (n,) int32
+    closest: np.ndarray | None  # (n, 3) float32; None with within_mm
+    distance: np.ndarray | None  # (n,) dtype; None with within_mm
+    near: np.ndarray | None  # (n,) bool; only with within_mm
+    deviation: np.ndarray  # (n,) dtype
+
+
+def closest_tile(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
+                 dtype: type = np.float64, within_mm: float | None = None) -> Tile:
+    """One tile (at most CHUNK points) of :func:`closest_points_moved`: moved in float64, the
+    deviation computed from that. Each point's answer depends on that point alone, so tiles
+    computed anywhere and put together equal the whole cloud's, bit for bit."""
     import open3d as o3d
 
+    p = np.asarray(points).reshape(-1, 3).astype(float)
+    if T is not None:
+        p = p @ T[:3, :3].T + T[:3, 3]
+    r = nominal.scene().compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+    tri = r["primitive_ids"].numpy().astype(np.int32, copy=False)
+    q = r["points"].numpy()
+    d = p - q
+    gap = np.linalg.norm(d, axis=1)
+    lean = within_mm is not None
+    return Tile(None if T is None else p.astype(np.float32), tri, None if lean else q,
+                None if lean else gap.astype(dtype), gap.astype(dtype) <= within_mm if lean
+                else None, np.einsum("ij,ij->i", d, nominal.triangle_normals[tri]).astype(dtype))
+
+
+#: how the tiles are computed: (nominal, points, tiles, T, dtype, within_mm) -> each tile's
+#: slice and answer, in any order (:func:`tiles_here`; a cluster's in scancell.batch.inspect)
+TileRunner = Callable[[Nominal, np.ndarray, list[slice], "np.ndarray | None", type,
+                       "float | None"], Iterable[tuple[slice, Tile]]]
+
+
+def tiles_here(nominal: Nominal, points: np.ndarray, tiles: list[slice], T: np.ndarray | None,
+               dtype: type, within_mm: float | None) -> Iterator[tuple[slice, Tile]]:
+    """The tiles one after another in this process."""
+    for tile in tiles:
+        yield tile, closest_tile(nominal, points[tile], T, dtype, within_mm)
+
+
+def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
+                         dtype: type = np.float64, within_mm: float | None = None,
+                         run_tiles: TileRunner = tiles_here
+                         ) -> tuple[np.ndarray | None, ClosestPoints, np.ndarray | None]:
+    """:func:`closest_points` of ``points`` moved by ``T`` (4 x 4, measuring frame to part
+    frame; None: already in it), CHUNK points at a time (:func:`closest_tile`, by
+    ``run_tiles``): nothing of the whole cloud is held in float64. Returns the moved points as
+    float32 (N, 3) (None without ``T``), the closest points, and with ``within_mm`` which
+    points lie that close to the nominal: then the closest points' positions and distances
+    are not kept (9 bytes a point instead of 24)."""
     pts = np.asarray(points).reshape(-1, 3)
-    scene = nominal.scene()
-    tn = nominal.triangle_normals
     n = len(pts)
     lean = within_mm is not None
     moved = np.empty((n, 3), np.float32) if T is not None else None
@@ -68,23 +112,16 @@ def closest_points_moved(nominal: Nominal, points: np.ndarray, T: np.ndarray | N
     distance = None if lean else np.empty(n, dtype)
     near = np.empty(n, bool) if lean else None
     deviation = np.empty(n, dtype)
-    for s in range(0, n, CHUNK):
-        chunk = slice(s, s + CHUNK)
-        p = pts[chunk].astype(float)
-        if T is not None:
-            p = p @ T[:3, :3].T + T[:3, 3]
-            moved[chunk] = p
-        r = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-        tri[chunk] = r["primitive_ids"].numpy()
-        d = p - r["points"].numpy()
-        gap = np.linalg.norm(d, axis=1)
+    tiles = [slice(s, min(s + CHUNK, n)) for s in range(0, n, CHUNK)]
+    for tile, r in run_tiles(nominal, pts, tiles, T, dtype, within_mm):
+        tri[tile], deviation[tile] = r.triangle, r.deviation
+        if moved is not None:
+            moved[tile] = r.moved
         if lean:
-            near[chunk] = gap.astype(dtype) <= within_mm
+            near[tile] = r.near
         else:
-            q[chunk] = r["points"].numpy()
-            distance[chunk] = gap
-        deviation[chunk] = np.einsum("ij,ij->i", d, tn[tri[chunk]])
-    return moved, ClosestPoints(q, tri, distance, deviation, tn), near
+            q[tile], distance[tile] = r.closest, r.distance
+    return moved, ClosestPoints(q, tri, distance, deviation, nominal.triangle_normals), near
 
 
 @dataclass

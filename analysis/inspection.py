@@ -18,8 +18,10 @@ from scancell.analysis.deviation import (
     CHUNK,
     ClosestPoints,
     Coverage,
+    TileRunner,
     closest_points_moved,
     coverage,
+    tiles_here,
 )
 from scancell.analysis.nominal import Nominal, check_scale, thinned
 from scancell.analysis.tolerance import ToleranceSpec, judge, point_spacing_mm
@@ -195,8 +197,10 @@ def cut(nominal: Nominal, axis: str, offset: float, points: np.ndarray, half_wid
 
 def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
                   settings: InspectionSettings | None = None,
-                  progress: Callable[[str], None] | None = None) -> Inspection:
-    """The whole inspection of ``points_measured`` (N, 3, measuring frame, mm)."""
+                  progress: Callable[[str], None] | None = None,
+                  run_tiles: TileRunner = tiles_here) -> Inspection:
+    """The whole inspection of ``points_measured`` (N, 3, measuring frame, mm); the deviation
+    of every point tile by tile by ``run_tiles`` (here, or a cluster's)."""
     s = settings or InspectionSettings()
     say = progress or (lambda _msg: None)
     # the cloud as given (float32 from a PLY or the fusion): whole-cloud work goes CHUNK
@@ -220,7 +224,7 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     t = time.perf_counter()
     say("signed deviation of every point")
     part, cp, in_range = closest_points_moved(nominal, pts, alignment.T_part_from_measured,
-                                              np.float32, s.max_distance_mm)
+                                              np.float32, s.max_distance_mm, run_tiles)
     if in_range.mean() < 0.05:
         raise InspectionError(f"only {in_range.mean():.1%} of the points lie within "
                               f"{s.max_distance_mm} mm of the nominal after the {s.align} "

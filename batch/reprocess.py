@@ -26,13 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-#: how long the driver tries to reach a scheduler before it gives up (s)
-CONNECT_TIMEOUT_S = 10.0
-
-
-class SchedulerUnreachable(OSError):
-    """The scheduler named could not be reached; nothing was submitted or written."""
-
 
 @dataclass
 class RecordingOutcome:
@@ -95,22 +88,6 @@ def commit(outcome: RecordingOutcome, answer: dict[str, Any]) -> RecordingOutcom
     (outcome.out / "reprocess.json").write_text(text)
     outcome.ok, outcome.result = True, json.loads(text)
     return outcome
-
-
-def connect(scheduler: str | None, workers: int | None) -> Any:
-    """A Dask client: of the scheduler at ``scheduler`` (tcp://HOST:PORT), or of a new local
-    cluster of ``workers`` worker processes (default: one per core), one thread each (a
-    reprocess uses its cores through numba and numpy itself)."""
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
-        except (OSError, TimeoutError) as exc:
-            raise SchedulerUnreachable(f"scheduler {scheduler}: cannot be reached ({exc})") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0")
-    return Client(cluster)
 
 
 def run(client: Any, files: list[Path], outs: list[Path], calib: str | None,

@@ -3,16 +3,20 @@
 MEASURED is a point cloud (PLY, mm) or a ``scan_part`` recording (MCAP: its final fused model,
 or its stations fused again). Writes the signed deviation of every point (``--out-ply``), the
 JSON (``--json``) and a report folder with a self-contained HTML page and CSV tables
-(``--report``). Exit 0 with a result, 1 when a tolerance fails, 2 on bad input.
+(``--report``). Exit 0 with a result, 1 when a tolerance fails, 2 on bad input, 3 when the
+``--scheduler`` cannot be reached.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from scancell.cli._common import fail
 
@@ -55,6 +59,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the QIF 3.0 XSDs (QIFApplications/, QIFLibrary/)")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="report folder: report.html, regions.csv, sections.csv, inspection.json")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local",
+                   help="compute the deviation tile by tile on a Dask cluster: a scheduler's "
+                        "address, or 'local' (a local cluster, a worker per core); default: "
+                        "here. The nominal must be at the same path on the workers' hosts")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
     p.add_argument("--out-ply", default=None, metavar="OUT.ply",
                    help="the measured points in the part frame (input order) with float "
                         "properties deviation (mm), nx, ny, nz (the nominal's normal) and "
@@ -129,6 +139,8 @@ def main(args: argparse.Namespace) -> int:
     from scancell.analysis.inspection import InspectionError, InspectionSettings, inspect_cloud
     from scancell.analysis.nominal import NominalError, load_nominal
     from scancell.analysis.tolerance import Tolerance, ToleranceError, ToleranceSpec, load_spec
+    from scancell.batch.cluster import SchedulerUnreachable
+    from scancell.batch.inspect import ClusterInspectionError
     from scancell.recorder.reading import RecordingError
 
     t0 = time.perf_counter()
@@ -151,8 +163,10 @@ def main(args: argparse.Namespace) -> int:
               f"{len(measured)} points", file=sys.stderr)
         settings = InspectionSettings(args.align, transform, rps, spec, args.max_distance,
                                       sections=sections)
-        result = inspect_cloud(measured, nominal, settings,
-                               progress=lambda m: print(f"  {m}", file=sys.stderr))
+        with deviation_tiles(args.scheduler, args.workers) as run_tiles:
+            result = inspect_cloud(measured, nominal, settings,
+                                   progress=lambda m: print(f"  {m}", file=sys.stderr),
+                                   run_tiles=run_tiles)
         files = {}
         if args.out_ply:
             result.write_ply(args.out_ply)
@@ -176,11 +190,36 @@ def main(args: argparse.Namespace) -> int:
         body["files"] = files
         if args.json:
             Path(args.json).write_text(json.dumps(body, indent=2))
+    except SchedulerUnreachable as exc:
+        return fail("inspect", str(exc), 3)
     except (ValueError, NominalError, AlignmentError, InspectionError, ToleranceError,
-            CloudFileError, FusionError, RecordingError, OSError) as exc:
+            CloudFileError, FusionError, RecordingError, OSError, ClusterInspectionError) as exc:
         return fail("inspect", str(exc))
     summarise(body, time.perf_counter() - t0)
     return 1 if body["tolerances"].get("pass") is False else 0
+
+
+@contextlib.contextmanager
+def deviation_tiles(scheduler: str | None, workers: int | None) -> Iterator[Any]:
+    """How the inspection computes its tiles: here (no scheduler), or on a Dask cluster whose
+    dashboard link is printed; the cluster is closed after. An unreachable scheduler raises
+    SchedulerUnreachable (an OSError) before anything is computed."""
+    from scancell.analysis.deviation import tiles_here
+
+    if not scheduler or scheduler == "none":
+        yield tiles_here
+        return
+    from scancell.batch.cluster import close, connect
+    from scancell.batch.inspect import cluster_tiles
+
+    client = connect(None if scheduler == "local" else scheduler, workers)
+    try:
+        n = len(client.scheduler_info()["workers"])
+        print(f"deviation tiles on {scheduler} ({n} workers); progress: {client.dashboard_link}",
+              file=sys.stderr, flush=True)
+        yield cluster_tiles(client)
+    finally:
+        close(client)
 
 
 def _load_rps(path: str, RpsPoint):

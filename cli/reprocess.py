@@ -115,7 +115,8 @@ def print_result(r: Any) -> None:
 
 
 def on_dask(args: argparse.Namespace, scheduler: str, files: list[Path], outs: list[Path]) -> int:
-    from scancell.batch.reprocess import SchedulerUnreachable, connect, run, write_summary
+    from scancell.batch.cluster import SchedulerUnreachable, close, connect
+    from scancell.batch.reprocess import run, write_summary
     from tqdm import tqdm
 
     t0 = time.monotonic()
@@ -142,10 +143,7 @@ def on_dask(args: argparse.Namespace, scheduler: str, files: list[Path], outs: l
         finally:
             bar.close()
     finally:
-        cluster = getattr(client, "cluster", None) if scheduler == "local" else None
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        close(client)
     base = Path(args.out) if args.out and len(files) > 1 else outs[0].parent
     summary = write_summary(base, outcomes, scheduler, time.monotonic() - t0)
     failed = [o for o in outcomes if not o.ok]

@@ -1,0 +1,38 @@
+"""The Dask cluster the batch commands share: a scheduler's address, or a local cluster."""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: how long a command tries to reach a scheduler before it gives up (s)
+CONNECT_TIMEOUT_S = 10.0
+
+
+class SchedulerUnreachable(OSError):
+    """The scheduler named could not be reached; nothing was submitted or written."""
+
+
+def connect(scheduler: str | None, workers: int | None) -> Any:
+    """A Dask client: of the scheduler at ``scheduler`` (tcp://HOST:PORT), or of a new local
+    cluster of ``workers`` worker processes (default: one per core), one thread each (a task
+    uses its cores through numba, numpy and Open3D itself)."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+        except (OSError, TimeoutError) as exc:
+            raise SchedulerUnreachable(f"scheduler {scheduler}: cannot be reached ({exc})") from None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=":0")
+    return Client(cluster)
+
+
+def close(client: Any) -> None:
+    """Close ``client`` and, if it started one, its local cluster."""
+    from distributed import LocalCluster
+
+    cluster = getattr(client, "cluster", None)
+    client.close()
+    if isinstance(cluster, LocalCluster):
+        cluster.close()
