@@ -18,6 +18,8 @@ sampled on every face but the underbody (no cell measures it), with the bonnet 0
 its normal and a 0.5 mm dent in the roof; each point's true deviation is known, so the accuracy
 is the inspected minus the true deviation, point by point.
 
+``--cluster`` adds a run with the deviation on a local Dask cluster (``--scheduler local``).
+
 Run: .venv/bin/python benchmarks/bench_inspect.py  (or `make bench`); ``--part car_body --points
 50e6`` for the large-part figure of issue 37 (a 50 M-point cloud: ≤ 3 GB, ≤ 1.2 x CloudCompare's
 time).
@@ -148,6 +150,9 @@ def main() -> None:
     ap.add_argument("--points", type=float, default=N_POINTS, help="measured points (default 3e6)")
     ap.add_argument("--part", choices=sorted(CASES), default="car_rear",
                     help="the nominal and its defects (default car_rear)")
+    ap.add_argument("--cluster", action="store_true",
+                    help="also the inspection with its deviation on a local Dask cluster "
+                         "(--scheduler local: a worker per core)")
     args = ap.parse_args()
     n_points = int(args.points)
     with tempfile.TemporaryDirectory() as tmp:
@@ -173,7 +178,11 @@ def main() -> None:
               + (f"; CloudCompare -C2M_DIST {t_cc:.1f} s; ratio {t_dev / t_cc:.2f}" if t_cc else ""))
 
         runs, peaks = {}, {}
-        for name, extra in (("inspect", []), ("inspect + HTML report", ["--report", str(tmp / "r")])):
+        variants = [("inspect", []), ("inspect + HTML report", ["--report", str(tmp / "r")])]
+        if args.cluster:  # the peak RSS is the driver's; each worker holds a tile and the nominal
+            variants.append(("inspect, deviation on a local Dask cluster",
+                             ["--scheduler", "local"]))
+        for name, extra in variants:
             t0 = time.perf_counter()
             p = subprocess.Popen([sys.executable, "-m", "scancell", "inspect",
                                   str(tmp / "moved.ply"), "--nominal", str(case.nominal),
