@@ -609,6 +609,7 @@ def part_coverage(part: Path, report: dict[str, Any], geometry: Any) -> dict[str
     a point of the fused model (``fused.ply``), of all of it and of the surface a scanner can
     measure at all (the cell's floor, standoff and incidence: ``measurable``), and how much of
     the part that is."""
+    import numpy as np
     import open3d as o3d
     from scancell.analysis.cloud_io import read_ply
     from scancell.analysis.surface_coverage import measurable, sample_distances
@@ -616,7 +617,7 @@ def part_coverage(part: Path, report: dict[str, Any], geometry: Any) -> dict[str
     ply = (report.get("files") or {}).get("ply")
     if not ply:
         return {"surface_coverage_2mm": None}
-    points, _ = read_ply(ply)
+    points, _ = read_ply(ply, np.float32)  # as stored: a car body's model is ~80 M points
     mesh = o3d.io.read_triangle_mesh(str(part))
     within = sample_distances(mesh, points) <= 2.0  # one nearest-point search for both shares
     can = measurable(mesh, geometry.standoff_mm, geometry.max_incidence_deg,

@@ -224,6 +224,21 @@ def test_surface_coverage_counts_the_part_within_2_mm_of_a_measured_point():
 
 
 @pytest.mark.unit
+def test_the_nearest_measured_point_comes_chunk_by_chunk_as_from_the_whole_cloud(monkeypatch):
+    import open3d as o3d
+    from scancell.analysis import surface_coverage as sc
+
+    plate = o3d.geometry.TriangleMesh.create_box(200.0, 100.0, 10.0)  # mm
+    pts = np.random.default_rng(2).uniform([0, 0, 0], [200, 100, 12], (30_000, 3))
+    whole = sc.sample_distances(plate, pts, samples=5000)
+    monkeypatch.setattr(sc, "CHUNK", 7_000)  # 5 chunks, the last a short one
+    assert np.array_equal(sc.sample_distances(plate, pts, samples=5000), whole)
+    as_stored = sc.sample_distances(plate, pts.astype(np.float32), samples=5000)
+    assert np.array_equal(as_stored, sc.sample_distances(plate, pts.astype(np.float32).astype(float),
+                                                         samples=5000))
+
+
+@pytest.mark.unit
 def test_the_measurable_surface_leaves_out_what_stands_on_the_floor_and_what_is_hidden():
     import open3d as o3d
     from scancell.analysis.surface_coverage import measurable, surface_coverage
