@@ -62,8 +62,8 @@ def test_tiles_on_two_workers_equal_the_tiles_here_bit_for_bit(cad, monkeypatch)
 @pytest.mark.e2e
 def test_inspect_on_a_local_cluster_writes_what_inspect_here_writes(cad, tmp_path,  # noqa: F811
                                                                     monkeypatch):
-    monkeypatch.setattr(deviation, "CHUNK", 40_000)
-    measured, _ = moved(sample(("dent", "flange")), seed=3)
+    monkeypatch.setattr(deviation, "CHUNK", 20_000)
+    measured, _ = moved(sample(("dent", "flange"), n=80_000), seed=3)
     write_ply(tmp_path / "measured.ply", measured)
     common = ["inspect", str(tmp_path / "measured.ply"), "--nominal", cad["step"], "--tolerance",
               "0.3"]
