@@ -67,10 +67,12 @@ def as_measured(nominal: Nominal, points: np.ndarray, T_part_from_measured: np.n
 
 
 def _sample(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    pts = np.asarray(points, float)
-    if len(pts) <= n:
-        return pts
-    return pts[np.random.default_rng(seed).choice(len(pts), n, replace=False)]
+    """At most ``n`` of the points, in float64 (picked first: a large float32 cloud is never
+    copied whole)."""
+    pts = np.asarray(points)
+    if len(pts) > n:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), n, replace=False)]
+    return np.asarray(pts, float)
 
 
 def _step(p: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:

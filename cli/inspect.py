@@ -166,7 +166,7 @@ def main(args: argparse.Namespace) -> int:
         with deviation_tiles(args.scheduler, args.workers) as run_tiles:
             result = inspect_cloud(measured, nominal, settings,
                                    progress=lambda m: print(f"  {m}", file=sys.stderr),
-                                   run_tiles=run_tiles)
+                                   run_tiles=run_tiles, overwrite_input=True)
         files = {}
         if args.out_ply:
             result.write_ply(args.out_ply)

@@ -73,7 +73,9 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
             log.warning("%s: %s", sample.key, exc)
             return
         if pts is not None:
-            self.submit((str(meta.get("job_id", "?")), pts.astype(float), meta.get("nominal")))
+            # as carried (float32): the inspection moves it into the part frame in place
+            self.submit((str(meta.get("job_id", "?")), pts.astype(np.float32, copy=False),
+                         meta.get("nominal")))
 
     def _nominal(self, path: str, measured: np.ndarray | None = None):
         """The nominal at ``path`` (loaded once); the first cloud checks its size before the
@@ -99,6 +101,8 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
 
     def inspect(self, job_id: str, points: np.ndarray, plan_nominal: str | None = None
                 ) -> dict[str, Any] | None:
+        """Inspect the job's model ``points`` (N, 3, world frame, mm; a float32 array becomes
+        the part-frame points: the caller is done with it) and publish the report."""
         from scancell.analysis.alignment import AlignmentError
         from scancell.analysis.inspection import InspectionError, inspect_cloud
         from scancell.analysis.nominal import NominalError
@@ -111,7 +115,8 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         log.info("job %s: inspecting %d points against %s", job_id, len(points), path)
         try:
             result = inspect_cloud(points, self._nominal(path, points), self.settings.inspection,
-                                   progress=lambda m: log.info("job %s: %s", job_id, m))
+                                   progress=lambda m: log.info("job %s: %s", job_id, m),
+                                   overwrite_input=True)
             body: dict[str, Any] = {"job_id": job_id, "measured": f"fusion/cloud of {job_id}",
                                     **result.to_json()}
             if self.settings.out_dir is not None:

@@ -60,8 +60,8 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
 
 def recorded_model(path: str | Path, voxel_mm: float = 0.5) -> tuple[np.ndarray, str]:
     """The fused model of a recorded ``scan_part`` session (world frame, mm) and how it was
-    obtained: the fuse worker's final ``fusion/cloud`` when the recording holds one, else its
-    stations fused again."""
+    obtained: the fuse worker's final ``fusion/cloud`` when the recording holds one (float32,
+    as carried), else its stations fused again."""
     from scancell.analysis.fusion import fuse
 
     final, parts = None, ModelParts()
@@ -75,7 +75,7 @@ def recorded_model(path: str | Path, voxel_mm: float = 0.5) -> tuple[np.ndarray,
             if whole is not None:
                 final = whole, meta.get("job_id", "?")
     if final is not None:
-        return final[0].astype(float), f"final fused model of job {final[1]}"
+        return final[0], f"final fused model of job {final[1]}"  # as carried: float32
     for job, (got, expected) in parts.waiting().items():
         log.warning("%s: the final model of job %s is cut short (%d of its %d parts); its "
                     "stations are fused again", path, job, got, expected)
