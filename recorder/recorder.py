@@ -587,6 +587,10 @@ class Recorder:
                 s.file.close()
             except OSError:
                 s.file.abandon()
+            if not s.file.messages:  # a retry on a full disk: no empty file every retry_s
+                s.file.path.unlink(missing_ok=True)
+                if self.files and self.files[-1] == s.file.path:
+                    self.files.pop()
         log.error("recorder %r: %s; data up to the last chunk is kept, retrying in %.0f s",
                   self.settings.name, self.error, self.settings.retry_s)
         self._event("error", file=str(where), message=self.error)

@@ -324,6 +324,9 @@ def test_a_write_error_is_published_and_the_next_session_retries(bus_pair, tmp_p
         err = next(e for e in events if e["event"] == "error")
         assert "No space left on device" in err["message"] and err["file"].endswith(".mcap")
         wait_until(lambda: any(s["state"] == "error" for s in statuses), 5, what="error status")
+        time.sleep(0.3)  # past retry_s: the next message opens a session, which fails too
+        _point(b, 101)
+        wait_until(lambda: sum(e["event"] == "error" for e in events) >= 2, 5, what="2nd error")
         full["on"] = False
         time.sleep(0.3)
         _point(b, 100)
@@ -338,6 +341,8 @@ def test_a_write_error_is_published_and_the_next_session_retries(bus_pair, tmp_p
         == [100]
     with open(rec.files[0], "rb") as fh:
         assert make_reader(fh).get_summary() is not None
+    # the retries that found the disk still full left no empty files behind
+    assert sorted(tmp_path.glob("*.mcap")) == sorted(rec.files) and len(rec.files) == 2
 
 
 @pytest.mark.process
