@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 #: how long a command tries to reach a scheduler before it gives up (s)
@@ -23,8 +24,17 @@ def connect(scheduler: str | None, workers: int | None) -> Any:
             return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
         except (OSError, TimeoutError) as exc:
             raise SchedulerUnreachable(f"scheduler {scheduler}: cannot be reached ({exc})") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0")
+    # distributed sets its workers' OMP/OPENBLAS/MKL_NUM_THREADS=1 and MALLOC_TRIM_THRESHOLD_
+    # in this process's environment too, where every process started after would inherit them
+    # (a BLAS with one thread rounds some sums differently: a reprocess then differed from the
+    # live run in the 16th digit)
+    saved = dict(os.environ)
+    try:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=":0")
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
     return Client(cluster)
 
 

@@ -42,6 +42,17 @@ if (QIF_SCHEMAS / "QIFApplications" / "QIFDocument.xsd").is_file():
 os.environ.setdefault("SCANCELL_CACHE_DIR", str(REPO / ".pytest_cache" / "scancell-cache"))
 
 
+@pytest.fixture(autouse=True)
+def _environment_kept() -> Iterator[None]:
+    """Each test leaves os.environ as it found it: a Dask nanny sets OMP_NUM_THREADS=1 and the
+    like in its own process's environment whenever it spawns a worker, and the processes a
+    later test starts (a daemon, a reprocess) would inherit them."""
+    saved = dict(os.environ)
+    yield
+    if dict(os.environ) != saved:
+        os.environ.clear()
+        os.environ.update(saved)
+
 def pytest_configure(config: pytest.Config) -> None:
     """Under xdist (``make test``), the controller compiles the numba kernels once before the
     workers start (tests/warm_kernels.py): on a fresh clone every process would compile them
