@@ -37,7 +37,7 @@ def _nominal(source: str, stamp: tuple[int, int], unit: str | None, chordal_mm: 
              ) -> Nominal:
     if chordal_mm is None:  # a mesh, in the unit given
         return load_nominal(source, unit)
-    return load_nominal(source, None, chordal_mm)
+    return load_nominal(source, None, chordal_mm)  # a STEP states its own unit
 
 
 def deviation_tile(source: str, unit: str | None, chordal_mm: float | None, triangles: int,
@@ -47,8 +47,7 @@ def deviation_tile(source: str, unit: str | None, chordal_mm: float | None, tria
     (loaded once per worker process and file version); refused when that file's tessellation
     has not ``triangles`` triangles (another file at the same path)."""
     st = os.stat(source)
-    mesh_unit = None if chordal_mm is not None else unit  # a STEP states its own unit
-    nominal = _nominal(source, (st.st_mtime_ns, st.st_size), mesh_unit, chordal_mm)
+    nominal = _nominal(source, (st.st_mtime_ns, st.st_size), unit, chordal_mm)
     if len(nominal.triangles) != triangles:
         raise ClusterInspectionError(
             f"{source}: {len(nominal.triangles)} triangles on this worker, {triangles} where the "
