@@ -18,6 +18,7 @@ import open3d as o3d
 from scancell.analysis.cloud_io import CloudFileError, read_ply
 from scancell.analysis.json_file import read_json
 from scancell.analysis.model_file import ModelFile
+from scancell.analysis.station_store import move_points
 from scancell.analysis.voxel_tiles import VoxelTiles
 
 #: station points the viewpoint lookup keeps (FusedCloud.viewpoint_of)
@@ -95,20 +96,10 @@ def load_station_folder(folder: str | Path) -> tuple[list[Station], np.ndarray]:
     return stations, hand_eye
 
 
-#: points moved at a time by :func:`to_world` into its float32 result
-WORLD_CHUNK = 1 << 20
-
-
 def to_world(station: Station, T_ecs_from_mcs: np.ndarray) -> np.ndarray:
-    """The station's points in the tracker frame (N, 3, mm, float32): computed in float64 a
-    million points at a time and rounded once (0.25 µm steps at 3 m), as the station store
-    keeps them."""
-    T = station.T_world_from_ecs @ T_ecs_from_mcs
-    p = station.points_mcs
-    out = np.empty((len(p), 3), np.float32)
-    for lo in range(0, len(p), WORLD_CHUNK):
-        out[lo:lo + WORLD_CHUNK] = p[lo:lo + WORLD_CHUNK] @ T[:3, :3].T + T[:3, 3]
-    return out
+    """The station's points in the tracker frame (N, 3, mm, float32), as the station store
+    keeps them (:func:`scancell.analysis.station_store.move_points`)."""
+    return move_points(station.points_mcs, station.T_world_from_ecs @ T_ecs_from_mcs)
 
 
 @dataclass

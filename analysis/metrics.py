@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scancell.analysis.grid_kernels import CellGrid, float_type, grid_nearest, grid_normals, in_box
-from scancell.analysis.station_store import StationStore
+from scancell.analysis.station_store import StationStore, WorldFromMcs
 from scipy.spatial import cKDTree
 
 
@@ -275,7 +275,8 @@ class OverlapComparer:
     do not fit in memory), where a new cloud reads back only the part of each earlier one
     within its own box."""
 
-    def __init__(self, radius_factor: float = 6.0, store: StationStore | None = None) -> None:
+    def __init__(self, radius_factor: float = 6.0,
+                 store: StationStore | WorldFromMcs | None = None) -> None:
         self.radius_factor = radius_factor
         self.spacing_mm: float | None = None
         self.radius_mm: float | None = None

@@ -1,9 +1,11 @@
 """Stations on disk: a job's clouds kept out of memory while it measures.
 
-Each station's world points (float32, mm), unit normals (float32) and per-point 1-sigma
+Each station's points (float32, mm), unit normals (float32) and per-point 1-sigma
 (float32, mm) go to ``.npy`` files in a folder; memory keeps only each station's bounding box
 and point count. A station is read back whole or only the part inside a box, through a memory
-map that is closed straight after (its pages leave the process's resident set with it).
+map that is closed straight after (its pages leave the process's resident set with it). A
+job's world points are not a second copy: :class:`WorldFromMcs` moves its MCS points by each
+station's pose as they are read, and keeps only their normals.
 
 float32 holds a world coordinate of up to 8 m to 0.5 µm: far below the scanner's noise
 (~0.02 mm). Normals stay float32 too: float16 rounds a component near 1 by 0.0005, which moved
@@ -56,24 +58,29 @@ class StationStore:
             np.save(self._path(name, "uncertainty"), np.asarray(uncertainty, np.float32))
         return st
 
+    def inside(self, name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """The indices (ascending) of station ``name``'s points inside the box [lo, hi] (mm)."""
+        pts = np.load(self._path(name, "points"), mmap_mode="r")
+        inside = np.ones(len(pts), bool)
+        for k in range(3):
+            col = pts[:, k]
+            inside &= (col >= lo[k]) & (col <= hi[k])
+        del pts, col
+        return np.flatnonzero(inside)
+
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """(points (N, 3), normals or None, 1-sigma or None) of station ``name``, float32 as
         stored: all of them, or those inside the box [lo, hi]."""
+        return self.select(name, slice(None) if lo is None else self.inside(name, lo, hi))
+
+    def select(self, name: str, idx: np.ndarray | slice
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(points, normals or None, 1-sigma or None) of station ``name`` at ``idx``."""
         st = self.stations[name]
-        pts = np.load(self._path(name, "points"), mmap_mode="r")
-        if lo is None:
-            idx = slice(None)
-        else:
-            inside = np.ones(len(pts), bool)
-            for k in range(3):
-                col = pts[:, k]
-                inside &= (col >= lo[k]) & (col <= hi[k])
-            idx = np.flatnonzero(inside)
-        out_pts = np.asarray(pts[idx])
-        del pts
-        out = [out_pts]
-        for field, present in (("normals", st.normals), ("uncertainty", st.uncertainty)):
+        out: list[np.ndarray | None] = []
+        for field, present in (("points", True), ("normals", st.normals),
+                               ("uncertainty", st.uncertainty)):
             if not present:
                 out.append(None)
                 continue
@@ -85,3 +92,100 @@ class StationStore:
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
         self.stations.clear()
+
+
+#: points moved at a time by :func:`move_points` into its float32 result
+MOVE_CHUNK = 1 << 20
+
+
+def move_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(N, 3) points (mm) moved by the rigid 4 x 4 ``T``, as float32 (0.25 µm steps at 3 m).
+
+    Each coordinate is ``x·T[i,0] + y·T[i,1] + z·T[i,2] + T[i,3]`` in float64, in that order,
+    rounded once: element by element, not a BLAS product (whose kernels may sum a row
+    differently with the batch's size), so any subset of a cloud moved alone gets the same
+    bits as when it was moved with the whole cloud (:class:`WorldFromMcs` relies on it)."""
+    T = np.asarray(T, np.float64)
+    out = np.empty((len(points), 3), np.float32)
+    for lo in range(0, len(points), MOVE_CHUNK):
+        p = np.asarray(points[lo:lo + MOVE_CHUNK], np.float64)
+        for i in range(3):
+            out[lo:lo + MOVE_CHUNK, i] = (p[:, 0] * T[i, 0] + p[:, 1] * T[i, 1]
+                                          + p[:, 2] * T[i, 2] + T[i, 3])
+    return out
+
+
+#: the margin (mm) by which a world box is widened once moved into a station's MCS: more than
+#: float32's rounding of a world coordinate (≤ 0.25 µm within 8 m), so no point is missed
+BOX_MARGIN_MM = 1e-3
+
+
+class WorldFromMcs:
+    """A job's stations in world for the overlap metric, derived from their clouds in the
+    MCS store: only the world normals are written here (12 bytes a point); the points and
+    their 1-sigma are read from ``mcs`` and moved by each station's pose (:meth:`place`), to
+    the same float32 bits as the world points first given (:func:`move_points`). It saves
+    the 16 bytes a point that a second copy of the points and 1-sigma cost on disk.
+
+    The interface of :class:`StationStore` that
+    :class:`~scancell.analysis.metrics.OverlapComparer` uses: ``put`` and ``load``."""
+
+    def __init__(self, mcs: StationStore, folder: str | Path) -> None:
+        self.mcs = mcs
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.poses: dict[str, np.ndarray] = {}
+        self._with_uncertainty: dict[str, bool] = {}
+
+    def place(self, name: str, T_world_from_mcs: np.ndarray) -> None:
+        """Station ``name``'s pose: its MCS points through it are its world points (mm)."""
+        self.poses[name] = np.asarray(T_world_from_mcs, np.float64).copy()
+
+    def put(self, name: str, points: np.ndarray, normals: np.ndarray | None = None,
+            uncertainty: np.ndarray | None = None) -> None:
+        """Keep station ``name``'s world normals; ``points`` must be its MCS cloud moved by its
+        pose (their count is checked; raises ValueError). Raises OSError on a full disk."""
+        if name not in self.poses or name not in self.mcs.stations:
+            raise ValueError(f"station {name}: no pose placed or no MCS cloud stored")
+        count = self.mcs.stations[name].count
+        if len(points) != count or normals is None or len(normals) != count:
+            raise ValueError(f"station {name}: {len(points)} world points and "
+                             f"{0 if normals is None else len(normals)} normals for "
+                             f"{count} stored in MCS")
+        np.save(self._normals(name), np.asarray(normals, np.float32))
+        self._with_uncertainty[name] = uncertainty is not None
+
+    def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(world points (N, 3) float32, normals, 1-sigma or None) of station ``name``: all
+        of them, or those inside the world box [lo, hi] (mm), in their stored order."""
+        T = self.poses[name]
+        if lo is None:
+            idx: np.ndarray | slice = slice(None)
+        else:
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                for z in (lo[2], hi[2])], np.float64)
+            back = np.linalg.inv(T)
+            c = corners @ back[:3, :3].T + back[:3, 3]
+            idx = self.mcs.inside(name, c.min(axis=0) - BOX_MARGIN_MM,
+                                  c.max(axis=0) + BOX_MARGIN_MM)
+        pts, _, unc = self.mcs.select(name, idx)
+        world = move_points(pts, T)
+        del pts
+        if lo is not None:
+            keep = np.ones(len(world), bool)
+            for k in range(3):
+                keep &= (world[:, k] >= lo[k]) & (world[:, k] <= hi[k])
+            idx, world = idx[keep], world[keep]
+            unc = None if unc is None else unc[keep]
+        nrm = np.load(self._normals(name), mmap_mode="r")
+        normals = np.asarray(nrm[idx])
+        del nrm
+        return world, normals, unc if self._with_uncertainty[name] else None
+
+    def _normals(self, name: str) -> Path:
+        return self.folder / f"{self.mcs.stations[name].index:05d}.normals.npy"
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+        self.poses.clear()

@@ -166,6 +166,81 @@ def test_streamed_statistics_are_those_of_the_values():
     assert counts.sum() == len(v) and edges[0] == 0 and edges[-1] >= v.max()
 
 
+def _pose(rng: np.random.Generator, far_mm: float) -> np.ndarray:
+    """A rigid 4 x 4 with a random rotation and a translation ``far_mm`` away (a station's MCS
+    seen from the tracker across a car body)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+    T[:3, 3] = rng.uniform(-far_mm, far_mm, 3)
+    return T
+
+
+@pytest.mark.unit
+def test_world_points_derived_from_the_mcs_store_are_the_bits_of_a_world_copy(tmp_path):
+    """The fuse worker keeps a station's MCS cloud once and moves it into world when an
+    overlap reads it back (WorldFromMcs): any box of it has the same float32 bits, order and
+    1-sigma as a second copy of its world points would."""
+    from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
+
+    rng = np.random.default_rng(11)
+    mcs, copy = StationStore(tmp_path / "mcs"), StationStore(tmp_path / "copy")
+    derived = WorldFromMcs(mcs, tmp_path / "world")
+    for k in range(3):
+        cloud = rng.uniform(-400, 400, (20_000 + 1_017 * k, 3)).astype(np.float32)
+        unc = rng.uniform(0.01, 0.05, len(cloud)).astype(np.float32)
+        nrm = rng.normal(size=cloud.shape).astype(np.float32)
+        T = _pose(rng, 5000.0)
+        world = move_points(cloud, T)
+        # the same points moved one by one: no batch-size dependence in the rounding
+        assert np.array_equal(np.concatenate([move_points(cloud[i:i + 1], T)
+                                              for i in range(0, 50)]), world[:50])
+        mcs.put(f"s{k}", cloud, None, unc)
+        copy.put(f"s{k}", world, nrm, unc)
+        derived.place(f"s{k}", T)
+        derived.put(f"s{k}", world, nrm, unc)
+        for lo, hi in ((None, None), *((c - 150.0 * f, c + 150.0 * f) for c, f in
+                                       ((world[rng.integers(len(world))], 1.0),
+                                        (world.mean(axis=0), 0.4), (world.max(axis=0), 1.0)))):
+            want, got = copy.load(f"s{k}", lo, hi), derived.load(f"s{k}", lo, hi)
+            for a, b in zip(want, got, strict=True):
+                assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert sorted(p.name.split(".", 1)[1] for p in (tmp_path / "world").iterdir()) == [
+        "normals.npy"] * 3
+    with pytest.raises(ValueError, match="s9: no pose"):
+        derived.put("s9", world, nrm, unc)
+    with pytest.raises(ValueError, match="s0: 5 world points"):
+        derived.put("s0", world[:5], nrm[:5], unc[:5])
+
+
+@pytest.mark.unit
+def test_overlap_figures_from_derived_world_points_equal_a_world_copys(tmp_path):
+    """OverlapComparer on WorldFromMcs gives the report, to the bit, of one on a store of
+    world points."""
+    from scancell.analysis.metrics import OverlapComparer
+    from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
+
+    rng = np.random.default_rng(7)
+    mcs = StationStore(tmp_path / "mcs")
+    copy = OverlapComparer(store=StationStore(tmp_path / "copy"))
+    derived = OverlapComparer(store=WorldFromMcs(mcs, tmp_path / "world"))
+    for k, (o, x) in enumerate(((0.0, 0.0), (0.02, 20.0), (0.01, 40.0))):
+        world_true = plane(offset=o, shift_xy=x, seed=k, noise=0.01) + np.array([2500.0, -1200.0, 800.0])
+        T = _pose(rng, 3000.0)
+        cloud = (world_true - T[:3, 3]) @ T[:3, :3]  # its MCS: T moves it back into world
+        cloud = cloud.astype(np.float32)
+        unc = np.full(len(cloud), 0.01, np.float32)
+        mcs.put(f"s{k}", cloud, None, unc)
+        world = move_points(cloud, T)
+        derived.store.place(f"s{k}", T)
+        copy.add(f"s{k}", world, unc)
+        derived.add(f"s{k}", world, unc)
+    a, b = copy.report().to_json(), derived.report().to_json()
+    assert sum(p["n"] for p in a["pairs"]) > 1000
+    assert a == b
+
+
 @pytest.mark.unit
 def test_clouds_kept_on_disk_give_the_figures_of_clouds_kept_in_memory(tmp_path):
     """A fuse worker keeps its stations on disk (float32 points, float16 normals): the pairs

@@ -43,12 +43,12 @@ from typing import Any
 import numpy as np
 from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
-from scancell.analysis.fusion import FusedCloud, Station, check_rigid, thin, to_world
+from scancell.analysis.fusion import FusedCloud, Station, check_rigid, thin
 from scancell.analysis.metrics import MetricsError, MetricsReport, OverlapComparer
 from scancell.analysis.model_file import ModelFile
 from scancell.analysis.report import TrueErrorMap
 from scancell.analysis.station_pose import StationPoseError, station_pose
-from scancell.analysis.station_store import StationStore
+from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
 from scancell.analysis.station_uncertainty import (
     StatedSources,
     StationUncertainty,
@@ -82,7 +82,7 @@ class JobStations:
     uncertainty: dict[str, np.ndarray] = field(default_factory=dict)
     #: station -> its point count
     counts: dict[str, int] = field(default_factory=dict)
-    #: the job's folder on disk: the stations' clouds (``mcs``), their world points for the
+    #: the job's folder on disk: the stations' clouds (``mcs``), their world normals for the
     #: overlap metric (``world``) and the model's voxel sums (``tiles``); removed after the job
     spool: Path | None = None
     mcs: StationStore | None = None
@@ -352,10 +352,11 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 seed=zlib.crc32(station.encode()))
             with self._lock:
                 job.station_uncertainty[station] = su
-        world = to_world(Station(station, cloud, T_world_from_ecs), T_ecs_from_mcs)
+        T_world_from_mcs = T_world_from_ecs @ T_ecs_from_mcs
+        world = move_points(cloud, T_world_from_mcs)
         del cloud
         thinned = thin(world, self.settings.display_voxel_mm)
-        self._compare(job, station, world, unc, T_ecs_from_mcs)
+        self._compare(job, station, world, unc, T_ecs_from_mcs, T_world_from_mcs)
         st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
             job.fused[station] = st
@@ -377,22 +378,24 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         return st
 
     def _compare(self, job: JobStations, name: str, world: np.ndarray, unc: np.ndarray | None,
-                 T_ecs_from_mcs: np.ndarray) -> None:
+                 T_ecs_from_mcs: np.ndarray, T_world_from_mcs: np.ndarray) -> None:
         """The overlap metrics of station ``name`` (its world points) against every station
         fused before it, its voxel sums, its world sample and (simulation) its true error, now:
         at the job's end only the model is left to read back (a full-size job's 19 stations
         took 60 s of normals and pairs after the job when it was all done there). The
-        stations' world points wait on disk for the pairs of the stations after them. A new
-        hand-eye mid-job: the end starts afresh (:meth:`fuse_again`)."""
+        stations' world normals wait on disk for the pairs of the stations after them, their
+        points are their MCS clouds moved again (:class:`WorldFromMcs`). A new hand-eye
+        mid-job: the end starts afresh (:meth:`fuse_again`)."""
         key = np.asarray(T_ecs_from_mcs, float).tobytes()
         if job.comparer is None or job.comparer_hand_eye != key:
             if job.comparer is not None:
                 return
-            job.comparer = OverlapComparer(store=StationStore(job.spool / "world"))
+            job.comparer = OverlapComparer(store=WorldFromMcs(job.mcs, job.spool / "world"))
             job.comparer_hand_eye = key
             job.tiles = VoxelTiles(job.spool / "tiles", self.settings.voxel_mm)
         if unc is not None and len(unc) != len(world):
             unc = None
+        job.comparer.store.place(name, T_world_from_mcs)
         try:
             job.comparer.add(name, world, unc)
         except MetricsError:  # an empty cloud: the report says so
@@ -412,8 +415,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         T_em = np.asarray(he["T_ecs_from_mcs"], float)
         for name, st in job.fused.items():
             cloud, _, unc = job.mcs.load(name)
-            world = to_world(Station(name, cloud, st.T_world_from_ecs), T_em)
-            self._compare(job, name, world, unc, T_em)
+            T_world_from_mcs = st.T_world_from_ecs @ T_em
+            self._compare(job, name, move_points(cloud, T_world_from_mcs), unc, T_em,
+                          T_world_from_mcs)
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
         """A scanner check's figures once its record and cloud are both in (kept for the
