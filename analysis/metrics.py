@@ -11,6 +11,7 @@ lies within r count as overlap.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -88,12 +89,24 @@ class Distribution:
             return
         self.n += len(v)
         self._sums.append(float(v.sum()))
-        self._squares.append(float(np.dot(v, v)))
+        # not np.dot: BLAS sums in an order that depends on its threads (a Dask worker has one)
+        self._squares.append(float(np.sum(v * v)))
         self.lo, self.hi = min(self.lo, float(v.min())), max(self.hi, float(v.max()))
         for i, m in enumerate(self.marks):
             self.below[i] += int(np.count_nonzero(v < m))
         k = np.minimum((v * (self.bins / self.top)).astype(np.int64), self.bins - 1)
         self.counts += np.bincount(k, minlength=self.bins)
+
+    def merge(self, other: Distribution) -> None:
+        """Add ``other``'s values (the same bins and marks)."""
+        if (other.top, other.bins, other.marks) != (self.top, self.bins, self.marks):
+            raise ValueError("distributions of different bins cannot be merged")
+        self.n += other.n
+        self._sums += other._sums
+        self._squares += other._squares
+        self.lo, self.hi = min(self.lo, other.lo), max(self.hi, other.hi)
+        self.below = [x + y for x, y in zip(self.below, other.below, strict=True)]
+        self.counts += other.counts
 
     @property
     def total(self) -> float:
@@ -175,18 +188,34 @@ def _check(name: str, pts: np.ndarray) -> np.ndarray:
 
 @dataclass
 class OverlapValues:
-    """A job's overlap errors, summed pair by pair (:class:`Distribution`), and their noise."""
+    """A job's overlap errors, summed pair by pair (:class:`Distribution`), and their noise.
+    Its sums are kept as partial sums added up exactly (math.fsum) when asked, like
+    :class:`Distribution`'s: summed in any order or on any machine (:meth:`merge`), the
+    figures are the same to the bit."""
 
     translation: Distribution = field(default_factory=lambda: Distribution(*TRANSLATION_BINS))
     rotation: Distribution = field(default_factory=lambda: Distribution(*ROTATION_BINS))
     normalised: Distribution = field(default_factory=lambda: Distribution(*NORMALISED_BINS))
-    #: over the points with a known noise s = sqrt(σ_A² + σ_B²): Σ d/s², Σ 1/s², Σ s, count
-    weighted_sum: float = 0.0
-    weight: float = 0.0
-    sigma_sum: float = 0.0
+    #: over the points with a known noise s = sqrt(σ_A² + σ_B²): the partial sums of d/s²,
+    #: 1/s² and s, and their count
+    weighted_sums: list[float] = field(default_factory=list)
+    weights: list[float] = field(default_factory=list)
+    sigma_sums: list[float] = field(default_factory=list)
     sigma_n: int = 0
     #: every overlap point had a known, positive noise
     all_sigma: bool = True
+
+    @property
+    def weighted_sum(self) -> float:
+        return math.fsum(self.weighted_sums)
+
+    @property
+    def weight(self) -> float:
+        return math.fsum(self.weights)
+
+    @property
+    def sigma_sum(self) -> float:
+        return math.fsum(self.sigma_sums)
 
     def add(self, d: np.ndarray, rot: np.ndarray, sigma: np.ndarray | None) -> None:
         self.translation.add(d)
@@ -198,11 +227,23 @@ class OverlapValues:
         self.all_sigma = self.all_sigma and bool(ok.all())
         if ok.any():
             w = 1.0 / sigma[ok] ** 2
-            self.weighted_sum += float(np.sum(w * d[ok]))
-            self.weight += float(np.sum(w))
-            self.sigma_sum += float(np.sum(sigma[ok]))
+            self.weighted_sums.append(float(np.sum(w * d[ok])))
+            self.weights.append(float(np.sum(w)))
+            self.sigma_sums.append(float(np.sum(sigma[ok])))
             self.sigma_n += int(ok.sum())
             self.normalised.add(d[ok] / sigma[ok])
+
+    def merge(self, other: OverlapValues) -> None:
+        """Add ``other``'s values (another machine's pairs of the same job)."""
+        for mine, theirs in ((self.translation, other.translation),
+                             (self.rotation, other.rotation),
+                             (self.normalised, other.normalised)):
+            mine.merge(theirs)
+        self.weighted_sums += other.weighted_sums
+        self.weights += other.weights
+        self.sigma_sums += other.sigma_sums
+        self.sigma_n += other.sigma_n
+        self.all_sigma = self.all_sigma and other.all_sigma
 
 
 #: points of A compared with B at a time: a pair's temporaries stay ~0.1 GB however many of a
@@ -235,6 +276,28 @@ def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], n
     if not n:
         return PairMetrics(*names, 0)
     return PairMetrics(*names, n, d_sum / n, rot_sum / n)
+
+
+def pairs_with_earlier(name: str, points: np.ndarray, normals_: np.ndarray, grid: CellGrid,
+                       uncertainty: np.ndarray | None,
+                       earlier: list[tuple[str, tuple[np.ndarray, np.ndarray]]],
+                       load: Callable[[str, np.ndarray, np.ndarray],
+                                      tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                       radius: float, values: OverlapValues) -> list[PairMetrics]:
+    """Cloud ``name`` (its points, normals, grid of cell ``radius``) against each earlier cloud
+    (its name and its cells' box), in that order: the pairs (earlier, name), their errors
+    summed into ``values``. ``load(a, lo, hi)`` gives cloud a's points, normals and 1-sigma
+    inside the box; a cloud whose box lies farther than ``radius`` is not read."""
+    box = grid.bounds(radius)
+    out = []
+    for a, (lo, hi) in earlier:
+        if np.any(lo > box[1]) or np.any(hi < box[0]):  # too far apart to overlap
+            out.append(PairMetrics(a, name, 0))
+            continue
+        pa, na, ua = load(a, *box)
+        out.append(_pair(pa, points, radius, (a, name), na, normals_, grid, values, ua,
+                         uncertainty))
+    return out
 
 
 @dataclass
@@ -302,16 +365,10 @@ class OverlapComparer:
         r = self.radius_mm
         grid = CellGrid(p, r)
         nrm = normals(p, r, grid)
-        box = grid.bounds(r)
-        for a in self.names:
-            lo, hi = self._boxes[a]
-            if np.any(lo > box[1]) or np.any(hi < box[0]):  # too far apart to overlap
-                self.pairs.append(PairMetrics(a, name, 0))
-                continue
-            pa, na, ua = (self.store.load(a, *box) if self.store is not None
-                          else self._clouds[a])
-            self.pairs.append(_pair(pa, p, r, (a, name), na, nrm, grid, self.values, ua,
-                                    uncertainty))
+        self.pairs += pairs_with_earlier(
+            name, p, nrm, grid, uncertainty, [(a, self._boxes[a]) for a in self.names],
+            self.store.load if self.store is not None else lambda a, lo, hi: self._clouds[a],
+            r, self.values)
         if self.store is not None:
             self.store.put(name, p, nrm, uncertainty)
         else:
@@ -321,17 +378,24 @@ class OverlapComparer:
     def report(self) -> MetricsReport:
         """Every pair so far, in the order the clouds were added; raises MetricsError with
         fewer than two clouds or none overlapping."""
-        names = self.names
-        if len(names) < 2:
-            raise MetricsError(f"need at least two clouds, got {len(names)}")
-        if not any(p.n for p in self.pairs):
-            raise MetricsError(f"no overlap: no point of one cloud is within r = "
-                               f"{self.radius_mm:.3f} mm ({self.radius_factor:g} x the mean "
-                               f"spacing {self.spacing_mm:.3f} mm) of another cloud "
-                               f"({', '.join(names)}); same frame and units?")
-        order = {n: i for i, n in enumerate(names)}
-        pairs = sorted(self.pairs, key=lambda m: (order[m.a], order[m.b]))
-        return MetricsReport(self.radius_mm, self.spacing_mm, pairs, self.values)
+        return overlap_report(self.names, self.pairs, self.values, self.radius_mm,
+                              self.spacing_mm, self.radius_factor)
+
+
+def overlap_report(names: list[str], pairs: list[PairMetrics], values: OverlapValues,
+                   radius_mm: float, spacing_mm: float, radius_factor: float) -> MetricsReport:
+    """The report of clouds ``names`` (in the order they were added) from their ``pairs``, in
+    that order; raises MetricsError with fewer than two clouds or none overlapping."""
+    if len(names) < 2:
+        raise MetricsError(f"need at least two clouds, got {len(names)}")
+    if not any(p.n for p in pairs):
+        raise MetricsError(f"no overlap: no point of one cloud is within r = "
+                           f"{radius_mm:.3f} mm ({radius_factor:g} x the mean "
+                           f"spacing {spacing_mm:.3f} mm) of another cloud "
+                           f"({', '.join(names)}); same frame and units?")
+    order = {n: i for i, n in enumerate(names)}
+    pairs = sorted(pairs, key=lambda m: (order[m.a], order[m.b]))
+    return MetricsReport(radius_mm, spacing_mm, pairs, values)
 
 
 def compare_clouds(clouds: dict[str, np.ndarray], radius_factor: float = 6.0,

@@ -3,6 +3,7 @@ Markdown with the pictures next to it (any Markdown viewer or a Git forge render
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -145,6 +146,7 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
             lines += ["", f"## {key}", "", str(value)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
+    (out / "metrics.json").write_text(json.dumps(m, indent=2) + "\n")
     return path
 
 

@@ -43,10 +43,16 @@ class StationStore:
         return self.folder / f"{self.stations[name].index:05d}.{field}.npy"
 
     def put(self, name: str, points: np.ndarray, normals: np.ndarray | None = None,
-            uncertainty: np.ndarray | None = None) -> StoredStation:
-        """Write station ``name`` (replacing one of that name); raises OSError on a full disk."""
+            uncertainty: np.ndarray | None = None, index: int | None = None) -> StoredStation:
+        """Write station ``name`` (replacing one of that name) as file number ``index`` (by
+        default its place in this store); raises OSError on a full disk, ValueError when the
+        normals or 1-sigma are not one a point."""
         pts = np.asarray(points, np.float32).reshape(-1, 3)
-        index = self.stations[name].index if name in self.stations else len(self.stations)
+        for field, arr in (("normals", normals), ("1-sigma", uncertainty)):
+            if arr is not None and len(arr) != len(pts):
+                raise ValueError(f"station {name}: {len(arr)} {field} for {len(pts)} points")
+        if index is None:
+            index = self.stations[name].index if name in self.stations else len(self.stations)
         st = StoredStation(index, len(pts), pts.min(axis=0) if len(pts) else np.zeros(3, np.float32),
                            pts.max(axis=0) if len(pts) else np.zeros(3, np.float32),
                            normals is not None, uncertainty is not None)
@@ -57,6 +63,10 @@ class StationStore:
         if uncertainty is not None:
             np.save(self._path(name, "uncertainty"), np.asarray(uncertainty, np.float32))
         return st
+
+    def adopt(self, name: str, stored: StoredStation) -> None:
+        """Know station ``name`` as another process wrote it into this folder."""
+        self.stations[name] = stored
 
     def inside(self, name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """The indices (ascending) of station ``name``'s points inside the box [lo, hi] (mm)."""
@@ -135,7 +145,6 @@ class WorldFromMcs:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.poses: dict[str, np.ndarray] = {}
-        self._with_uncertainty: dict[str, bool] = {}
 
     def place(self, name: str, T_world_from_mcs: np.ndarray) -> None:
         """Station ``name``'s pose: its MCS points through it are its world points (mm)."""
@@ -144,7 +153,8 @@ class WorldFromMcs:
     def put(self, name: str, points: np.ndarray, normals: np.ndarray | None = None,
             uncertainty: np.ndarray | None = None) -> None:
         """Keep station ``name``'s world normals; ``points`` must be its MCS cloud moved by its
-        pose (their count is checked; raises ValueError). Raises OSError on a full disk."""
+        pose (their count is checked; raises ValueError), ``uncertainty`` the 1-sigma stored
+        with it (not written again). Raises OSError on a full disk."""
         if name not in self.poses or name not in self.mcs.stations:
             raise ValueError(f"station {name}: no pose placed or no MCS cloud stored")
         count = self.mcs.stations[name].count
@@ -153,7 +163,6 @@ class WorldFromMcs:
                              f"{0 if normals is None else len(normals)} normals for "
                              f"{count} stored in MCS")
         np.save(self._normals(name), np.asarray(normals, np.float32))
-        self._with_uncertainty[name] = uncertainty is not None
 
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -181,7 +190,7 @@ class WorldFromMcs:
         nrm = np.load(self._normals(name), mmap_mode="r")
         normals = np.asarray(nrm[idx])
         del nrm
-        return world, normals, unc if self._with_uncertainty[name] else None
+        return world, normals, unc
 
     def _normals(self, name: str) -> Path:
         return self.folder / f"{self.mcs.stations[name].index:05d}.normals.npy"

@@ -86,16 +86,7 @@ class VoxelTiles:
 
     def means(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Tile by tile: (the occupied voxels' weighted means (M, 3) mm, their 1-sigma (M,) mm)."""
-        for path in sorted(self.folder.glob("*.bin")):
-            rec = np.fromfile(path, RECORD)
-            tv = self.tile_voxels
-            key = (rec["k"][:, 0].astype(np.int64) * tv + rec["k"][:, 1]) * tv + rec["k"][:, 2]
-            _, inverse = np.unique(key, return_inverse=True)
-            n = int(inverse.max()) + 1
-            wsum = np.bincount(inverse, weights=rec["w"], minlength=n)
-            mean = np.column_stack([np.bincount(inverse, weights=rec["wp"][:, i], minlength=n)
-                                    for i in range(3)]) / wsum[:, None]
-            yield mean, 1.0 / np.sqrt(wsum)
+        return tile_means([self.folder], self.tile_voxels)
 
     def model(self) -> tuple[np.ndarray, np.ndarray]:
         """Every tile's means together: (points (M, 3) mm, 1-sigma (M,) mm)."""
@@ -106,3 +97,23 @@ class VoxelTiles:
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def tile_means(folders: list[Path], tile_voxels: int = 512
+               ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """:meth:`VoxelTiles.means` over the tiles of several folders of the same grid (one a
+    station, written on other machines): each tile's records read folder by folder in the
+    given order, which in station order are the records, in their order, of one folder fed
+    the same stations: the same means to the bit."""
+    names = sorted({p.name for f in folders for p in Path(f).glob("*.bin")})
+    tv = tile_voxels
+    for name in names:
+        rec = np.concatenate([np.fromfile(Path(f) / name, RECORD) for f in folders
+                              if (Path(f) / name).exists()])
+        key = (rec["k"][:, 0].astype(np.int64) * tv + rec["k"][:, 1]) * tv + rec["k"][:, 2]
+        _, inverse = np.unique(key, return_inverse=True)
+        n = int(inverse.max()) + 1
+        wsum = np.bincount(inverse, weights=rec["w"], minlength=n)
+        mean = np.column_stack([np.bincount(inverse, weights=rec["wp"][:, i], minlength=n)
+                                for i in range(3)]) / wsum[:, None]
+        yield mean, 1.0 / np.sqrt(wsum)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+from collections.abc import Iterator
 from typing import Any
 
 #: how long a command tries to reach a scheduler before it gives up (s)
@@ -46,3 +49,18 @@ def close(client: Any) -> None:
     client.close()
     if isinstance(cluster, LocalCluster):
         cluster.close()
+
+
+@contextlib.contextmanager
+def session(scheduler: str, workers: int | None, what: str) -> Iterator[Any]:
+    """A client of ``scheduler`` (tcp://HOST:PORT, or ``local``) for the length of the block,
+    after printing where ``what`` runs and its dashboard's link (its progress); closed after.
+    Raises SchedulerUnreachable before anything is submitted."""
+    client = connect(None if scheduler == "local" else scheduler, workers)
+    try:
+        n = len(client.scheduler_info()["workers"])
+        print(f"{what} on {scheduler} ({n} workers); progress: {client.dashboard_link}",
+              file=sys.stderr, flush=True)
+        yield client
+    finally:
+        close(client)

@@ -18,6 +18,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--e57", help="also write the fused cloud as E57")
     p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
     p.add_argument("--report", help="directory for report.md with the overlap metrics and plots")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local",
+                   help="fuse a recording station by station on a Dask cluster: a scheduler's "
+                        "address, or 'local' (a local cluster, a worker per core); for a job "
+                        "too large for one machine's memory. The recording and --spool must be "
+                        "at the same path on the workers' hosts")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--spool", default=None, metavar="DIR",
+                   help="with --scheduler: where the stations wait on disk, ~28 bytes a point "
+                        "(default: beside --out); removed after")
     p.add_argument("--refine", action="store_true",
                    help="also refine by multi-view ICP held to the tracker poses: written as "
                         "<out>_icp.ply and reported apart, never replacing the tracker result")
@@ -59,6 +69,8 @@ def main(args: argparse.Namespace) -> int:
     from scancell.analysis.metrics import MetricsError
 
     t0 = time.perf_counter()
+    if args.scheduler and args.scheduler != "none":
+        return on_cluster(args)
     try:
         if Path(args.source).suffix == ".mcap":
             from scancell.recorder.reading import RecordingError
@@ -94,4 +106,92 @@ def main(args: argparse.Namespace) -> int:
     print(f"{len(stations)} stations, {fused.merged_count} points merged -> {len(fused.points)} "
           f"after {args.voxel:g} mm resampling -> {args.out}{extra} "
           f"({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def on_cluster(args: argparse.Namespace) -> int:
+    """The recording fused station by station on a Dask cluster (:mod:`scancell.batch.fuse`);
+    its outputs written from the model file a million points at a time."""
+    import shutil
+    import sys
+    import tempfile
+
+    from scancell.analysis.cloud_io import write_ply_chunks
+    from scancell.analysis.export import (
+        POISSON_POINTS,
+        ExportError,
+        poisson_mesh,
+        write_e57_chunks,
+        write_mesh,
+    )
+    from scancell.analysis.fusion import FusionError
+    from scancell.analysis.metrics import MetricsError
+    from scancell.batch.cluster import SchedulerUnreachable, session
+    from scancell.batch.fuse import ClusterFusionError, fuse_recording
+    from scancell.recorder.reading import RecordingError
+    from scancell.workers.recorded_stations import recorded_poses
+    from tqdm import tqdm
+
+    if args.refine:
+        return fail("fuse", "--refine holds every station in memory: not with --scheduler")
+    if Path(args.source).suffix != ".mcap":
+        return fail("fuse", f"{args.source}: --scheduler fuses a recording (.mcap)")
+    if args.voxel <= 0:
+        return fail("fuse", f"--voxel {args.voxel:g}: --scheduler resamples on voxels (> 0)")
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    try:  # what the recording lacks is said before a cluster is started
+        layout = recorded_poses(args.source)
+    except (FusionError, RecordingError) as exc:
+        return fail("fuse", str(exc))
+    spool_parent = Path(args.spool) if args.spool else out.resolve().parent
+    try:
+        spool_parent.mkdir(parents=True, exist_ok=True)
+        spool = Path(tempfile.mkdtemp(prefix=".scancell-fuse-", dir=spool_parent))
+    except OSError as exc:
+        return fail("fuse", f"spool {spool_parent}: {exc.strerror or exc}")
+    try:
+        with session(args.scheduler, args.workers, f"fusing {args.source}") as client:
+            bar = tqdm(unit="task", desc="fuse", file=sys.stderr)
+
+            def tick(what: str) -> None:
+                bar.update(1)
+                bar.set_postfix_str(what, refresh=False)
+
+            try:
+                result = fuse_recording(client, args.source, spool, args.voxel, tick, layout)
+            finally:
+                bar.close()
+        model = result.fused.model
+        fields = ["uncertainty"] if model.weighted else []
+        write_ply_chunks(out, model.count, fields,
+                         ((rec["p"], {"uncertainty": rec["sigma"]} if fields else {})
+                          for rec in model.chunks()))
+        if args.e57:
+            write_e57_chunks(args.e57, model.count, model.lo, model.hi,
+                             (rec["p"] for rec in model.chunks()))
+        if args.mesh:
+            write_mesh(args.mesh, poisson_mesh(model.sample(POISSON_POINTS),
+                                               result.fused.viewpoint_of,
+                                               thinned_from=model.count))
+        if isinstance(result.metrics, MetricsError):
+            print(f"overlap metric: {result.metrics}", file=sys.stderr)
+        elif result.metrics is not None:
+            m = result.metrics.to_json()
+            t, r = m["translation_mm"], m["rotation_deg"]
+            print(f"overlaps: translation mean {t['mean']:.4f} mm (std {t['std']:.4f}, "
+                  f"{t['p_lt_0_6']:.2%} < 0.6 mm), rotation mean {r['mean']:.4f} deg")
+            if args.report:
+                from scancell.analysis.report import write_report
+
+                print(f"report -> {write_report(args.report, result.fused, result.metrics)}")
+    except (SchedulerUnreachable, FusionError, RecordingError, ClusterFusionError, ExportError,
+            ValueError, OSError) as exc:
+        return fail("fuse", str(exc), 3 if isinstance(exc, SchedulerUnreachable) else 2)
+    finally:
+        shutil.rmtree(spool, ignore_errors=True)
+    print(f"{len(result.stations)} stations, {result.fused.merged_count} points merged -> "
+          f"{model.count} after {args.voxel:g} mm resampling -> {out}"
+          + "".join(f", {f}" for f in (args.e57, args.mesh) if f)
+          + f" ({time.perf_counter() - t0:.1f} s)")
     return 0

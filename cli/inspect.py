@@ -209,17 +209,11 @@ def deviation_tiles(scheduler: str | None, workers: int | None) -> Iterator[Any]
     if not scheduler or scheduler == "none":
         yield tiles_here
         return
-    from scancell.batch.cluster import close, connect
+    from scancell.batch.cluster import session
     from scancell.batch.inspect import cluster_tiles
 
-    client = connect(None if scheduler == "local" else scheduler, workers)
-    try:
-        n = len(client.scheduler_info()["workers"])
-        print(f"deviation tiles on {scheduler} ({n} workers); progress: {client.dashboard_link}",
-              file=sys.stderr, flush=True)
+    with session(scheduler, workers, "deviation tiles") as client:
         yield cluster_tiles(client)
-    finally:
-        close(client)
 
 
 def _load_rps(path: str, RpsPoint):

@@ -111,6 +111,23 @@ def _key_expr(pattern: str) -> zenoh.KeyExpr:
         raise ValueError(f"{pattern!r} is not a key expression (e.g. dev/*/image, scan/**)") from None
 
 
+def _indexed_topics(reader: Any, patterns: list[str] | None) -> list[str] | None:
+    """The file's topics that ``patterns`` match, with their attachment topics, when its summary
+    indexes its chunks: the reader then skips every chunk without them (a station's cloud out
+    of a car body's 25 GB). None: read every message."""
+    if not patterns:
+        return None
+    try:
+        summary = reader.get_summary()
+    except (McapError, EOFError, ValueError):
+        return None
+    if summary is None or not summary.chunk_indexes:
+        return None
+    names = {c.topic for c in summary.channels.values()}
+    wanted = [t for t in names if not t.endswith(META_SUFFIX) and topic_matches(t, patterns)]
+    return wanted + [t + META_SUFFIX for t in wanted if t + META_SUFFIX in names]
+
+
 def samples(path: str | Path, topics: list[str] | None = None, start_ns: int | None = None,
             end_ns: int | None = None) -> Iterator[RecordedSample]:
     """The recording's samples in arrival order, filtered by topic and receive time."""
@@ -118,7 +135,8 @@ def samples(path: str | Path, topics: list[str] | None = None, start_ns: int | N
     pending: dict[str, dict[str, Any]] = {}
     try:
         reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
+        for schema, channel, message in reader.iter_messages(
+                topics=_indexed_topics(reader, topics), log_time_order=False):
             topic = channel.topic
             if topic.endswith(META_SUFFIX):
                 pending[topic[: -len(META_SUFFIX)]] = json.loads(message.data)

@@ -197,6 +197,19 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     assert out.returncode == 0, out.stderr
     offline, _ = read_ply(tmp_path / "offline.ply")
     np.testing.assert_array_equal(offline, pts)
+    # ... and station by station on a 2-worker Dask cluster: the same model, the same overlaps
+    out = subprocess.run([sys.executable, "-m", "scancell", "fuse", str(mcap), "--out",
+                          str(tmp_path / "cluster.ply"), "--voxel", "1.0", "--scheduler",
+                          "local", "--workers", "2", "--report", str(tmp_path / "cluster")],
+                         capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    clustered, cfields = read_ply(tmp_path / "cluster.ply")
+    np.testing.assert_array_equal(clustered, pts)
+    np.testing.assert_array_equal(cfields["uncertainty"], fields["uncertainty"])
+    cluster_metrics = json.loads((tmp_path / "cluster" / "metrics.json").read_text())
+    assert cluster_metrics["translation_mm"] == r["translation_mm"]
+    assert cluster_metrics["rotation_deg"] == r["rotation_deg"]
+    assert not list(tmp_path.glob(".scancell-fuse-*")), "the spool is removed"
     # the recording holds the final fused model: `scancell inspect REC.mcap` inspects it
     out = subprocess.run([sys.executable, "-m", "scancell", "inspect", str(mcap), "--nominal",
                           world.nominal["stl"], "--json", str(tmp_path / "offline.json")],

@@ -251,9 +251,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             job.open_spool(self.spool_root)
             try:  # the whole cloud waits on disk: a job's clouds do not fit in memory
                 job.mcs.put(station, pts, None, unc)
-            except OSError as exc:
+            except (OSError, ValueError) as exc:
                 log.error("job %s station %s: its cloud cannot be kept (%s); not fused",
-                          job_id, station, exc.strerror or exc)
+                          job_id, station, getattr(exc, "strerror", None) or exc)
                 return
             job.clouds[station] = even_sample(pts)
             job.counts[station] = len(pts)
@@ -393,8 +393,6 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             job.comparer = OverlapComparer(store=WorldFromMcs(job.mcs, job.spool / "world"))
             job.comparer_hand_eye = key
             job.tiles = VoxelTiles(job.spool / "tiles", self.settings.voxel_mm)
-        if unc is not None and len(unc) != len(world):
-            unc = None
         job.comparer.store.place(name, T_world_from_mcs)
         try:
             job.comparer.add(name, world, unc)

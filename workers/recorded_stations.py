@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,42 +20,79 @@ from scancell.workers.model_parts import ModelParts, ModelPartsError
 log = logging.getLogger(__name__)
 
 
-def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict[str, Any]]:
-    """Raises FusionError naming what the recording lacks."""
+@dataclass(frozen=True)
+class RecordedStation:
+    """A recorded ``scan_part`` station: where its cloud is and its pose."""
+
+    name: str
+    scan_id: str
+    #: the channel of its cloud (``.../scan/<station>/cloud``)
+    cloud_topic: str
+    T_world_from_ecs: np.ndarray
+
+
+def recorded_poses(path: str | Path) -> tuple[list[RecordedStation], dict[str, Any]]:
+    """The recording's stations in their order (ECS ``index``) and the hand-eye calibration
+    in force, read without their clouds; raises FusionError naming what the recording lacks."""
     hand_eye: dict[str, Any] | None = None
-    ecs: dict[str, dict[str, Any]] = {}
-    clouds: dict[str, np.ndarray] = {}
-    uncertainty: dict[str, np.ndarray] = {}
-    for s in samples(path, ["calib/hand_eye", "scan/*/ecs", "scan/*/cloud"]):
+    ecs: dict[str, tuple[str, dict[str, Any]]] = {}
+    for s in samples(path, ["calib/hand_eye", "scan/*/ecs"]):
         if s.key.endswith("/calib/hand_eye"):
             body = json.loads(s.payload)
             if body.get("T_ecs_from_mcs") is not None:
                 hand_eye = body
-        elif s.key.endswith("/ecs"):
-            e = json.loads(s.payload)
-            ecs[e["scan_id"]] = e
         else:
-            scan_id = str(s.attachment.meta.get("scan_id"))
-            pts, fields = s.cloud_arrays(["uncertainty"])
-            clouds[scan_id] = pts.astype(float)
-            unc = fields.get("uncertainty")
-            if unc is not None:
-                uncertainty[scan_id] = unc.astype(float)
+            e = json.loads(s.payload)
+            ecs[e["scan_id"]] = s.key[: -len("ecs")] + "cloud", e
     if hand_eye is None:
         raise FusionError(f"{path}: no hand-eye calibration (calib/hand_eye) in the recording")
     if not ecs:
         raise FusionError(f"{path}: no scan_part stations (scan/<station>/ecs) in the recording")
     stations = []
-    for scan_id, e in sorted(ecs.items(), key=lambda kv: kv[1].get("index", 0)):
-        if scan_id not in clouds:
-            raise FusionError(f"{path}: station {e['station']}: no cloud for scan {scan_id} "
-                              f"(was a scan worker running? try `scancell reprocess`)")
+    for scan_id, (topic, e) in sorted(ecs.items(), key=lambda kv: kv[1][1].get("index", 0)):
         try:
             T = station_T_world_from_ecs(e, hand_eye)
         except StationPoseError as exc:
             raise FusionError(f"{path}: {exc}") from None
-        stations.append(Station(e["station"], clouds[scan_id], T,
-                                uncertainty=uncertainty.get(scan_id)))
+        stations.append(RecordedStation(e["station"], scan_id, topic, T))
+    return stations, hand_eye
+
+
+def _cloud(sample: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    pts, fields = sample.cloud_arrays(["uncertainty"])
+    unc = fields.get("uncertainty")
+    return pts.astype(np.float32, copy=False), None if unc is None else unc.astype(np.float32)
+
+
+def _no_cloud(path: str | Path, station: RecordedStation) -> FusionError:
+    return FusionError(f"{path}: station {station.name}: no cloud for scan {station.scan_id} "
+                       f"(was a scan worker running? try `scancell reprocess`)")
+
+
+def station_cloud(path: str | Path, station: RecordedStation
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Station ``station``'s cloud (MCS, mm, float32) and its 1-sigma (mm) or None, read from
+    its own channel (the other stations' chunks are skipped); raises FusionError."""
+    for s in samples(path, [station.cloud_topic]):
+        if str(s.attachment.meta.get("scan_id")) == station.scan_id:
+            return _cloud(s)
+    raise _no_cloud(path, station)
+
+
+def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict[str, Any]]:
+    """Every station with its whole cloud in memory; raises FusionError naming what the
+    recording lacks."""
+    poses, hand_eye = recorded_poses(path)
+    clouds: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    for s in samples(path, ["scan/*/cloud"]):
+        clouds[str(s.attachment.meta.get("scan_id"))] = _cloud(s)
+    stations = []
+    for st in poses:
+        if st.scan_id not in clouds:
+            raise _no_cloud(path, st)
+        pts, unc = clouds.pop(st.scan_id)
+        stations.append(Station(st.name, pts.astype(float), st.T_world_from_ecs,
+                                uncertainty=None if unc is None else unc.astype(float)))
     return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye
 
 
