@@ -63,6 +63,15 @@ def cell_name(args: argparse.Namespace) -> str:
     return getattr(args, "cell", None) or os.environ.get(ENV_CELL) or DEFAULT_CELL
 
 
+def add_cluster_arguments(p: argparse.ArgumentParser, scheduler_help: str,
+                          metavar: str = "tcp://HOST:PORT|local") -> None:
+    """``--scheduler`` (what runs on the Dask cluster: ``scheduler_help``) and ``--workers``
+    (the local cluster's size), as every batch command takes them."""
+    p.add_argument("--scheduler", default=None, metavar=metavar, help=scheduler_help)
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
+
+
 def fail(command: str, message: str, code: int = 2) -> int:
     """Print ``scancell <command>: <message>`` to stderr and return the exit code."""
     print(f"scancell {command}: {message}", file=sys.stderr)

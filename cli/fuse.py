@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from scancell.cli._common import fail
+from scancell.cli._common import add_cluster_arguments, fail
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,13 +18,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--e57", help="also write the fused cloud as E57")
     p.add_argument("--mesh", help="also write a Poisson triangle mesh (PLY)")
     p.add_argument("--report", help="directory for report.md with the overlap metrics and plots")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local",
-                   help="fuse a recording station by station on a Dask cluster: a scheduler's "
-                        "address, or 'local' (a local cluster, a worker per core); for a job "
-                        "too large for one machine's memory. The recording and --spool must be "
-                        "at the same path on the workers' hosts")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: one per core)")
+    add_cluster_arguments(p, "fuse a recording station by station on a Dask cluster: a "
+                             "scheduler's address, or 'local' (a local cluster, a worker per "
+                             "core); for a job too large for one machine's memory. The "
+                             "recording and --spool must be at the same path on the workers' "
+                             "hosts")
     p.add_argument("--spool", default=None, metavar="DIR",
                    help="with --scheduler: where the stations wait on disk, ~28 bytes a point "
                         "(default: beside --out); removed after")

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from scancell.cli._common import fail
+from scancell.cli._common import add_cluster_arguments, fail
 
 ALIGN_HELP = ("asmeasured: the part is fixtured where --transform says; bestfit: robust trimmed "
               "point-to-plane fit (from --transform if given); rps: reference point system "
@@ -59,12 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the QIF 3.0 XSDs (QIFApplications/, QIFLibrary/)")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="report folder: report.html, regions.csv, sections.csv, inspection.json")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local",
-                   help="compute the deviation tile by tile on a Dask cluster: a scheduler's "
-                        "address, or 'local' (a local cluster, a worker per core); default: "
-                        "here. The nominal must be at the same path on the workers' hosts")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: one per core)")
+    add_cluster_arguments(p, "compute the deviation tile by tile on a Dask cluster: a "
+                             "scheduler's address, or 'local' (a local cluster, a worker per "
+                             "core); default: here. The nominal must be at the same path on the "
+                             "workers' hosts")
     p.add_argument("--out-ply", default=None, metavar="OUT.ply",
                    help="the measured points in the part frame (input order) with float "
                         "properties deviation (mm), nx, ny, nz (the nominal's normal) and "

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from scancell.cli._common import fail
+from scancell.cli._common import add_cluster_arguments, fail
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,13 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth-cell", default=None, metavar="CELL.toml",
                    help="simulated cell config: also each fused point's true error (default: "
                         "the simulated cell recorded in the file, if any)")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT|local|none",
-                   help="where several recordings run as Dask tasks: a Dask scheduler's address, "
-                        "'local' (a local cluster, the default for several recordings), or "
-                        "'none' (here, one after another; the default for one). The files and "
-                        "--out must be at the same path on every worker's host")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: one per core)")
+    add_cluster_arguments(p, "where several recordings run as Dask tasks: a Dask scheduler's "
+                             "address, 'local' (a local cluster, the default for several "
+                             "recordings), or 'none' (here, one after another; the default for "
+                             "one). The files and --out must be at the same path on every "
+                             "worker's host", "tcp://HOST:PORT|local|none")
 
 
 def recordings(items: list[str]) -> list[Path]:
