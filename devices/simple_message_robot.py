@@ -37,6 +37,20 @@ class _State:
     error: str | None = None  # why the state link died
 
 
+#: how far (rad, every joint) the robot may stand from its target once the controller says it
+#: arrived: the arrival check against gross failures, not the controller's own. A false fault
+#: over a job of N moves has the chance N·2Φ(−k) with k = tolerance / σ_joint (the joint's
+#: 1-sigma repeatability): N = 10^4 and 10^-6 want k ≥ 6.1. 5e-4 rad keeps k ≥ 6.1 for
+#: σ_joint ≤ 8e-5 rad (0.0047°): ISO 9283 pose repeatability of large robots (±0.05–0.08 mm
+#: at 2.5–3 m reach, σ ≈ 1e-5 rad) and the simulated cell's J6 (√(0.002² + 0.003²)° = 6.3e-5
+#: rad: k = 7.9). 2e-4 rad was k = 3.2 there: a car body's ~1000 moves hung about once.
+POSITION_TOLERANCE_RAD = 5e-4
+#: the controller standing this long (s) away from the target is a fault, not a wait
+STOPPED_SHORT_S = 1.0
+#: no move of the arm, however far and slow, takes longer (s)
+MOTION_TIMEOUT_S = 300.0
+
+
 class SimpleMessageRobot(Robot):
     OPTIONS_SCHEMA: ClassVar[dict[str, Any]] = {
         "type": "object",
@@ -50,6 +64,7 @@ class SimpleMessageRobot(Robot):
             "reply_timeout_s": {"type": "number", "exclusiveMinimum": 0},
             "state_timeout_s": {"type": "number", "exclusiveMinimum": 0},
             "position_tolerance_rad": {"type": "number", "exclusiveMinimum": 0},
+            "motion_timeout_s": {"type": "number", "exclusiveMinimum": 0},
             "joint_limits_deg": {"type": "array", "items": {"type": "array"}},
             "workspace_mm": {"type": "array", "minItems": 3, "maxItems": 3,
                              "items": {"type": "array", "minItems": 2, "maxItems": 2,
@@ -67,7 +82,8 @@ class SimpleMessageRobot(Robot):
         self.byteorder = o.get("byte_order", "big")
         self.reply_timeout = float(o.get("reply_timeout_s", 2.0))
         self.state_timeout = float(o.get("state_timeout_s", 1.0))
-        self.tolerance = float(o.get("position_tolerance_rad", 2e-4))
+        self.tolerance = float(o.get("position_tolerance_rad", POSITION_TOLERANCE_RAD))
+        self.motion_timeout = float(o.get("motion_timeout_s", MOTION_TIMEOUT_S))
         self._motion: serial.SerialBase | None = None
         self._state_port: serial.SerialBase | None = None
         self._state = _State()
@@ -207,7 +223,8 @@ class SimpleMessageRobot(Robot):
                               f"{st.status.error_code})")
         self._stop_requested = False
         await self._send_point(0, q_rad, speed)
-        settled_since = None
+        sent = time.monotonic()
+        settled_since = short_since = None
         while True:
             await asyncio.sleep(1 / 60)
             st = self._check_state()
@@ -216,14 +233,30 @@ class SimpleMessageRobot(Robot):
             if st.status is not None and st.status.in_error == sm.TriState.ON:
                 raise DeviceFault(f"{self.name}: controller error {st.status.error_code} "
                                   "during motion")
-            close = np.max(np.abs(st.joints - q_rad)) < self.tolerance
+            off = np.abs(st.joints - q_rad)
+            close = float(off.max()) < self.tolerance
             idle = st.status is None or st.status.in_motion != sm.TriState.ON
+            now = time.monotonic()
             if close and idle:
-                settled_since = settled_since or time.monotonic()
-                if time.monotonic() - settled_since > 0.05:
+                settled_since = settled_since or now
+                if now - settled_since > 0.05:
                     return
             else:
                 settled_since = None
+            # the controller says it stands, away from the target: it will not get there
+            stands_short = idle and not close and st.status is not None and st.stamp > sent
+            short_since = (short_since or now) if stands_short else None
+            if short_since is not None and now - short_since > STOPPED_SHORT_S:
+                raise DeviceFault(f"{self.name}: the controller stands {self._worst(off)} from "
+                                  f"the target (tolerance {np.degrees(self.tolerance):.4f} deg)")
+            if now - sent > self.motion_timeout:
+                raise DeviceFault(f"{self.name}: not at the target {self.motion_timeout:g} s "
+                                  f"after the move was sent ({self._worst(off)} away)")
+
+    @staticmethod
+    def _worst(off: np.ndarray) -> str:
+        k = int(np.argmax(off))
+        return f"{np.degrees(off[k]):.4f} deg on J{k + 1}"
 
     async def stop(self) -> None:
         """Stop the motion and return once the robot stands: a joint state sent after the

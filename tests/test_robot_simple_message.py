@@ -225,3 +225,30 @@ def test_nothing_listening_is_connection_lost():
             await robot.connect()
 
     run(main())
+
+
+@pytest.mark.process
+def test_a_controller_that_stands_short_of_the_target_is_a_fault_not_a_wait():
+    """The controller reports the move done with J6 0.05 deg short (beyond the arrival
+    tolerance): the driver says so within about a second, where it once waited for ever."""
+    async def main():
+        cell, server, robot = await _pair()
+        arrive = cell.move_joints
+
+        def short_on_j6(q, *a, **kw):
+            arrive(np.asarray(q, float) + np.radians([0, 0, 0, 0, 0, 0.05]), *a, **kw)
+
+        cell.move_joints = short_on_j6
+        try:
+            t0 = time.monotonic()
+            with pytest.raises(DeviceFault, match=r"stands 0\.0[45]\d+ deg on J6 from the target"):
+                await robot.move_joints(HOME + np.radians([0, 0, 0, 0, 0, 2.0]), speed=0.5)
+            assert time.monotonic() - t0 < 3.0
+            # within the tolerance (a large robot's repeatability): arrived
+            cell.move_joints = arrive
+            await robot.move_joints(HOME + np.radians([0, 0, 0, 0, 0, 4.0]), speed=0.5)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
