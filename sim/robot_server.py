@@ -22,6 +22,9 @@ from scancell.sim.cell import SimCell
 
 log = logging.getLogger(__name__)
 
+#: the error code the simulated controller shows when a move raised inside the simulation
+MOVE_FAILED = 9
+
 
 class KarelRobotServer:
     def __init__(self, cell: SimCell, host: str = "127.0.0.1", motion_port: int = 11000,
@@ -158,6 +161,9 @@ class KarelRobotServer:
                         break
                     await asyncio.sleep(dt)
                 self.cell._update_body()
+            except Exception:  # as a controller would: an error the driver sees, not silence
+                log.exception("robot simulator: the move to %s failed", q_target)
+                self.set_fault(MOVE_FAILED)
             finally:
                 self._moving = False
 

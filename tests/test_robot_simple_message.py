@@ -252,3 +252,24 @@ def test_a_controller_that_stands_short_of_the_target_is_a_fault_not_a_wait():
             await server.close()
 
     run(main())
+
+
+@pytest.mark.process
+def test_a_move_that_fails_inside_the_simulator_shows_as_a_controller_error():
+    async def main():
+        cell, server, robot = await _pair()
+
+        def broken(*a, **kw):
+            raise ValueError("the simulated arm cannot get there")
+
+        cell.move_joints = broken
+        try:
+            t0 = time.monotonic()
+            with pytest.raises(DeviceFault, match="controller error 9 during motion"):
+                await robot.move_joints(HOME + np.radians([0, 0, 0, 0, 0, 2.0]), speed=0.5)
+            assert time.monotonic() - t0 < 3.0
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
