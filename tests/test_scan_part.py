@@ -102,8 +102,19 @@ def sim(make_daemon, client, tmp_path, monkeypatch):
 
 
 @pytest.mark.e2e
-def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_path):
+def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_path, monkeypatch):
     world = sim
+    from scancell.workers import fuse as fuse_module
+
+    spool_at_outputs: list[list[str]] = []
+    write_outputs = fuse_module.write_outputs
+
+    def outputs_seeing_the_spool(folder, fused, *a, **kw):
+        spool = fused.model.path.parent
+        spool_at_outputs.append(sorted(p.name for p in spool.iterdir()))
+        return write_outputs(folder, fused, *a, **kw)
+
+    monkeypatch.setattr(fuse_module, "write_outputs", outputs_seeing_the_spool)
     events = Events(client.bus)
     reports: list = []
     client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
@@ -150,6 +161,8 @@ def test_scan_part_job_fused_on_the_bus_with_the_true_error(sim, client, tmp_pat
     assert any(e.get("eta_s") for e in events.of(job))
     r = reports[0]
     assert r["job_id"] == job and r["stations"] == 3 and r["state"] == "done"
+    # the stations left the disk once the model was made: the outputs have their room
+    assert spool_at_outputs == [["model.bin"]]
     # true hand-eye: what is left is the tracker, the robot's repeatability and the scanner
     assert r["true_error_mm"]["mean"] < 0.1, r["true_error_mm"]
     assert set(r["error_budget"]["ecs_noise_mm"]) == {"s01", "s02", "s03"}
