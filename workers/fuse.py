@@ -628,7 +628,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     if uncertainty and metrics is not None and hand_eye.get("T_ecs_from_mcs") is not None:
         scanner_overlap = scanner_fixed_overlap(
             fused.per_station, {st.name: st.T_world_from_ecs for st in stations},
-            np.asarray(hand_eye["T_ecs_from_mcs"]), [(p.a, p.b) for p in metrics.pairs],
+            np.asarray(hand_eye["T_ecs_from_mcs"]), [(p.a, p.b) for p in metrics.pairs if p.n],
             next(iter(uncertainty.values())).stated)
     body["error_budget"] = budget(
         {st.name: st.ecs_noise_mm for st in stations if st.ecs_noise_mm is not None},
