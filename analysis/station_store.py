@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scancell.analysis.grid_kernels import in_box
 
 
 @dataclass(frozen=True)
@@ -71,12 +72,9 @@ class StationStore:
     def inside(self, name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """The indices (ascending) of station ``name``'s points inside the box [lo, hi] (mm)."""
         pts = np.load(self._path(name, "points"), mmap_mode="r")
-        inside = np.ones(len(pts), bool)
-        for k in range(3):
-            col = pts[:, k]
-            inside &= (col >= lo[k]) & (col <= hi[k])
-        del pts, col
-        return np.flatnonzero(inside)
+        idx = in_box(pts, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+        del pts
+        return idx
 
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -182,9 +180,7 @@ class WorldFromMcs:
         world = move_points(pts, T)
         del pts
         if lo is not None:
-            keep = np.ones(len(world), bool)
-            for k in range(3):
-                keep &= (world[:, k] >= lo[k]) & (world[:, k] <= hi[k])
+            keep = in_box(world, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
             idx, world = idx[keep], world[keep]
             unc = None if unc is None else unc[keep]
         nrm = np.load(self._normals(name), mmap_mode="r")
@@ -194,7 +190,3 @@ class WorldFromMcs:
 
     def _normals(self, name: str) -> Path:
         return self.folder / f"{self.mcs.stations[name].index:05d}.normals.npy"
-
-    def remove(self) -> None:
-        shutil.rmtree(self.folder, ignore_errors=True)
-        self.poses.clear()
