@@ -35,6 +35,7 @@ class CellClient:
         self.timeout_s = timeout_s
         self.connect_wait_s = connect_wait_s
         self._bus: Bus | None = None
+        self._answered = False
 
     @property
     def bus(self) -> Bus:
@@ -45,8 +46,15 @@ class CellClient:
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
              timeout_s: float | None = None) -> Any:
-        """Return the command's result; raise CommandError (error reply) or NoDaemon."""
-        return self.bus.call(verb, request, timeout_s or self.timeout_s)
+        """Return the command's result; raise CommandError (error reply) or NoDaemon.
+
+        Until the daemon has answered once, a call waits up to ``connect_wait_s`` for it to
+        declare its commands: a daemon just started may take seconds to import and connect its
+        devices. After that, a daemon that does not answer is reported within 3 s."""
+        wait_s = min(self.connect_wait_s, 3.0) if self._answered else self.connect_wait_s
+        result = self.bus.call(verb, request, timeout_s or self.timeout_s, connect_wait_s=wait_s)
+        self._answered = True
+        return result
 
     async def acall(self, verb: str, request: dict[str, Any] | None = None,
                     timeout_s: float | None = None) -> Any:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import copy
 import threading
 import time
@@ -9,7 +10,8 @@ import time
 import numpy as np
 import pytest
 from scancell.bus import BusSample
-from scancell.client import CommandError
+from scancell.client import CellClient, CommandError, NoDaemon
+from scancell.daemon.service import Daemon
 from scancell.devices.base import Health, HealthState
 from scancell.devices.errors import ConnectionLost
 from scancell.devices.mock import MockRobot
@@ -35,6 +37,34 @@ def test_status_and_devices_list_everything(make_daemon, client):
     ops = {o["name"]: o for o in devs["robot"]["operations"]}
     assert ops["move_joints"]["schema"] == "scancell.cmd.robot.move_joints"
     assert sorted(client.alive()) == sorted(st["devices"])
+
+
+@pytest.mark.process
+def test_a_clients_first_call_waits_for_a_daemon_still_starting(make_daemon, cell, endpoint,
+                                                                monkeypatch):
+    """A daemon listens on the bus seconds before it answers commands (it starts its simulator
+    and loads its drivers in between; a cold `scancell demo` gave up after 3 s): the first call
+    waits up to ``connect_wait_s``; once the daemon has answered, a daemon gone is reported
+    within seconds."""
+    async def slow_simulator_start(self) -> None:
+        await asyncio.sleep(6.0)
+
+    monkeypatch.setattr(Daemon, "_start_simulator", slow_simulator_start)
+    daemons = []
+    starter = threading.Thread(target=lambda: daemons.append(make_daemon()))
+    starter.start()
+    c = CellClient(cell, endpoint, timeout_s=10.0, connect_wait_s=60.0)
+    try:
+        assert set(c.status()["devices"]) == {"robot", "tracker", "cam_left", "projector", "axis"}
+        starter.join()
+        daemons[0].stop()
+        t0 = time.monotonic()
+        with pytest.raises(NoDaemon):
+            c.status()
+        assert time.monotonic() - t0 < 15.0
+    finally:
+        starter.join()
+        c.close()
 
 
 @pytest.mark.process
