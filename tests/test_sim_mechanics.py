@@ -17,6 +17,7 @@ from scancell.protocols.commands import CommandError
 from scancell.sim import mechanics as mech
 from scancell.sim.cell import SimCell, SimCellConfig
 from scancell.sim.optics_profile import optics_profile
+from scancell.sim.tracker_mover import SimTrackerMover
 from scancell.sim.tracker_server import TcpTrackerServer
 
 
@@ -216,6 +217,37 @@ def test_nest_checks_through_the_protocol_relocate_and_stop_on_a_missing_nest():
             c.scene.get(f"nest_{n}").T_world_from_object[:3, 3] += [0.0, 0.0, 5000.0]
         with pytest.raises(NestCheckFailed, match=r"2 of 6 nests measured, 3 needed.*N1"):
             await drift.check("end", scanner)
+
+    _with_tracker(c, body)
+
+
+def test_a_nest_check_on_a_moved_set_up_reports_the_drift_since_it_was_located():
+    """On a set-up the tracker was moved to, a check solves the network again; its record
+    carries the nests' drift through the location in force before it (it once read 0.0000)."""
+    c = cell(off=("vibration",))
+    c.move_joints(c.start_joints())
+    settings = MetrologySettings(nests={n: tuple(p) for n, p in c.cfg.nests_world_mm.items()})
+    T_rough = np.eye(4)
+    T_rough[:3, 3] = [-500.0, 800.0, 0.0]
+
+    async def body(tracker, server):
+        await apply_weather(tracker, MetrologySettings(weather="tracker"))
+        drift = DriftControl(tracker, settings, {"job_id": "t"})
+        await drift.check("start", (await tracker.measure()).point_mm)
+        c.move_tracker(SimTrackerMover(None, seed=0).set_up_pose("t1", T_rough))
+        located = await drift.locate("t1", T_rough, "tracker t1")
+        assert located["moved"] and located["drift_mm"] == {}  # nothing in force to drift from
+        soon = await drift.check("soon", None)
+        assert soon["moved"] and sorted(soon["drift_mm"]) == sorted(settings.nests)
+        # the nests read again at once: two readings' noise at their range (each within the
+        # knock limit of its reading), no drift
+        reading = drift.setups["t1"]
+        noise = {n: np.sqrt(2.0) * drift.knock_limit_mm(reading[n]) for n in reading}
+        assert soon["drift_max_mm"] > 0.0
+        assert all(soon["drift_mm"][n] < noise[n] for n in noise), (soon["drift_mm"], noise)
+        c.clock.advance(7200.0)  # two hours: the stand grows and tilts
+        later = await drift.check("later", None)
+        assert later["drift_max_mm"] > 2.0 * c.mech.stand_thermal_mm_per_h, later["drift_mm"]
 
     _with_tracker(c, body)
 

@@ -123,13 +123,20 @@ class DriftControl:
         self.setups[self.setup] = measured
         return measured, missing
 
-    async def check(self, label: str, return_to_mm: np.ndarray) -> dict[str, Any]:
+    async def check(self, label: str, return_to_mm: np.ndarray | None) -> dict[str, Any]:
         """Measure every nest (a nest out of sight is tried twice, then left out), then lock
         the tracker on ``return_to_mm`` (tracker frame) again. Returns the check's record;
         NestCheckFailed if fewer than ``min_nests`` answered or they disagree. On a set-up the
-        tracker was moved to, the check solves the network again (:meth:`locate`)."""
+        tracker was moved to, the check solves the network again (:meth:`locate`); its drift is
+        how far each nest reads from its reading when the set-up was last located (mm)."""
         if self.moved:
-            return await self.locate(self.setup, self.T_world_from_tracker, label, return_to_mm)
+            before = self.setups[self.setup]
+            record = await self.locate(self.setup, self.T_world_from_tracker, label, return_to_mm)
+            now = self.setups[self.setup]
+            drift = {n: float(np.linalg.norm(now[n] - before[n])) for n in now if n in before}
+            record.update(drift_mm={n: round(v, 5) for n, v in drift.items()},
+                          drift_max_mm=round(max(drift.values(), default=0.0), 5))
+            return record
         measured, missing = await self._measure_all(label, return_to_mm)
         s = self.settings
         try:
