@@ -261,7 +261,7 @@ def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: n
     if spec.overall is not None:
         out["overall"] = judge(d if used is None else d[used], spec.overall,
                                spec.allowed_out_share, part, spacing, spec.defect_area_mm2, used)
-    faces = nominal.face_of_triangle[cp.triangle]
+    faces = nominal.face_of_triangle[cp.triangle] if spec.regions else None  # 4 B a point
     for region in spec.regions:
         inside = np.flatnonzero(region.contains(part, faces, nominal) & in_range)
         out["regions"].append({"name": region.name, "kind": region.kind,
