@@ -275,3 +275,22 @@ def test_the_final_model_is_put_together_from_its_parts():
     np.testing.assert_array_equal(parts.add({"job_id": "old", "final": True}, a), a)
     with pytest.raises(ModelPartsError, match="job j: part 3 of 3"):
         parts.add({**meta, "part": 3}, a)
+    # the parts as the fuse worker publishes them (meta names the model's size): each copied
+    # into the model at its place, in any order; parts that do not fit are named
+    model = np.arange(30, dtype=np.float32).reshape(10, 3)
+    sized = {"job_id": "k", "final": True, "parts": 3, "points": 10}
+    assert parts.add({**sized, "part": 2}, model[8:]) is None
+    assert parts.add({**sized, "part": 0}, model[:4]) is None
+    whole = parts.add({**sized, "part": 1}, model[4:8])
+    np.testing.assert_array_equal(whole, model)
+    assert whole.dtype == np.float32
+    assert parts.add({**sized, "part": 0}, model[:4]) is None
+    with pytest.raises(ModelPartsError, match="job k: part 1 has 3 points, the parts before it 4"):
+        parts.add({**sized, "part": 1}, model[4:7])
+    with pytest.raises(ModelPartsError, match="does not fit a model of 10"):
+        parts.add({**sized, "part": 1}, model[:6])
+    assert parts.add({**sized, "part": 2}, model[:1]) is None
+    assert parts.add({**sized, "part": 0}, model[:4]) is None
+    with pytest.raises(ModelPartsError, match="do not tile a model of 10 points"):
+        parts.add({**sized, "part": 1}, model[4:8])
+    assert parts.waiting() == {}
