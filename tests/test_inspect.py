@@ -446,11 +446,11 @@ def test_a_scan_of_the_dented_part_through_the_simulator_shows_the_dent(cad):
     assert abs(result.deviation[near].mean() - dent.deviation_mm) < 0.03
 
 
-def test_a_cloud_of_another_shape_is_no_overlap_within_seconds(cad):
+def test_a_cloud_of_another_shape_is_no_overlap_after_the_coarse_pass(cad, monkeypatch):
     """A sheet over the part or a sphere of its size (issue 39, 15): the documented "no
-    overlap" error, after the coarse pass, not a fit wandering for a minute."""
-    import time
-
+    overlap" error, after the coarse pass, not a fit wandering for a minute. Counted in
+    closest-point searches (the gate, its retry, ≤ 50 coarse steps, the surface share), not
+    in seconds: a timed test fails on a loaded machine."""
     nominal = load_nominal(cad["stl"])
     lo, hi = nominal.vertices.min(axis=0), nominal.vertices.max(axis=0)
     centre, size = (lo + hi) / 2, hi - lo
@@ -460,11 +460,14 @@ def test_a_cloud_of_another_shape_is_no_overlap_within_seconds(cad):
                              np.full(len(uv), hi[2] + 30.0)])
     ball = rng.normal(size=(20_000, 3))
     ball = centre + 0.5 * size.min() * ball / np.linalg.norm(ball, axis=1, keepdims=True)
+    searches = []
+    search = al.closest_points
+    monkeypatch.setattr(al, "closest_points", lambda *a, **k: searches.append(1) or search(*a, **k))
     for cloud in (sheet, ball):
-        t0 = time.perf_counter()
+        searches.clear()
         with pytest.raises(al.AlignmentError, match=r"no overlap between the cloud and the nominal"):
             inspect_cloud(cloud, nominal)
-        assert time.perf_counter() - t0 < 15.0
+        assert 0 < len(searches) <= 2 + 50 + 1
     inspect_cloud(sample((), 30_000, 0.015, seed=5), nominal)  # the part's own cloud fits
 
 
