@@ -513,13 +513,10 @@ def test_a_step_that_claims_metres_is_refused_before_its_tessellation(tmp_path, 
         load_nominal(step, measured=cloud)
     monkeypatch.undo()
     monkeypatch.setenv("SCANCELL_CACHE_DIR", str(tmp_path / "cache"))
-    # without a cloud to compare with, the tolerance grows with the part: 2 ppm of 810 m
-    import time
-
-    t0 = time.perf_counter()
+    # without a cloud to compare with, the tolerance grows with the part: 2 ppm of 810 m (a
+    # tolerance of 0.01 mm would tessellate it into millions of triangles)
     part = load_nominal(step)
-    assert part.unit == "m" and time.perf_counter() - t0 < 30.0
-    assert len(part.triangles) < 10_000
+    assert part.unit == "m" and len(part.triangles) < 10_000
     assert nominal_module.RELATIVE_CHORDAL * part.diagonal_mm > 1.0
 
 
