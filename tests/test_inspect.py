@@ -495,9 +495,9 @@ def test_a_step_that_claims_metres_is_refused_before_its_tessellation(tmp_path, 
 
     monkeypatch.setenv("SCANCELL_CACHE_DIR", str(tmp_path / "cache"))
     step = tmp_path / "plate_in_metres.step"
+    writer = STEPControl_Writer()  # its first one sets the STEP statics to their defaults
     Interface_Static.SetCVal_s("write.step.unit", "M")
     try:  # the numbers of a 680 x 400 x 100 mm plate, written as metres
-        writer = STEPControl_Writer()
         writer.Transfer(BRepPrimAPI_MakeBox(680_000.0, 400_000.0, 100_000.0).Shape(),
                         STEPControl_AsIs)
         writer.Write(str(step))
