@@ -149,22 +149,24 @@ def view_maps(inspection: Inspection, min_share: float = 0.02) -> list[tuple[str
     nom = inspection.nominal
     v = nom.vertices[nom.triangles]
     areas = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    ok = inspection.in_range
-    if ok.all():  # the usual case: views of the whole cloud, no copies
-        pts, dev, tri = inspection.points, inspection.deviation, inspection.closest.triangle
-    else:
-        pts, dev = inspection.points[ok], inspection.deviation[ok]
-        tri = inspection.closest.triangle[ok]  # each point's normal is its triangle's
+    # the whole cloud's arrays, never a copy of its points in range (20 bytes a point): those
+    # out of range are left out with the points facing away, view by view
+    ok = None if inspection.in_range.all() else inspection.in_range
+    pts, dev, tri = inspection.points, inspection.deviation, inspection.closest.triangle
+    used = len(pts) if ok is None else int(ok.sum())
     cov = inspection.coverage
     # cells no finer than the measured points' or the nominal samples' spacing, so that
     # neither shows as speckle
-    spacing = max(np.sqrt(nom.area_mm2 * max(cov.covered_share, 1e-3) / max(len(pts), 1)),
+    spacing = max(np.sqrt(nom.area_mm2 * max(cov.covered_share, 1e-3) / max(used, 1)),
                   np.sqrt(nom.area_mm2 / max(len(cov.samples), 1)))
     cmap, norm = _scale(inspection)
     out = []
     for view in standard_views(nom.triangle_normals, areas):
+        # each point's normal is its triangle's
         facing = (inspection.closest.triangle_normals @ view.towards_viewer > 0.1)[tri]
-        if facing.mean() < min_share:
+        if ok is not None:
+            facing &= ok
+        if facing.sum() < min_share * used:
             continue
         # the image's axes carry the part's own coordinates: along -x the axis runs backwards
         sr, su = _axis_sign(view.right), _axis_sign(view.up)

@@ -648,6 +648,23 @@ def test_grey_marks_only_the_surface_no_point_comes_near(cad):
     assert measured_all_over < 0.1 * with_hole, (measured_all_over, with_hole)
 
 
+def test_points_out_of_range_leave_the_maps_as_they_were(cad):
+    """Stray points (a fixture beside the part) are out of range: the maps are drawn from
+    the points in range, pixel for pixel those of the cloud without the strays (read from the
+    whole cloud's arrays, not a copy of the points in range)."""
+    from scancell.analysis.inspection_report import view_maps
+
+    nominal = load_nominal(cad["stl"])
+    settings = InspectionSettings("asmeasured", np.eye(4), None, parse_spec({"tolerance_mm": 0.2}))
+    part = sample((), 60_000, seed=4)
+    strays = part[::10].copy()  # a fixture's wall 30 mm beyond the part's end
+    strays[:, 0] = nominal.vertices[:, 0].max() + 30.0
+    with_strays = inspect_cloud(np.concatenate([part, strays]), nominal, settings)
+    assert (~with_strays.in_range).sum() == len(strays)
+    maps = dict(view_maps(with_strays))
+    assert maps == dict(view_maps(inspect_cloud(part, nominal, settings)))
+
+
 def test_without_a_tolerance_the_colour_scale_keeps_a_dent_in_its_shades(cad):
     """Issue 39, 16: at the 99th percentile of |deviation| the scale spanned the noise and the
     dent saturated; at the 99.9th only the most extreme 0.1 % of the points saturate."""
