@@ -1,13 +1,16 @@
 """Peak resident memory of a command and every process it starts, sampled from /proc.
 
     .venv/bin/python benchmarks/proc_memory.py [--every 0.5] [--json OUT] -- scancell demo
+    .venv/bin/python benchmarks/proc_memory.py --pid PID --json OUT   (a run already going)
 
 Every ``--every`` seconds the process tree under the command is walked (``/proc/<pid>/task/*/
 children``) and each process's RSS read from ``/proc/<pid>/status`` (VmRSS). A process is named
 by its command line (``scancell worker fuse`` -> ``worker fuse``). Printed at the end, and
 written with ``--json``: each name's peak RSS (MB), the peak of the tree's sum — the figure
 the machine must hold — with each name's RSS at that moment, and the seconds into the run of
-each peak. The command's exit code is returned.
+each peak. The command's exit code is returned. With ``--json`` the file is written again
+every ``--save-every`` seconds while the command runs (``"running": true``): a run of hours
+that is cut short still leaves its peaks so far.
 """
 
 from __future__ import annotations
@@ -110,24 +113,53 @@ class Sampler:
                 "peak_at_s": {k: round(self.peak_at[k], 1) for k, _ in by_size}}
 
 
+def save(path: Path, rep: dict[str, object]) -> None:
+    """Write ``rep`` whole or not at all (a reader never sees half a file)."""
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(rep, indent=2))
+    tmp.replace(path)
+
+
+def wait_pid(pid: int, period_s: float) -> None:
+    """Until process ``pid`` (not a child of this one) is gone."""
+    while Path(f"/proc/{pid}").exists():
+        time.sleep(period_s)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--every", type=float, default=0.5)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--save-every", type=float, default=30.0)
+    ap.add_argument("--pid", type=int, help="sample a process tree already running")
     ap.add_argument("command", nargs=argparse.REMAINDER)
     args = ap.parse_args()
     cmd = args.command[1:] if args.command[:1] == ["--"] else args.command
-    if not cmd:
-        ap.error("no command")
+    if not cmd and args.pid is None:
+        ap.error("no command (or --pid)")
+    if args.pid is not None and not Path(f"/proc/{args.pid}").exists():
+        ap.error(f"no process {args.pid}")
     t0 = time.monotonic()
-    proc = subprocess.Popen(cmd)
-    with Sampler(proc.pid, args.every) as s:
-        rc = proc.wait()
-    rep = {"command": cmd, "exit": rc, "seconds": round(time.monotonic() - t0, 1), **s.report()}
+    proc = subprocess.Popen(cmd) if cmd else None
+    pid = proc.pid if proc is not None else args.pid
+    what = cmd or [f"pid {pid}"]
+    rc: int | None = None
+    with Sampler(pid, args.every) as s:
+        done = threading.Thread(target=proc.wait if proc is not None else
+                                (lambda: wait_pid(pid, args.every)), daemon=True)
+        done.start()
+        while done.is_alive():
+            done.join(args.save_every)
+            if args.json and done.is_alive():
+                save(args.json, {"command": what, "running": True,
+                                 "seconds": round(time.monotonic() - t0, 1), **s.report()})
+        rc = proc.returncode if proc is not None else None
+    rep = {"command": what, "exit": rc, "seconds": round(time.monotonic() - t0, 1),
+           **s.report()}
     print(json.dumps(rep, indent=2), file=sys.stderr)
     if args.json:
-        args.json.write_text(json.dumps(rep, indent=2))
-    return rc
+        save(args.json, rep)
+    return rc or 0
 
 
 if __name__ == "__main__":
