@@ -212,4 +212,6 @@ def response_warning(camera: str, report: dict) -> str:
             else "NOT removed")
     return (f"{camera} camera: fringe response far from linear (equivalent gamma "
             f"{gamma if gamma is not None else '?'}, phase error {pp:.3f} rad peak to peak), "
-            f"{done}; calibrate the projector response (scancell calibrate projector)")
+            f"{done}; to pre-compensate the fringes instead, calibrate the projector response "
+            f"(scancell calibrate projector) on a projector that can play them (the daemon's "
+            f"log says why these were not)")

@@ -164,3 +164,21 @@ def test_calibration_job_precompensated_and_hdr_scans(realistic_daemon, client, 
         sub.undeclare()
         worker.terminate()
         worker.wait(10)
+
+
+@pytest.mark.unit
+def test_a_projector_that_cannot_play_the_compensation_is_told_once(caplog):
+    """A DLPC350 plays its flash only: every scan of a job would say why its fringes are not
+    pre-compensated. The first says it as a warning, the rest at INFO; another reason is new."""
+    import logging
+
+    from scancell.daemon.jobs.projector_response import ResponseState
+
+    state = ResponseState(bus=None)
+    with caplog.at_level(logging.INFO, logger="scancell.daemon.jobs.projector_response"):
+        for why in ("flash holds no such fringes", "flash holds no such fringes",
+                    "another reason"):
+            state.not_played(why)
+    assert [(r.levelno, r.getMessage().rsplit(": ", 1)[1]) for r in caplog.records] == [
+        (logging.WARNING, "flash holds no such fringes"),
+        (logging.INFO, "flash holds no such fringes"), (logging.WARNING, "another reason")]

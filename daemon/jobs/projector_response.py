@@ -41,6 +41,7 @@ class ResponseState:
         self.precompensation: list[int] | None = None
         self.info: dict[str, Any] = {}
         self._sub: Any = None
+        self._told: set[str] = set()
 
     def start(self) -> None:
         """Subscribe, and fetch the response already latched in a thread of its own (the query
@@ -54,6 +55,13 @@ class ResponseState:
                 self._on_sample(s)
         except Exception as exc:  # no latched response yet is normal
             log.debug("no projector response on the bus yet: %s", exc)
+
+    def not_played(self, why: str) -> None:
+        """The projector cannot play pre-compensated fringes for ``why``: a warning the first
+        time, INFO after (every scan of a job would say it again)."""
+        log.log(logging.INFO if why in self._told else logging.WARNING,
+                "scan: fringes not pre-compensated: %s", why)
+        self._told.add(why)
 
     def close(self) -> None:
         if self._sub is not None:

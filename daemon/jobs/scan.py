@@ -59,7 +59,7 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
         if why_not is None:
             spec["precompensation"] = pre
         else:
-            log.warning("scan: fringes not pre-compensated: %s", why_not)
+            response.not_played(why_not)
     timeout_s = float(request.get("timeout_s", 5.0))
     cams: list[Camera] = [s.device for s in cam_sups]
     sups = [proj_sup, *cam_sups]
