@@ -289,8 +289,10 @@ def test_a_full_queue_drops_loudly_and_is_counted_in_the_file(bus_pair, tmp_path
     i = info(f)
     assert i.topics[key] == 10 - dropped
     assert json.loads(i.metadata["scancell.recorder"]["dropped"]) == {key: dropped}
+    # the statuses in the file count the drops as they came: a drop after the last one the
+    # file took (the final status travels the bus as the file closes) is in the metadata above
     statuses = [s.decode() for s in samples(f, ["recorder/*/status"])]
-    assert statuses and statuses[-1]["dropped"] == {key: dropped}
+    assert statuses and 0 < statuses[-1]["dropped"].get(key, 0) <= dropped
 
 
 @pytest.mark.process
