@@ -207,7 +207,7 @@ class ScanWorker(ThreadedWorker[PendingScan]):
         self._decoders: dict[FringeSequence, ScanDecoder] = {}
         #: (job, camera) whose far-from-linear response was told once; later scans say it in
         #: the log's INFO (a 323-station job said it 646 times)
-        self._response_told: set[tuple[str, str]] = set()
+        self._response_told = RecentIds()
         self._lock = threading.Lock()
         self._calib_pub: Latched | None = None
         self.done = 0
@@ -396,13 +396,11 @@ class ScanWorker(ThreadedWorker[PendingScan]):
                 "response": {"left": result.left.response, "right": result.right.response}}
         for side, pm in (("left", result.left), ("right", result.right)):
             if pm.response and not pm.response["linear"]:
-                told = (scan.job_id or scan.scan_id, side)
+                told = f"{scan.job_id or scan.scan_id}\0{side}"
                 log.log(logging.INFO if told in self._response_told else logging.WARNING,
                         "scan %s station %s: %s", scan.scan_id, scan.station,
                         response_warning(side, pm.response))
                 self._response_told.add(told)
-                while len(self._response_told) > 4096:
-                    self._response_told.pop()
         with self._lock:  # another worker may have answered while this one decoded
             answered = self._finish_key(scan) in self._finished
             cloud_seen = scan.cloud_seen or scan.scan_id in self._clouds_seen

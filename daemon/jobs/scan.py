@@ -8,7 +8,6 @@ sequence. A subscriber or a recording can reassemble the scan from that alone.
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -20,8 +19,6 @@ from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence, display_us
 from scancell.devices.base import Camera, Projector
 from scancell.protocols.commands import CommandError
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
