@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 
@@ -73,6 +74,38 @@ def test_call_without_daemon_raises_no_daemon_quickly(bus_pair):
     with pytest.raises(NoDaemon, match="no daemon answered"):
         b.call("status", connect_wait_s=0.5)
     assert time.monotonic() - t0 < 5
+
+
+@pytest.mark.process
+def test_a_slow_unanswered_query_waits_for_a_daemon_still_starting(bus_pair, monkeypatch):
+    """On a loaded machine a query to a daemon that has not yet declared its commands can take
+    over a second and come back empty: with no device alive, that is a daemon still starting and
+    the call keeps waiting (a cold full-size demo gave up after 9 s)."""
+    a, b = bus_pair
+    real_query = b.query
+
+    def slow_query(*args, **kwargs):
+        reply = real_query(*args, **kwargs)
+        if reply is None:
+            time.sleep(1.2)
+        return reply
+
+    monkeypatch.setattr(b, "query", slow_query)
+    queryables = []
+
+    def start_answering() -> None:
+        time.sleep(3.0)
+        queryables.append(a.session.declare_queryable(
+            a.keys.cmd("status"), lambda q: q.reply(q.key_expr, json.dumps({"result": "up"}))))
+
+    starter = threading.Thread(target=start_answering)
+    starter.start()
+    try:
+        assert b.call("status", timeout_s=2.0, connect_wait_s=20.0) == "up"
+    finally:
+        starter.join()
+        for q in queryables:
+            q.undeclare()
 
 
 @pytest.mark.process
