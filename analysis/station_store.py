@@ -2,8 +2,9 @@
 
 Each station's points (float32, mm), unit normals (float32) and per-point 1-sigma
 (float32, mm) go to ``.npy`` files in a folder; memory keeps only each station's bounding box
-and point count. A station is read back whole or only the part inside a box, through a memory
-map that is closed straight after (its pages leave the process's resident set with it). A
+and point count. A station is read back whole (through a memory map) or only the part inside a
+box, read :data:`READ_CHUNK` rows at a time with plain reads, so the process holds one chunk of
+the file and the rows kept rather than every mapped page it has touched. A
 job's world points are not a second copy: :class:`WorldFromMcs` moves its MCS points by each
 station's pose as they are read, and keeps only their normals.
 
@@ -15,8 +16,10 @@ the overlap's mean rotation error (~0.05°) by half of itself.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from scancell.analysis.grid_kernels import in_box
@@ -30,6 +33,58 @@ class StoredStation:
     hi: np.ndarray
     normals: bool
     uncertainty: bool
+
+
+#: rows of a ``.npy`` file read at a time by :func:`npy_chunks` (12 MB of float32 points)
+READ_CHUNK = 1 << 20
+
+
+def _npy_header(f: BinaryIO, path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """The (shape, dtype) of the C-ordered ``.npy`` array whose file ``f`` is at its start; the
+    file is left at the first byte of data. Raises ValueError on anything else."""
+    fmt = np.lib.format
+    version = fmt.read_magic(f)
+    if version not in ((1, 0), (2, 0)):
+        raise ValueError(f"{path}: .npy format version {version} is not read here")
+    header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, fortran, dtype = header(f)
+    if fortran or not shape:
+        raise ValueError(f"{path}: a Fortran-ordered or 0-d array, not a station field")
+    return shape, dtype
+
+
+def npy_chunks(path: Path, chunk: int = READ_CHUNK) -> Iterator[tuple[int, np.ndarray]]:
+    """(index of the first row, rows) of the ``.npy`` array at ``path``, ``chunk`` rows at a
+    time, read with plain reads. Raises ValueError on a file that is not a C-ordered ``.npy``
+    or ends early."""
+    with open(path, "rb") as f:
+        shape, dtype = _npy_header(f, path)
+        row_items = int(np.prod(shape[1:], dtype=np.int64))
+        for first in range(0, shape[0], chunk):
+            n = min(chunk, shape[0] - first)
+            rows = np.fromfile(f, dtype, n * row_items)
+            if len(rows) != n * row_items:
+                raise ValueError(f"{path}: ends within rows {first}..{first + n} of {shape[0]}")
+            yield first, rows.reshape((n, *shape[1:]))
+
+
+def read_rows(path: Path, idx: np.ndarray | slice, chunk: int = READ_CHUNK) -> np.ndarray:
+    """The rows ``idx`` (ascending indices, or ``slice(None)`` for all) of the ``.npy`` array at
+    ``path``: all of them through a memory map, a subset chunk by chunk (:func:`npy_chunks`).
+    Raises IndexError on an index outside the array."""
+    if isinstance(idx, slice):
+        return np.asarray(np.load(path, mmap_mode="r")[idx])
+    idx = np.asarray(idx, np.int64)
+    with open(path, "rb") as f:
+        shape, dtype = _npy_header(f, path)
+    if len(idx) and (idx[0] < 0 or idx[-1] >= shape[0]):
+        raise IndexError(f"{path}: rows {idx[0]}..{idx[-1]} asked of {shape[0]}")
+    out = np.empty((len(idx), *shape[1:]), dtype)
+    if len(idx):
+        for first, rows in npy_chunks(path, chunk):
+            a, b = np.searchsorted(idx, (first, first + len(rows)))
+            out[a:b] = rows[idx[a:b] - first]
+    return out
 
 
 class StationStore:
@@ -71,10 +126,10 @@ class StationStore:
 
     def inside(self, name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """The indices (ascending) of station ``name``'s points inside the box [lo, hi] (mm)."""
-        pts = np.load(self._path(name, "points"), mmap_mode="r")
-        idx = in_box(pts, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
-        del pts
-        return idx
+        lo64, hi64 = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        found = [first + in_box(rows, lo64, hi64)
+                 for first, rows in npy_chunks(self._path(name, "points"))]
+        return np.concatenate(found) if found else np.empty(0, np.int64)
 
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -92,9 +147,7 @@ class StationStore:
             if not present:
                 out.append(None)
                 continue
-            arr = np.load(self._path(name, field), mmap_mode="r")
-            out.append(np.asarray(arr[idx]))
-            del arr
+            out.append(read_rows(self._path(name, field), idx))
         return out[0], out[1], out[2]
 
     def remove(self) -> None:
@@ -183,10 +236,7 @@ class WorldFromMcs:
             keep = in_box(world, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
             idx, world = idx[keep], world[keep]
             unc = None if unc is None else unc[keep]
-        nrm = np.load(self._normals(name), mmap_mode="r")
-        normals = np.asarray(nrm[idx])
-        del nrm
-        return world, normals, unc
+        return world, read_rows(self._normals(name), idx), unc
 
     def _normals(self, name: str) -> Path:
         return self.folder / f"{self.mcs.stations[name].index:05d}.normals.npy"

@@ -10,11 +10,12 @@ with N as a part does. Each station is sent when the last one is fused (its disp
 back on ``fusion/cloud``), then the job's end; the run ends with ``fusion/report``.
 
 Figures for N = 25, 50, 100, 200 (``--stations``): the fuse worker's peak RSS (sampled from
-/proc every 0.2 s) and its growth per station (least squares over the RSS after each station),
-the time per station (median, and the spread of the last half against the first), and the time
-from the job's end to the report. Issue 37 asks ≤ 1.5 GB at every N, ≤ 2 MB per station, time
-per station flat within ±20 %. A run whose fuse worker passes ``--cap-gb`` is stopped and
-reported as such (today's fuse worker keeps ~0.5 GB a station).
+/proc every 0.2 s; its heap, mapped-file and shared-memory parts at that moment, and whether a
+station or the report was under way) and its growth per station (least squares over the RSS
+after each station), the time per station (median, and the spread of the last half against the
+first), and the time from the job's end to the report. Issue 37 asks ≤ 1.5 GB at every N, ≤ 2 MB
+per station, time per station flat within ±20 %. A run whose fuse worker passes ``--cap-gb`` is
+stopped and reported as such (before issue 37 the fuse worker kept ~0.5 GB a station).
 
 Run: .venv/bin/python benchmarks/bench_fusion_scale.py [--stations 25,50,100,200] [--cap-gb 12]
 """
@@ -32,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from proc_memory import rss_mb
+from proc_memory import rss_mb, rss_split_mb
 from scancell.bus.ports import free_port
 from scancell.bus.zenoh_bus import Bus, BusConfig
 from scancell.protocols import foxglove_schemas as fg
@@ -75,10 +76,14 @@ def run(n: int, cap_gb: float, tmp: Path) -> dict:
                                str(tmp / f"n{n}"), "--no-mesh"], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     peak, stop = [0.0], threading.Event()
+    phase, at_peak = ["start"], {}
 
     def sample() -> None:
         while not stop.is_set():
-            peak[0] = max(peak[0], rss_mb(worker.pid))
+            rss = rss_mb(worker.pid)
+            if rss > peak[0]:
+                peak[0] = rss
+                at_peak.update(rss_split_mb(worker.pid), phase=phase[0])
             stop.wait(0.2)
 
     sampler = threading.Thread(target=sample, daemon=True)
@@ -101,6 +106,7 @@ def run(n: int, cap_gb: float, tmp: Path) -> dict:
     try:
         for i in range(n):
             station = f"s{i:03d}"
+            phase[0] = f"station {i}"
             mcs, sigma = station_cloud(i, n)
             t0 = time.monotonic()
             hub.publish_json(hub.keys.station_ecs(station), {
@@ -126,6 +132,7 @@ def run(n: int, cap_gb: float, tmp: Path) -> dict:
         done = len(times)
         t_end = time.monotonic()
         if capped is None:
+            phase[0] = "report"
             hub.publish_json(hub.keys.job_event(job), {
                 "job_id": job, "kind": "scan_part", "state": "done", "step": "done", "message": "",
                 "index": None, "total": None, "stamp_ns": messages.now_ns(),
@@ -148,7 +155,7 @@ def run(n: int, cap_gb: float, tmp: Path) -> dict:
     return {"n": n, "done": done, "capped": capped, "peak_mb": peak[0], "mb_per_station": slope,
             "s_per_station": statistics.median(times) if times else float("nan"),
             "drift": drift, "report_s": report_s if capped is None else None,
-            "report": (reports or [{}])[0]}
+            "report": (reports or [{}])[0], "at_peak": at_peak}
 
 
 def main() -> int:
@@ -167,6 +174,11 @@ def main() -> int:
             rep = f"{r['report_s']:8.1f}" if r["report_s"] is not None else f"{'-':>8s}"
             print(f"{n:4d} {r['done']:5d} {r['peak_mb']:8.0f} {r['mb_per_station']:10.2f} "
                   f"{r['s_per_station']:9.2f} {100 * r['drift']:+5.0f}% {rep}{note}", flush=True)
+            split = r["at_peak"]
+            if split:
+                print(f"{'':4s} at the peak ({split['phase']}): {split['anon']:.0f} MB heap, "
+                      f"{split['file']:.0f} MB mapped files, {split['shmem']:.0f} MB shared memory",
+                      flush=True)
             ok &= r["capped"] is None and r["peak_mb"] <= 1500 and r["mb_per_station"] <= 2.0
     return 0 if ok else 1
 

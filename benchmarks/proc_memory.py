@@ -53,6 +53,21 @@ def rss_mb(pid: int) -> float:
     return 0.0
 
 
+def rss_split_mb(pid: int) -> dict[str, float]:
+    """The parts of a process's RSS (MB): ``anon`` (its heap), ``file`` (mapped files' pages),
+    ``shmem`` (shared memory, e.g. zenoh's), from ``/proc/<pid>/status``."""
+    keys = {"RssAnon:": "anon", "RssFile:": "file", "RssShmem:": "shmem"}
+    out = dict.fromkeys(keys.values(), 0.0)
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            key = line.split(maxsplit=1)[0] if line else ""
+            if key in keys:
+                out[keys[key]] = int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return out
+
+
 def name_of(pid: int) -> str:
     try:
         argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")

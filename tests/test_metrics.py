@@ -281,3 +281,28 @@ def test_the_overlap_figures_do_not_depend_on_the_order_the_pairs_come_in():
     for c in chunks[::-1]:
         backward.add(c)
     assert (forward.mean, forward.std, forward.n) == (backward.mean, backward.std, backward.n)
+
+
+def test_rows_read_chunk_by_chunk_are_those_of_the_whole_array(tmp_path):
+    """A station's subset is read a chunk at a time (not mapped whole): any ascending indices,
+    across chunk edges, give the rows numpy gives; a file cut short or an index past the end is a
+    clear error naming the file."""
+    from scancell.analysis.station_store import npy_chunks, read_rows
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(1000, 3)).astype(np.float32)
+    sigma = rng.random(1000).astype(np.float32)
+    np.save(tmp_path / "p.npy", pts)
+    np.save(tmp_path / "s.npy", sigma)
+    for idx in (np.sort(rng.choice(1000, 137, replace=False)), np.arange(63, 65),
+                np.array([0, 999]), np.empty(0, np.int64)):
+        np.testing.assert_array_equal(read_rows(tmp_path / "p.npy", idx, chunk=64), pts[idx])
+        np.testing.assert_array_equal(read_rows(tmp_path / "s.npy", idx, chunk=64), sigma[idx])
+    np.testing.assert_array_equal(read_rows(tmp_path / "p.npy", slice(None)), pts)
+    assert [first for first, _ in npy_chunks(tmp_path / "p.npy", 400)] == [0, 400, 800]
+    with pytest.raises(IndexError, match=r"p\.npy: rows 5\.\.1000 asked of 1000"):
+        read_rows(tmp_path / "p.npy", np.array([5, 1000]))
+    data = (tmp_path / "p.npy").read_bytes()
+    (tmp_path / "cut.npy").write_bytes(data[:-120])
+    with pytest.raises(ValueError, match=r"cut\.npy: ends within rows 960"):
+        read_rows(tmp_path / "cut.npy", np.array([1, 990]), chunk=64)
