@@ -92,6 +92,15 @@ class Processes:
         return codes
 
 
+def interrupt_on_sigterm() -> None:
+    """SIGTERM (a CI runner's timeout, ``timeout``, ``kill``) stops the demo as Ctrl-C does:
+    its daemon and workers are stopped on the way out, not left running."""
+    def handler(signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def run(args: list[str], env: dict[str, str], what: str, timeout: float = 600) -> str:
     out = subprocess.run([sys.executable, "-m", "scancell", *args], env=env, capture_output=True,
                          text=True, timeout=timeout)
@@ -198,6 +207,7 @@ def main(args: argparse.Namespace) -> int:
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cfg.cell)
     stage = Stage(10)
     procs = Processes(run_dir / "logs")
+    interrupt_on_sigterm()
     background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="demo")
     t_start = time.monotonic()
     summary: dict[str, Any] = {}
@@ -388,6 +398,10 @@ def main(args: argparse.Namespace) -> int:
 
         print(f"\nscancell demo: FAILED (an internal error):\n{traceback.format_exc()}",
               file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"\nscancell demo: stopped ({exc or 'Ctrl-C'}); stopping its processes",
+              file=sys.stderr, flush=True)
+        raise
     finally:
         background.shutdown(wait=False, cancel_futures=True)
         if client is not None:

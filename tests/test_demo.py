@@ -5,8 +5,12 @@ cluster's plan with its tracker moves (the default)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -92,3 +96,46 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert "processes stopped" in out.stdout and "'daemon': 0" in out.stdout
     # (that a scan job's recording alone gives the same figures: tests/test_scan_part.py)
 
+
+
+def _descendants(pid: int) -> set[int]:
+    out, todo = set(), [pid]
+    while todo:
+        for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
+            try:
+                kids = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            out.update(kids)
+            todo += kids
+    return out
+
+
+@pytest.mark.process
+def test_sigterm_stops_the_demo_and_every_process_it_started(tmp_path):
+    """A demo killed with SIGTERM (a CI timeout, `timeout`) stops its daemon, recorder and
+    workers on the way out instead of leaving them running."""
+    log = tmp_path / "demo.log"
+    with open(log, "w") as out:
+        demo = subprocess.Popen([sys.executable, "-m", "scancell", "demo", "--quick"],
+                                cwd=tmp_path, stdout=out, stderr=subprocess.STDOUT, text=True)
+    started: set[int] = set()
+    try:
+        deadline = time.monotonic() + 120
+        while "[2/10]" not in log.read_text():  # the daemon answered; the recorder is started
+            assert demo.poll() is None and time.monotonic() < deadline, log.read_text()[-2000:]
+            time.sleep(0.2)
+        started = _descendants(demo.pid)
+        assert len(started) >= 2, started  # the daemon and the recorder at least
+        demo.send_signal(signal.SIGTERM)
+        assert demo.wait(timeout=120) == 130
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+        time.sleep(0.5)
+        left = [p for p in started if Path(f"/proc/{p}").exists()]
+        for p in left:  # a failure leaves nothing running either
+            os.kill(p, signal.SIGKILL)
+    text = log.read_text()
+    assert "stopped (SIGTERM); stopping its processes" in text and "processes stopped" in text
+    assert not left, text[-2000:]
