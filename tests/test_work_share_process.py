@@ -61,14 +61,33 @@ def test_a_scan_worker_killed_mid_station_loses_nothing(make_daemon, client, cel
     b.subscribe(b.keys.scan_cloud("*"), lambda s: clouds.append(s.attachment.meta["scan_id"]))
     b.subscribe(b.keys.fusion_report, lambda s: reports.append(s.decode()))
 
+    tried: set[str] = set()
+    trying = threading.Event()  # one worker at a time is frozen and looked at
+
+    def kill_if_still_decoding(pid: int, worker: str, scan_id: str) -> None:
+        """Frozen first: a result it sent before its status was read here (a loaded machine
+        reads it late) arrives within the second; it then goes on, and a later station dies."""
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(1.0)
+        with lock:
+            sent = any(r["scan_id"] == scan_id and r.get("worker") == worker for r in results)
+            if not sent:
+                killed.update(worker=worker, scan_id=scan_id)
+        os.kill(pid, signal.SIGCONT if sent else signal.SIGKILL)
+        trying.clear()
+
     def on_status(s) -> None:  # the first worker seen decoding a station of the job dies
         body = s.decode()
         now = body.get("decoding") or {}
         with lock:
-            if killed or not str(now.get("job_id", "")).startswith("scan_part-"):
+            if (killed or trying.is_set()
+                    or not str(now.get("job_id", "")).startswith("scan_part-")
+                    or now["scan_id"] in tried):
                 return
-            os.kill(int(body["pid"]), signal.SIGKILL)
-            killed.update(worker=body["worker"], scan_id=now["scan_id"])
+            tried.add(now["scan_id"])
+            trying.set()
+        threading.Thread(target=kill_if_still_decoding,
+                         args=(int(body["pid"]), body["worker"], now["scan_id"])).start()
 
     b.subscribe(b.keys.worker_status("scan", "*"), on_status)
     try:
