@@ -25,19 +25,10 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from proc_memory import status_mb
 
 POINTS = 3_500_000
 BOX = (np.array([50.0, -112.0, -5.0]), np.array([112.0, 112.0, 5.0]))
-
-
-def status_mb() -> dict[str, float]:
-    keys = {"VmHWM": "hwm", "VmRSS": "rss"}
-    out = {}
-    for line in Path("/proc/self/status").read_text().splitlines():
-        k = line.split(":", 1)[0]
-        if k in keys:
-            out[keys[k]] = int(line.split()[1]) / 1024.0
-    return out
 
 
 def mapped_box(store, name: str, lo: np.ndarray, hi: np.ndarray):
@@ -60,11 +51,11 @@ def child(way: str, folder: str) -> None:
             else (lambda: store.load("a", lo, hi)))
     read()  # numba's kernel compiled, numpy warmed
     Path("/proc/self/clear_refs").write_text("5")
-    before = status_mb()
+    before = status_mb("self", ("VmRSS",))
     rows = read()
-    after = status_mb()
+    after = status_mb("self", ("VmHWM",))
     kept = sum(a.nbytes for a in rows if a is not None) / 2**20
-    print(json.dumps({"peak_over_start_mb": after["hwm"] - before["rss"], "rows_mb": kept,
+    print(json.dumps({"peak_over_start_mb": after["VmHWM"] - before["VmRSS"], "rows_mb": kept,
                       "rows": len(rows[0])}))
 
 

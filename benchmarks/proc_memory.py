@@ -43,29 +43,29 @@ def tree(pid: int) -> list[int]:
     return seen
 
 
-def rss_mb(pid: int) -> float:
+def status_mb(pid: int | str, fields: tuple[str, ...]) -> dict[str, float]:
+    """The memory ``fields`` (e.g. ``VmRSS``, ``RssAnon``) of ``/proc/<pid>/status`` in MB; 0
+    for a field it lacks or a process gone. ``pid`` may be ``"self"``."""
+    out = dict.fromkeys(fields, 0.0)
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
+            key, _, value = line.partition(":")
+            if key in out:
+                out[key] = int(value.split()[0]) / 1024.0
     except OSError:
         pass
-    return 0.0
+    return out
+
+
+def rss_mb(pid: int) -> float:
+    return status_mb(pid, ("VmRSS",))["VmRSS"]
 
 
 def rss_split_mb(pid: int) -> dict[str, float]:
     """The parts of a process's RSS (MB): ``anon`` (its heap), ``file`` (mapped files' pages),
-    ``shmem`` (shared memory, e.g. zenoh's), from ``/proc/<pid>/status``."""
-    keys = {"RssAnon:": "anon", "RssFile:": "file", "RssShmem:": "shmem"}
-    out = dict.fromkeys(keys.values(), 0.0)
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            key = line.split(maxsplit=1)[0] if line else ""
-            if key in keys:
-                out[keys[key]] = int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return out
+    ``shmem`` (shared memory, e.g. zenoh's)."""
+    got = status_mb(pid, ("RssAnon", "RssFile", "RssShmem"))
+    return {"anon": got["RssAnon"], "file": got["RssFile"], "shmem": got["RssShmem"]}
 
 
 def name_of(pid: int) -> str:
