@@ -234,6 +234,8 @@ def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spa
 
 #: points per k-d tree of :func:`point_spacing_mm` (a tree and its float64 copy: ~60 MB a million)
 SPACING_CHUNK = 4_000_000
+#: points of the subsample whose k-d tree gives every probe its first bound on r₈
+SPACING_BOUND_SAMPLE = 1_000_000
 
 
 def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
@@ -242,8 +244,15 @@ def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
     from the local density at a subsample, π r₈² / 8 with r₈ the distance to the 8th nearest
     neighbour (right for a scanner's grid, π/4 of its pitch², and for random samples, whose
     nearest-neighbour distance would understate it 2x). ``index``: the rows of ``points`` that
-    form the cloud (None: all). The neighbours are searched SPACING_CHUNK points at a time, a
-    k-d tree each, and merged: the same r₈ as one tree over all, in bounded memory."""
+    form the cloud (None: all).
+
+    A cloud of more than SPACING_CHUNK points is searched a chunk at a time, a k-d tree each,
+    and the neighbours merged: the same r₈ as one tree over all, in bounded memory. Each search
+    is bounded by the probe's r₈ so far. Unbounded, a probe searching a chunk it is not part of
+    visits every leaf whose points lie about as far away as its nearest: all of them for a probe
+    near the centre of a curved panel's chunk (20 such probes took 3.5 s against one 4 M-point
+    hemisphere, 1 ms bounded). The first bound is the 9th distance in a subsample's tree, never
+    below the cloud's own (the subsample's nine nearest are nine of the cloud's points)."""
     from scipy.spatial import cKDTree
 
     n = len(points) if index is None else len(index)
@@ -253,11 +262,38 @@ def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
     def take(rows: slice | np.ndarray) -> np.ndarray:
         return np.asarray(points[rows] if index is None else points[index[rows]], float)
 
-    probe = take(np.random.default_rng(seed).choice(n, min(sample, n), replace=False))
+    rng = np.random.default_rng(seed)
+    probe = take(rng.choice(n, min(sample, n), replace=False))
     best = np.full((len(probe), 9), np.inf)
+    bound = np.full(len(probe), np.inf)
+    if n > SPACING_CHUNK:
+        rows = np.sort(rng.choice(n, min(SPACING_BOUND_SAMPLE, n), replace=False))
+        bound = cKDTree(take(rows)).query(probe, k=9, workers=-1)[0][:, 8]
     for s in range(0, n, SPACING_CHUNK):
-        tree = cKDTree(take(slice(s, s + SPACING_CHUNK)))
-        d = tree.query(probe, k=min(9, tree.n), workers=-1)[0].reshape(len(probe), -1)
-        best = np.sort(np.concatenate([best, d], axis=1), axis=1)[:, :9]
+        chunk = take(slice(s, s + SPACING_CHUNK))
+        best = _merge_nearest(best, np.minimum(bound, best[:, 8]), cKDTree(chunk), probe,
+                              chunk.min(axis=0), chunk.max(axis=0))
     r8 = best[:, 8]
     return float(np.sqrt(np.pi * np.median(r8 ** 2) / 8))
+
+
+def _merge_nearest(best: np.ndarray, bound: np.ndarray, tree: Any, probe: np.ndarray,
+                   lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``best`` (probes x k distances, ascending) merged with ``tree``'s points spanning the box
+    ``lo``-``hi``. ``bound``: no probe's k-th nearest lies farther (inf: not known). Only probes
+    whose bound reaches the box search it, in groups of bounds within 2x of each other, each
+    group bounded by its largest: no probe then searches much past its own bound."""
+    k = best.shape[1]
+    gap = np.linalg.norm(np.maximum(0.0, np.maximum(lo - probe, probe - hi)), axis=1)
+    reach = np.flatnonzero(gap <= bound)
+    finite = np.isfinite(bound[reach])
+    group = np.where(finite, np.ceil(np.log2(np.maximum(bound[reach], 1e-300))), np.inf)
+    out = best.copy()
+    for g in np.unique(group):
+        rows = reach[group == g]
+        # a hair over the bound: a neighbour exactly at it still counts
+        limit = np.inf if not np.isfinite(g) else float(bound[rows].max()) * (1 + 1e-9) + 1e-12
+        d = tree.query(probe[rows], k=min(k, tree.n), workers=-1,
+                       distance_upper_bound=limit)[0].reshape(len(rows), -1)
+        out[rows] = np.sort(np.concatenate([best[rows], d], axis=1), axis=1)[:, :k]
+    return out

@@ -677,3 +677,40 @@ def test_without_a_tolerance_the_colour_scale_keeps_a_dent_in_its_shades(cad):
     d = result.deviation[result.in_range]
     assert norm.vmin == -norm.vmax and norm.vmax > 0.2  # the noise is 0.015 mm; the dent 0.5
     assert np.mean(np.abs(d) > norm.vmax) == pytest.approx(0.001, abs=2e-4)
+
+
+def _dome_with_plate(rng: np.random.Generator) -> np.ndarray:
+    """A hemisphere of radius 1 m (40 000 points) after a 20 mm plate at its centre (2 000):
+    every dome point lies about as far from a plate point as its nearest."""
+    v = rng.normal(size=(40_000, 3))
+    v[:, 2] = np.abs(v[:, 2])
+    dome = 1000 * v / np.linalg.norm(v, axis=1)[:, None]
+    plate = np.c_[rng.uniform(-10, 10, (2_000, 2)), np.zeros(2_000)]
+    return np.vstack([plate, dome, dome[:50]])  # and 50 points twice: r₈ ties
+
+
+def test_point_spacing_in_chunks_is_one_trees_and_bounded(monkeypatch):
+    """Chunked, the spacing is exactly one tree's; and no probe searches a chunk unbounded,
+    which for the plate's probes against the dome visits every leaf (3.5 s for 20 probes
+    against a 4 M-point dome)."""
+    from scancell.analysis import tolerance
+    from scipy import spatial
+
+    cloud = _dome_with_plate(np.random.default_rng(3))
+    index = np.flatnonzero(np.arange(len(cloud)) % 7 != 3)
+    whole = tolerance.point_spacing_mm(cloud, sample=3_000, index=index)
+    bounds: list[float] = []
+
+    class Recording(spatial.cKDTree):
+        def query(self, x, *args, distance_upper_bound=np.inf, **kw):
+            bounds.append(distance_upper_bound)
+            return super().query(x, *args, distance_upper_bound=distance_upper_bound, **kw)
+
+    monkeypatch.setattr(spatial, "cKDTree", Recording)
+    monkeypatch.setattr(tolerance, "SPACING_CHUNK", 5_000)
+    monkeypatch.setattr(tolerance, "SPACING_BOUND_SAMPLE", 2_000)
+    assert tolerance.point_spacing_mm(cloud, sample=3_000, index=index) == whole
+    # the first query is the subsample's tree, which every probe finds near: the rest are bounded
+    assert len(bounds) > 8 and np.isfinite(bounds[1:]).all()
+    # the plate's probes (5 % of them) leave the median on the dome: √(area / points) there
+    assert whole == pytest.approx(np.sqrt(2 * np.pi * 1000 ** 2 / 40_050), rel=0.1)
