@@ -76,11 +76,16 @@ class VoxelTiles:
             sums["wp"][:, i] = np.bincount(inverse, weights=w * p[:, i], minlength=len(voxels))
         tile = np.floor_divide(voxels, self.tile_voxels)
         sums["k"] = voxels - tile * self.tile_voxels
-        tiles, which = np.unique(tile, axis=0, return_inverse=True)
-        which = which.ravel()
+        # the tile as one int64 over the station's few tiles, as the voxel key above:
+        # np.unique(axis=0) sorted the (M, 3) rows as 24-byte records, 2 s a full-size station
+        t0 = tile.min(axis=0)
+        tdims = tile.max(axis=0) - t0 + 1
+        which = ((tile[:, 0] - t0[0]) * tdims[1] + tile[:, 1] - t0[1]) * tdims[2] + tile[:, 2] - t0[2]
         order = np.argsort(which, kind="stable")
-        bounds = np.searchsorted(which[order], np.arange(len(tiles) + 1))
-        for t, lo, hi in zip(tiles, bounds[:-1], bounds[1:], strict=True):
+        which = which[order]
+        starts = np.flatnonzero(np.r_[True, which[1:] != which[:-1]])
+        for lo, hi in zip(starts, np.r_[starts[1:], len(order)], strict=True):
+            t = tile[order[lo]]
             with open(self.folder / f"{t[0]}_{t[1]}_{t[2]}.bin", "ab") as f:
                 sums[order[lo:hi]].tofile(f)
 
