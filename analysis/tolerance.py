@@ -279,21 +279,21 @@ def point_spacing_mm(points: np.ndarray, sample: int = 20_000, seed: int = 0,
 
 def _merge_nearest(best: np.ndarray, bound: np.ndarray, tree: Any, probe: np.ndarray,
                    lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """``best`` (probes x k distances, ascending) merged with ``tree``'s points spanning the box
-    ``lo``-``hi``. ``bound``: no probe's k-th nearest lies farther (inf: not known). Only probes
-    whose bound reaches the box search it, in groups of bounds within 2x of each other, each
-    group bounded by its largest: no probe then searches much past its own bound."""
+    """``best`` (probes x k distances, ascending) merged in place with ``tree``'s points
+    spanning the box ``lo``-``hi``. ``bound``: no probe's k-th nearest lies farther (inf: not
+    known). Only probes whose bound reaches the box search it, in groups of bounds within 2x of
+    each other, each group bounded by its largest: no probe then searches much past its own
+    bound."""
     k = best.shape[1]
     gap = np.linalg.norm(np.maximum(0.0, np.maximum(lo - probe, probe - hi)), axis=1)
     reach = np.flatnonzero(gap <= bound)
     finite = np.isfinite(bound[reach])
     group = np.where(finite, np.ceil(np.log2(np.maximum(bound[reach], 1e-300))), np.inf)
-    out = best.copy()
     for g in np.unique(group):
         rows = reach[group == g]
         # a hair over the bound: a neighbour exactly at it still counts
         limit = np.inf if not np.isfinite(g) else float(bound[rows].max()) * (1 + 1e-9) + 1e-12
         d = tree.query(probe[rows], k=min(k, tree.n), workers=-1,
                        distance_upper_bound=limit)[0].reshape(len(rows), -1)
-        out[rows] = np.sort(np.concatenate([best[rows], d], axis=1), axis=1)[:, :k]
-    return out
+        best[rows] = np.sort(np.concatenate([best[rows], d], axis=1), axis=1)[:, :k]
+    return best
