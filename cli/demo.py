@@ -193,11 +193,13 @@ def main(args: argparse.Namespace) -> int:
     scale = 4 if quick else 1
     balls = 5 if quick else 15
     run_dir = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
-    for sub in ("logs", "recordings", "calibration", "fused"):
+    for sub in ("logs", "recordings", "calibration", "fused", "truth"):
         (run_dir / sub).mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    # the simulator's true scanner poses, for benchmarks/station_error_split.py
+    true_poses = (run_dir / "truth" / "true_poses.jsonl").resolve()
     sets = [*flatten_overrides(relocated_ports(cfg.raw, lambda _old: free_port())),
-            f"simulator.camera_scale={scale}"]
+            f"simulator.camera_scale={scale}", f"simulator.true_pose_log={true_poses}"]
     cluster = args.compare_ecs or ecs == "cluster"
     if cluster:
         sets.append("simulator.smr_cluster=housing")

@@ -15,6 +15,7 @@ of calls give identical images and measurements.
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import time
 from collections.abc import Callable
@@ -232,6 +233,9 @@ class SimCellConfig:
     #: and its axis; None: none. Where ``[metrology.scanner_check]`` of sim.toml looks.
     check_bar_world: tuple[tuple[float, float, float], tuple[float, float, float]] | None = (
         DEFAULT_CHECK_BAR)
+    #: a JSON-lines file every ray cast of the left camera (MCS) appends its true pose to: what
+    #: a recording cannot hold, to tell a station's pose error from its scan's (None: none)
+    true_pose_log: str | None = None
 
     @classmethod
     def for_part(cls, part: str | None, **kwargs: Any) -> SimCellConfig:
@@ -676,9 +680,21 @@ class SimCell:
             geom = self._compute_geometry(camera, T_wc)
             self._serial += 1
             geom.serial = self._serial
+            if camera == "left" and self.cfg.true_pose_log:
+                self._log_true_pose(T_wc)
             return geom
 
         return self._at_pose(camera, compute)
+
+    def _log_true_pose(self, T_world_from_mcs: np.ndarray) -> None:
+        """Append the pose the left camera's images are rendered at to ``cfg.true_pose_log``:
+        host clock (ns, as the daemon's records), sim time (s), joints (deg), rail (mm) and
+        ``T_world_from_mcs`` (world, mm)."""
+        line = {"stamp_ns": time.time_ns(), "sim_s": self.clock.now(),
+                "joints_deg": np.degrees(self.q).round(6).tolist(), "rail_mm": self.rail_mm,
+                "T_world_from_mcs": T_world_from_mcs.tolist()}
+        with open(self.cfg.true_pose_log, "a", encoding="utf-8") as f:
+            f.write(json.dumps(line) + "\n")
 
     def _at_pose(self, device: str, compute: Callable[[np.ndarray], Any]) -> Any:
         """``compute(T_world_from_device)`` at the current pose, cached per device. The frames

@@ -69,6 +69,10 @@ SIMULATOR_SCHEMA: dict[str, Any] = {
                           {"enum": ["housing", ""]}),
         "profile": _d("the optics and mechanics profile (docs: Simulation models)",
                       {"enum": sorted(PROFILES), "default": DEFAULT_PROFILE}),
+        "true_pose_log": _d("a JSON-lines file the left camera's true pose at every ray cast "
+                            "is appended to (simulation only: tells a station's pose error "
+                            "from its scan's; benchmarks/station_error_split.py)",
+                            {"type": "string"}),
         "effects_off": _d("single effects of the profile switched off",
                           {"type": "array", "items": {"enum": sorted({*EFFECTS, *MECH_EFFECTS})},
                            "uniqueItems": True}),
@@ -137,14 +141,14 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
     return SimCell(SimCellConfig.for_part(
         part, seed=int(options.get("seed", 0)),
         camera_scale=float(options.get("camera_scale", 1.0)),
-        optics=optics, mechanics=mechanics,
+        optics=optics, mechanics=mechanics, true_pose_log=options.get("true_pose_log") or None,
         smr_cluster=dict(HOUSING_SMR_CLUSTER) if cluster == "housing" else {}))
 
 
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
     """The true-distance function (world points, mm -> mm) of the part of the simulated cell a
     ``[simulator]`` table describes (from a config file, or recorded in an MCAP file)."""
-    return sim_cell(options).surface_distance
+    return sim_cell({k: v for k, v in options.items() if k != "true_pose_log"}).surface_distance
 
 
 def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:

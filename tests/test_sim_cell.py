@@ -30,10 +30,11 @@ def _all_connected(client) -> bool:
 
 
 @pytest.mark.process
-def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
+def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client, tmp_path):
     raw = sim_cell_raw(camera_scale=8)
     # the device plumbing against the noise model: no tracker systematics, drift or bending
     raw["simulator"]["effects_off"] = list(MECH_EFFECTS)
+    raw["simulator"]["true_pose_log"] = str(tmp_path / "true_poses.jsonl")
     d = make_daemon(raw)
     wait_until(lambda: _all_connected(client), 30, what="all sim devices connected")
     cell = get_world(d.cfg.simulator["world"]).cell
@@ -70,6 +71,11 @@ def test_sim_cell_moves_measures_grabs_and_moves_the_axis(make_daemon, client):
             g = client.call(f"device/{cam}/grab", {"meta": {"pattern": 4}})
             assert (g["width"], g["height"]) == (306, 256)
             assert 5 < g["mean"] < 200  # the realistic part's dark paint is dark
+        # the simulator logged the pose it rendered those images at: the scanner's true one
+        logged = [json.loads(line) for line in (tmp_path / "true_poses.jsonl").open()]
+        assert logged and np.allclose(logged[-1]["joints_deg"], np.degrees(cell.q), atol=1e-5)
+        assert np.allclose(logged[-1]["T_world_from_mcs"], cell.T_world_from_mcs(), atol=1e-6)
+        assert logged[-1]["stamp_ns"] <= time.time_ns()
 
         # axis: the rail carries the robot base, so the tracker sees the SMR move with it
         client.call("device/axis/home")
