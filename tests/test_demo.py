@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+REPO = Path(__file__).resolve().parents[1]
+
 pytestmark = pytest.mark.timeout(900)
 
 
@@ -95,6 +97,18 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert any(p.name.startswith("scan_part-") for p in mcaps)
     assert "processes stopped" in out.stdout and "'daemon': 0" in out.stdout
     # (that a scan job's recording alone gives the same figures: tests/test_scan_part.py)
+    # the simulator logged the true scanner poses: every station's error splits into its pose's
+    # and its scan's, and placed by the recorded pose its points are as far off as the fuse
+    # worker found (every 20th point here)
+    split = subprocess.run([sys.executable, str(REPO / "benchmarks" / "station_error_split.py"),
+                            str(run), "--json", str(tmp_path / "split.json")],
+                           capture_output=True, text=True, timeout=300)
+    assert split.returncode == 0, split.stdout[-3000:] + split.stderr[-3000:]
+    rows = json.loads((tmp_path / "split.json").read_text())
+    assert len(rows) == s["stations"]
+    for r in rows:
+        assert r["placed_mm"] == pytest.approx(r["fused_true_error_mm"], rel=0.1, abs=0.003), r
+        assert 0 < r["scan_mm"] < 0.1 and r["pose_mm"] > 0, r
 
 
 
