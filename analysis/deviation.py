@@ -1,7 +1,8 @@
 """Signed deviation of measured points from the nominal surface, and where the nominal was not
 measured.
 
-The closest point on the nominal mesh comes from Open3D's ``RaycastingScene`` (Embree); the
+The closest point on the nominal mesh comes from Open3D's ``RaycastingScene`` (Embree, its thin
+triangles cut so that float32 finds it: :mod:`scancell.analysis.mesh_refine`); the
 deviation is the offset along that triangle's outward normal: + where material lies outside
 the nominal, - inside (a dent).
 """
@@ -70,7 +71,7 @@ def closest_tile(nominal: Nominal, points: np.ndarray, T: np.ndarray | None,
     if T is not None:
         p = p @ T[:3, :3].T + T[:3, 3]
     r = nominal.scene().compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-    tri = r["primitive_ids"].numpy().astype(np.int32, copy=False)
+    tri = nominal.mesh_triangle(r["primitive_ids"].numpy())
     q = r["points"].numpy()
     d = p - q
     gap = np.linalg.norm(d, axis=1)

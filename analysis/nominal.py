@@ -45,6 +45,8 @@ class Nominal:
     unit: str  # the source's length unit
     chordal_tolerance_mm: float | None = None  # STEP tessellation
     _scene: Any = field(default=None, repr=False)
+    #: the scene's triangle -> its triangle of :attr:`triangles` (None: the same triangles)
+    _scene_parent: np.ndarray | None = field(default=None, repr=False)
     _normals: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -75,14 +77,26 @@ class Nominal:
         return np.flatnonzero(np.isin(np.asarray(self.face_names, object), names))
 
     def scene(self):
-        """Open3D's ray-casting scene of the mesh (built once)."""
+        """Open3D's scene for closest points on the mesh (built once). Its thin triangles are
+        cut first (:func:`scancell.analysis.mesh_refine.slice_thin_triangles`: Embree's float32
+        closest point on a 3900 x 2.2 mm sliver is up to 1 mm off); :meth:`mesh_triangle`
+        maps the scene's triangle ids back."""
         if self._scene is None:
             import open3d as o3d
+            from scancell.analysis.mesh_refine import slice_thin_triangles
 
+            v, t, parent = slice_thin_triangles(self.vertices, self.triangles)
+            self._scene_parent = None if len(t) == len(self.triangles) else parent.astype(np.int32)
             self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                                      o3d.core.Tensor(self.triangles.astype(np.uint32)))
+            self._scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                                      o3d.core.Tensor(t.astype(np.uint32)))
         return self._scene
+
+    def mesh_triangle(self, scene_ids: np.ndarray) -> np.ndarray:
+        """The triangles of :attr:`triangles` (int32) that :meth:`scene`'s triangles
+        ``scene_ids`` belong to."""
+        ids = np.asarray(scene_ids).astype(np.int32, copy=False)
+        return ids if self._scene_parent is None else self._scene_parent[ids]
 
     def legacy_mesh(self):
         import open3d as o3d

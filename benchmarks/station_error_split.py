@@ -140,7 +140,11 @@ def main() -> int:
         if logged is None:
             print(f"{st.name:>8}  no logged pose matches its joints: left out")
             continue
-        pts, _ = station_cloud(recording, st)
+        try:
+            pts, _ = station_cloud(recording, st)
+        except FusionError as exc:  # a job stopped between a station's ECS and its cloud
+            print(f"{st.name:>8}  {exc}: left out")
+            continue
         p = pts[:: a.every].astype(float)
         T_cam = np.asarray(logged["T_world_from_mcs"], float)
         T_est, T_true = st.T_world_from_ecs @ T_ecs_from_mcs, T_cam @ T_true_from_cal

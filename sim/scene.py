@@ -36,6 +36,7 @@ class SceneObject:
     #: paint region of each triangle (sim.parts.paint_regions); None: one matte ``albedo``
     regions: np.ndarray | None = None
     _scene: o3d.t.geometry.RaycastingScene | None = field(default=None, repr=False)
+    _distance_scene: o3d.t.geometry.RaycastingScene | None = field(default=None, repr=False)
     _sphere: tuple[np.ndarray, float] | None = field(default=None, repr=False)
 
     @property
@@ -44,6 +45,24 @@ class SceneObject:
             self._scene = o3d.t.geometry.RaycastingScene()
             self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(self.mesh))
         return self._scene
+
+    @property
+    def distance_scene(self) -> o3d.t.geometry.RaycastingScene:
+        """The scene for distances to the mesh: its thin triangles cut, where Embree's float32
+        closest point would be off (:mod:`scancell.analysis.mesh_refine`); the same surface.
+        A mesh without them shares :attr:`scene`."""
+        if self._distance_scene is None:
+            from scancell.analysis.mesh_refine import slice_thin_triangles
+
+            v, t, _ = slice_thin_triangles(np.asarray(self.mesh.vertices),
+                                           np.asarray(self.mesh.triangles))
+            if len(t) == len(self.mesh.triangles):
+                self._distance_scene = self.scene
+            else:
+                self._distance_scene = o3d.t.geometry.RaycastingScene()
+                self._distance_scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                                                   o3d.core.Tensor(t.astype(np.uint32)))
+        return self._distance_scene
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """Centre (world, mm) and radius (mm) of a sphere holding the whole mesh."""
@@ -171,7 +190,7 @@ class Scene:
                 continue
             T = np.linalg.inv(obj.T_world_from_object)
             local = (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-            d = obj.scene.compute_distance(o3d.core.Tensor(local)).numpy()
+            d = obj.distance_scene.compute_distance(o3d.core.Tensor(local)).numpy()
             best = np.minimum(best, d)
         return best
 
