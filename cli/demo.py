@@ -446,7 +446,7 @@ def plan_part(name: str, part: Path, run_dir: Path, config: Path, options: list[
     """The simulated part ``name`` exported to ``part`` and ``scancell plan`` on it (plan.toml
     and plan.json in ``run_dir``); what the planner printed."""
     run(["sim", "part", "--part", name, "--out", str(part)], env, "exporting the part")
-    # the planner's time grows with the part (the car body's 323 stations: 20-27 min beside
+    # the planner's time grows with the part (the car body's 323 stations: 13-27 min beside
     # the hand-eye job on a 2-core machine, most of it in the numerical IK of each candidate
     # view): an hour before it is called hung
     return run(["plan", "--part", str(part), "--out", str(run_dir / "plan.toml"), "--cell",
