@@ -25,9 +25,10 @@ def fillet_strip() -> tuple[np.ndarray, np.ndarray]:
     n = int(np.ceil(RADIUS_MM * np.pi / 2 / CHORD_MM))
     a = np.linspace(0.0, np.pi / 2, n + 1)
     ring = np.stack([RADIUS_MM * np.cos(a), np.zeros_like(a), RADIUS_MM * np.sin(a)], axis=1)
-    v = np.concatenate([ring, ring + [0.0, LENGTH_MM, 0.0]]) + OFFSET
+    v = np.concatenate([ring, ring + np.array([0.0, LENGTH_MM, 0.0])]) + OFFSET
     i = np.arange(n)
-    f = np.concatenate([np.stack([i, i + 1, n + 1 + i], 1), np.stack([i + 1, n + 2 + i, n + 1 + i], 1)])
+    f = np.concatenate([np.stack([i, i + 1, n + 1 + i], 1),
+                        np.stack([i + 1, n + 2 + i, n + 1 + i], 1)])
     return v, f
 
 
