@@ -46,14 +46,15 @@ JOINTS_MATCH_DEG = 0.05
 
 
 def scan_recording(run: Path) -> Path:
-    """The run's recording that holds the scan job's stations."""
-    for path in sorted((run / "recordings").glob("*.mcap")):
+    """The run's recording of its scan job (``scan_part-*.mcap``; the acceptance job's
+    recording has stations too, on its artefacts)."""
+    for path in sorted((run / "recordings").glob("scan_part-*.mcap"), reverse=True):
         try:
             recorded_poses(path)
         except FusionError:
             continue
         return path
-    raise SystemExit(f"{run}/recordings: no recording with scan_part stations")
+    raise SystemExit(f"{run}/recordings: no scan_part recording with stations")
 
 
 def read_log(path: Path) -> list[dict[str, Any]]:
