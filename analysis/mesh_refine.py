@@ -21,6 +21,8 @@ shape and only shrinks δ by 2 a round; the cuts must run across the sliver.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 #: float32's half unit in the last place, relative
@@ -134,3 +136,19 @@ def slice_thin_triangles(vertices: np.ndarray, triangles: np.ndarray,
     out_f = np.concatenate([F[keep], *tris])
     out_p = np.concatenate([np.flatnonzero(keep), *parents])
     return np.concatenate([V, X, P, Q]), out_f.astype(np.int32), out_p
+
+
+def closest_point_scene(vertices: np.ndarray, triangles: np.ndarray,
+                        tolerance_mm: float = CLOSEST_POINT_TOLERANCE_MM
+                        ) -> tuple[Any, np.ndarray | None]:
+    """Open3D's ``RaycastingScene`` for closest points on the mesh, its thin triangles cut
+    (:func:`slice_thin_triangles`), and the scene's triangle -> the mesh's triangle (int32;
+    None where nothing was cut and the ids are the mesh's own)."""
+    import open3d as o3d
+
+    v, t, parent = slice_thin_triangles(vertices, triangles, tolerance_mm)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                        o3d.core.Tensor(t.astype(np.uint32)))
+    cut = len(t) != len(np.asarray(triangles).reshape(-1, 3))
+    return scene, parent.astype(np.int32) if cut else None

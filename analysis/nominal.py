@@ -82,14 +82,9 @@ class Nominal:
         closest point on a 3900 x 2.2 mm sliver is up to 1 mm off); :meth:`mesh_triangle`
         maps the scene's triangle ids back."""
         if self._scene is None:
-            import open3d as o3d
-            from scancell.analysis.mesh_refine import slice_thin_triangles
+            from scancell.analysis.mesh_refine import closest_point_scene
 
-            v, t, parent = slice_thin_triangles(self.vertices, self.triangles)
-            self._scene_parent = None if len(t) == len(self.triangles) else parent.astype(np.int32)
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
-                                      o3d.core.Tensor(t.astype(np.uint32)))
+            self._scene, self._scene_parent = closest_point_scene(self.vertices, self.triangles)
         return self._scene
 
     def mesh_triangle(self, scene_ids: np.ndarray) -> np.ndarray:

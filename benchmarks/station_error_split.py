@@ -119,7 +119,7 @@ def main() -> int:
     simulator = recorded_simulator(recording)
     if simulator is None:
         raise SystemExit(f"{recording}: not a simulated cell's recording: no truth")
-    cell = sim_cell({k: v for k, v in simulator.items() if k != "true_pose_log"})
+    cell = sim_cell(simulator)  # for its truth and rig: it renders nothing, so logs nothing
     truth = cell.surface_distance
     offset = calibrated_frame_offset(cell.rig_cold,
                                      StereoCalibration.read(a.run / "calibration" / "stereo.yaml"))

@@ -148,7 +148,7 @@ def sim_cell(options: dict[str, Any]) -> SimCell:
 def truth_from_simulator(options: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
     """The true-distance function (world points, mm -> mm) of the part of the simulated cell a
     ``[simulator]`` table describes (from a config file, or recorded in an MCAP file)."""
-    return sim_cell({k: v for k, v in options.items() if k != "true_pose_log"}).surface_distance
+    return sim_cell(options).surface_distance
 
 
 def relocated_ports(raw: dict[str, Any], port_for: Callable[[int], int]) -> dict[str, Any]:

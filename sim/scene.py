@@ -49,19 +49,12 @@ class SceneObject:
     @property
     def distance_scene(self) -> o3d.t.geometry.RaycastingScene:
         """The scene for distances to the mesh: its thin triangles cut, where Embree's float32
-        closest point would be off (:mod:`scancell.analysis.mesh_refine`); the same surface.
-        A mesh without them shares :attr:`scene`."""
+        closest point would be off (:mod:`scancell.analysis.mesh_refine`); the same surface."""
         if self._distance_scene is None:
-            from scancell.analysis.mesh_refine import slice_thin_triangles
+            from scancell.analysis.mesh_refine import closest_point_scene
 
-            v, t, _ = slice_thin_triangles(np.asarray(self.mesh.vertices),
-                                           np.asarray(self.mesh.triangles))
-            if len(t) == len(self.mesh.triangles):
-                self._distance_scene = self.scene
-            else:
-                self._distance_scene = o3d.t.geometry.RaycastingScene()
-                self._distance_scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
-                                                   o3d.core.Tensor(t.astype(np.uint32)))
+            self._distance_scene, _ = closest_point_scene(np.asarray(self.mesh.vertices),
+                                                          np.asarray(self.mesh.triangles))
         return self._distance_scene
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
