@@ -110,6 +110,10 @@ SCANNER_KEYS: dict[str, KeySpec] = {
                             None, "µs"),
     "decode_limits": KeySpec("table", "overrides of the decoder's derived limits, key by key: "
                                       "`[scanner.decode_limits]`"),
+    "warmup_min": KeySpec("number", "the scanner maker's warm-up time after power-on: "
+                                    "`cmd/job/warm_up` waits for it, and the calibration, "
+                                    "acceptance and scan jobs warn when they start before it; "
+                                    "absent: not known, no warning", None, "min"),
 }
 #: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
 #: sizes (their certificates) and the MPEs, all mm
@@ -320,6 +324,11 @@ def parse_cell_config(raw: dict[str, Any], where: str = "<config>",
             DecodeLimits.from_mapping(limits, "decode_limits")
         except (ValueError, TypeError) as exc:
             raise err("[scanner] decode_limits", str(exc)) from None
+    warmup = scanner.get("warmup_min")
+    if warmup is not None and (not isinstance(warmup, int | float) or isinstance(warmup, bool)
+                               or not 0 <= warmup <= 1440):
+        raise err("[scanner] warmup_min", f"must be a number of minutes from 0 to 1440, got "
+                                          f"{warmup!r}")
     exp = scanner.get("exposures_us")
     if exp is not None and exp != "auto" and not (
             isinstance(exp, list) and 1 <= len(exp) <= 6

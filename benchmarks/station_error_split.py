@@ -108,6 +108,13 @@ def fused_true_errors(run: Path) -> dict[str, float]:
     return {name: s.get("true_error_mm") for name, s in (stations or {}).items()}
 
 
+def calibrated_at_s(run: Path) -> float:
+    """Sim time (s) of the run's stereo calibration, after the demo's warm-up job
+    (``calibration/scanner_warm_up.json``; runs before session 35 calibrated at power-on)."""
+    path = run / "calibration" / "scanner_warm_up.json"
+    return 60.0 * float(json.loads(path.read_text())["powered_min"]) if path.exists() else 0.0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a `scancell demo` run directory (runs/<stamp>)")
@@ -121,7 +128,7 @@ def main() -> int:
         raise SystemExit(f"{recording}: not a simulated cell's recording: no truth")
     cell = sim_cell(simulator)  # for its truth and rig: it renders nothing, so logs nothing
     truth = cell.surface_distance
-    offset = calibrated_frame_offset(cell.rig_cold,
+    offset = calibrated_frame_offset(cell.rig_at(calibrated_at_s(a.run)),
                                      StereoCalibration.read(a.run / "calibration" / "stereo.yaml"))
     T_true_from_cal = np.linalg.inv(offset.T_cal_from_true)
     poses, hand_eye = recorded_poses(recording)

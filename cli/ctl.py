@@ -39,6 +39,10 @@ def _age(status: dict[str, Any]) -> str:
 def format_status(result: dict[str, Any]) -> str:
     head = (f"cell {result['cell']}  scancell {result['version']}  pid {result['pid']}  "
             f"up {result['uptime_s']:.0f} s")
+    warm = result.get("scanner_warm_up")
+    if warm and warm.get("warmup_min") is not None:
+        head += (f"  scanner on {warm['powered_min']:.0f} of {warm['warmup_min']:g} min"
+                 f"{'' if warm['warm'] else ' (warming up)'}")
     rows = []
     for name, s in result["devices"].items():
         detail = s["message"]

@@ -55,6 +55,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     tg.add_argument("--count", type=int, default=15)
     tg.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
     tg.add_argument("--seed", type=int, default=0)
+    tg.add_argument("--config", help="the cell config whose simulated scanner takes the views "
+                                     "(its [simulator] profile's warm-up); default: the cold "
+                                     "scanner of any profile")
+    tg.add_argument("--powered-min", type=float, default=0.0,
+                    help="how long the scanner has been switched on when the views are taken "
+                         "(min; with --config): its warm-up has grown the rig that much")
     tg.add_argument("--out", required=True)
     pt = sub.add_parser("part", help="the simulated part's surface in the tracker frame (PLY, mm), "
                                      "for `scancell plan --part`")

@@ -30,6 +30,8 @@ from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scan_part import precheck as scan_part_precheck
 from scancell.daemon.jobs.scan_part import scan_part
 from scancell.daemon.jobs.two_face import nests_to_check, two_face
+from scancell.daemon.jobs.warm_up import WallScannerClock, warm_up
+from scancell.daemon.jobs.warm_up import check_request as check_warm_up
 from scancell.daemon.router import CellVerb, CommandRouter
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.base import Axis, Device, Robot
@@ -132,7 +134,11 @@ class Daemon:
                 dev, dc, self.cfg.daemon, self._status_publisher(name), self._set_alive)
         response = ResponseState(self.bus)
         response.start()
-        setup = ScannerSetup(response, dict(self.cfg.scanner))
+        scanner = dict(self.cfg.scanner)
+        warmup_min = scanner.pop("warmup_min", None)
+        self.scanner_clock = (self.simulator.scanner_clock() if self.simulator is not None
+                              else WallScannerClock())
+        self.setup = setup = ScannerSetup(response, scanner, self.scanner_clock, warmup_min)
         metrology = MetrologySettings.from_table(self.cfg.metrology)
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
@@ -146,7 +152,8 @@ class Daemon:
             "scan_part": lambda ctx: scan_part(ctx, self.supervisors, self.cfg.geometry, setup,
                                                metrology, self.simulator),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg),
-            "two_face": lambda ctx: two_face(ctx, self.supervisors, metrology)})
+            "two_face": lambda ctx: two_face(ctx, self.supervisors, metrology),
+            "warm_up": lambda ctx: warm_up(ctx, self.scanner_clock, warmup_min)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
@@ -159,6 +166,7 @@ class Daemon:
              "job/acceptance": CellVerb(lambda r: self.jobs.start("acceptance", r)),
              "job/scan_part": CellVerb(self._cmd_scan_part),
              "job/two_face": CellVerb(self._cmd_two_face),
+             "job/warm_up": CellVerb(self._cmd_warm_up),
              "home": CellVerb(lambda r: self.jobs.start("home", r)),
              "estop": CellVerb(self._cmd_estop, timeout_s=5.0),
              "job/abort": CellVerb(self.jobs.abort, timeout_s=65.0),  # > its timeout_s (≤ 60)
@@ -268,7 +276,12 @@ class Daemon:
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self._started, 3),
             "devices": {n: s.status_dict() for n, s in self.supervisors.items()},
+            "scanner_warm_up": self.setup.warm_up_state(),
         }
+
+    async def _cmd_warm_up(self, request: dict[str, Any]) -> dict[str, Any]:
+        check_warm_up(request, self.setup.clock, self.setup.warmup_min)
+        return await self.jobs.start("warm_up", request)
 
     async def _cmd_two_face(self, request: dict[str, Any]) -> dict[str, Any]:
         nests_to_check(request, MetrologySettings.from_table(self.cfg.metrology))

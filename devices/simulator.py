@@ -51,6 +51,19 @@ class TrackerMover(Protocol):
         ...
 
 
+class ScannerClock(Protocol):
+    """How long the scanner has been switched on, and time passing while the cell waits for
+    its warm-up."""
+
+    def powered_s(self) -> float:
+        """Seconds since the scanner was switched on."""
+        ...
+
+    async def wait(self, seconds: float) -> None:
+        """Let ``seconds`` pass with the cell standing still."""
+        ...
+
+
 class Simulator(Protocol):
     """A simulated cell started from a ``[simulator]`` table; its servers speak the real
     devices' protocols on sockets, so the daemon's drivers cannot tell it from hardware."""
@@ -82,6 +95,10 @@ class Simulator(Protocol):
 
     def artefact_placer(self) -> ArtefactPlacer:
         """The simulated world placing the acceptance test's artefacts."""
+        ...
+
+    def scanner_clock(self) -> ScannerClock:
+        """The simulated scanner's time since power-on (sim time), which passes when waited."""
         ...
 
     def tracker_mover(self) -> TrackerMover:

@@ -19,7 +19,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -741,25 +741,17 @@ class SimCell:
 
         return self._at_pose("projector", compute), step
 
+    def rig_at(self, t_s: float) -> StereoRig:
+        """The rig ``t_s`` seconds of sim time after power-on (the scanner's warm-up)."""
+        return self.rig_cold.grown(*mech.scanner_scales(t_s, self.mech))
+
     def _warm_rig(self) -> None:
         """Move the rig to the scanner's warm-up state at the current sim time (baseline and
         focal lengths grow); a change under 0.5 ppm keeps the rig."""
         scales = mech.scanner_scales(self.clock.now(), self.mech)
         if max(abs(a - b) for a, b in zip(scales, self._rig_scales, strict=True)) < 0.5e-6:
             return
-        base, focal = scales
-        cold = self.rig_cold
-
-        def grown(cam: PinholeModel) -> PinholeModel:
-            K = cam.K.copy()
-            K[0, 0] *= focal
-            K[1, 1] *= focal
-            return replace(cam, K=K)
-
-        T_right = cold.T_mcs_from_right.copy()
-        T_right[:3, 3] *= base
-        self.rig = replace(cold, left=grown(cold.left), right=grown(cold.right),
-                           T_mcs_from_right=T_right)
+        self.rig = self.rig_cold.grown(*scales)
         self._rig_scales = scales
         self._rig_version += 1
         self._rays.clear()

@@ -37,6 +37,7 @@ from scancell.sim.optics_profile import (
     optics_profile,
 )
 from scancell.sim.parts import HOUSING_SMR_CLUSTER, PARTS
+from scancell.sim.scanner_clock import SimScannerClock
 from scancell.sim.tracker_mover import SimTrackerMover
 from scancell.sim.world import SimWorld, register, unregister
 
@@ -244,6 +245,11 @@ class SimHost:
         if self.world is None:
             raise RuntimeError("simulated cell not running")
         return SimArtefactPlacer(self.world, int(self.options.get("seed", 0)))
+
+    def scanner_clock(self) -> SimScannerClock:
+        if self.world is None:
+            raise RuntimeError("simulated cell not running")
+        return SimScannerClock(self.world)
 
     def tracker_mover(self) -> SimTrackerMover:
         if self.world is None:

@@ -152,6 +152,20 @@ class StereoRig:
         """Cameras at 1/factor resolution (the projector keeps its own resolution)."""
         return replace(self, left=self.left.scaled(factor), right=self.right.scaled(factor))
 
+    def grown(self, baseline_scale: float, focal_scale: float) -> StereoRig:
+        """The rig as the scanner's warm-up leaves it: the cameras' baseline and focal lengths
+        times their scales (dimensionless, 1 + growth); the projector unchanged."""
+        def grown(cam: PinholeModel) -> PinholeModel:
+            K = cam.K.copy()
+            K[0, 0] *= focal_scale
+            K[1, 1] *= focal_scale
+            return replace(cam, K=K)
+
+        T_right = self.T_mcs_from_right.copy()
+        T_right[:3, 3] *= baseline_scale
+        return replace(self, left=grown(self.left), right=grown(self.right),
+                       T_mcs_from_right=T_right)
+
     def write_opencv_yaml(self, path: str | Path) -> None:
         """OpenCV FileStorage with image_width, image_height, K1, D1, K2, D2, R, T."""
         R, T = self.R_T

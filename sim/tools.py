@@ -176,6 +176,20 @@ async def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cell_mechanics(config: str):
+    """The mechanics profile of a cell config's ``[simulator]`` (SystemExit naming the file)."""
+    from scancell.config import ConfigError, load_cell_config
+    from scancell.sim.host import sim_profiles
+
+    try:
+        cfg = load_cell_config(config)
+    except ConfigError as exc:
+        raise SystemExit(f"scancell sim targets: {exc}") from None
+    if cfg.simulator is None:
+        raise SystemExit(f"scancell sim targets: {config} has no [simulator]")
+    return sim_profiles(cfg.simulator)[1]
+
+
 def targets(args: argparse.Namespace) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
@@ -184,6 +198,17 @@ def targets(args: argparse.Namespace) -> int:
 
     rig = default_rig()
     rig = rig if args.scale == 1 else rig.scaled(args.scale)
+    if args.powered_min < 0:
+        raise SystemExit(f"scancell sim targets: --powered-min must be >= 0, got "
+                         f"{args.powered_min}")
+    if args.config:
+        from scancell.sim import mechanics
+
+        rig = rig.grown(*mechanics.scanner_scales(args.powered_min * 60.0,
+                                                  _cell_mechanics(args.config)))
+    elif args.powered_min:
+        raise SystemExit("scancell sim targets: --powered-min needs --config (whose simulated "
+                         "scanner's warm-up it is)")
     out = Path(args.out)
     t0 = time.perf_counter()
     views = render_calibration_set(rig, n=args.count, seed=args.seed)

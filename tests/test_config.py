@@ -59,6 +59,9 @@ def _write(tmp_path: Path, text: str) -> Path:
     ("[cell]\nname='x'\n[scanner]\ndecode_limits={z_min_mm=900, z_max_mm=100}\n",
      "z_min_mm 900.0 must be below z_max_mm 100.0"),
     ("[cell]\nname='x'\n[scanner]\ndecode_limits=3\n", "must be a table of limits"),
+    ("[cell]\nname='x'\n[scanner]\nwarmup_min=-5\n",
+     "[scanner] warmup_min: must be a number of minutes from 0 to 1440, got -5"),
+    ("[cell]\nname='x'\n[scanner]\nwarmup_min='1h'\n", "got '1h'"),
 ])
 def test_errors_name_file_key_and_problem(tmp_path, text, expected):
     path = _write(tmp_path, text)

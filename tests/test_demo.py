@@ -37,6 +37,10 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     # other tracker stations, then the tracker back home
     assert s["true_error_mm"]["mean"] < 0.2 and s["stations"] == 5 and s["points"] > 1000
     assert s["seconds"] > 0
+    # calibrated warm: the scanner on for its maker's time (sim time) before the chessboards
+    assert s["scanner_warm_up"]["powered_min"] >= s["scanner_warm_up"]["warmup_min"] == 60
+    assert json.loads((run / "calibration" / "scanner_warm_up.json").read_text()) \
+        == s["scanner_warm_up"]
     moves = s["tracker_moves"]
     assert [m["setup"] for m in moves][-1] == "home-2" and len(moves) == 3, moves
     assert all(0 < m["sigma_at_nests_mm"] < 0.1 for m in moves), moves

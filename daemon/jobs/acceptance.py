@@ -76,6 +76,7 @@ async def acceptance(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         raise CommandError("invalid", "the cell config has no [acceptance] table (measuring "
                                       "volume, artefacts, MPEs): no acceptance test")
     req = ctx.request
+    warm = setup.warn_if_cold(ctx, "the acceptance test") if setup is not None else None
     if int(req.get("part", 2)) == 3:
         return await multiple_views(ctx, supervisors, simulator, table, setup, geometry,
                                     metrology)
@@ -113,7 +114,8 @@ async def acceptance(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         finally:
             await placer.remove()
     return {"scans": len(scans), "positions": {k: sum(p.kind == k for p in todo)
-                                               for k in DEFAULT_POSITIONS}}
+                                               for k in DEFAULT_POSITIONS},
+            **({"scanner_warm_up": warm} if warm is not None else {})}
 
 
 def station_looking_at(name: str, target: np.ndarray, g: CellGeometry) -> PlanStation:

@@ -69,6 +69,7 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
     robot: Robot = robot_s.device
     tracker: Tracker = tracker_s.device
     placer: BallPlacer = simulator.ball_placer() if simulator is not None else OperatorPlacer(ctx)
+    warm = setup.warn_if_cold(ctx, "the hand-eye calibration") if setup is not None else None
     layout = ball_layout(n, [float(d) for d in req.get("depths_mm", [560.0, 620.0, 680.0])],
                          tuple(req.get("spread_mm", [120.0, 100.0])))
 
@@ -123,7 +124,8 @@ async def calibrate_hand_eye(ctx: JobContext, supervisors: dict[str, DeviceSuper
             cluster = await measure_cluster_turns(ctx, robot, tracker, geometry, q0, ecs[0],
                                                   speed, repeats, metrology, sample)
     return {"balls": n, "ecs_points": len(ecs), "j6_angles_deg": [e.j6_deg for e in ecs[1:]],
-            "weather": weather, "settle_s": [e.settle_s for e in ecs], **cluster}
+            "weather": weather, "settle_s": [e.settle_s for e in ecs], **cluster,
+            **({"scanner_warm_up": warm} if warm is not None else {})}
 
 
 async def measure_cluster_turns(ctx: JobContext, robot: Robot, tracker: Tracker,

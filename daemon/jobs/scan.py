@@ -15,9 +15,12 @@ from typing import Any
 
 from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.projector_response import ResponseState
+from scancell.daemon.jobs.runner import JobContext
+from scancell.daemon.jobs.warm_up import warm_up_state, warn_if_cold
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence, display_us
 from scancell.devices.base import Camera, Projector
+from scancell.devices.simulator import ScannerClock
 from scancell.protocols.commands import CommandError
 
 
@@ -29,6 +32,19 @@ class ScannerSetup:
 
     response: ResponseState | None = None
     defaults: dict[str, Any] = field(default_factory=dict)
+    #: the scanner's time since power-on, and its maker's warm-up time (``[scanner]
+    #: warmup_min``; ``None``: not known, never warned about)
+    clock: ScannerClock | None = None
+    warmup_min: float | None = None
+
+    def warm_up_state(self) -> dict[str, Any] | None:
+        """:func:`warm_up_state` of the scanner (``None`` without a clock)."""
+        return None if self.clock is None else warm_up_state(self.clock, self.warmup_min)
+
+    def warn_if_cold(self, ctx: JobContext, what: str) -> dict[str, Any] | None:
+        """Warn (a job event) when ``what`` starts before the scanner's warm-up is over."""
+        return None if self.clock is None else warn_if_cold(ctx, self.clock, self.warmup_min,
+                                                            what)
 
 
 async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],

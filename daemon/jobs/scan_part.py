@@ -366,6 +366,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                        else OperatorTrackerMover(ctx))
         ctx.kept.update(tracker_moves=moves.moves)
     result: dict[str, Any] = {"plan": plan.name, "stations": done}
+    if setup is not None and (warm := setup.warn_if_cold(ctx, "the scan job")) is not None:
+        result["scanner_warm_up"] = warm
 
     async def nest_check(label: str, scanner_at: np.ndarray) -> None:
         ctx.event("running", "nests", f"nest check {label}: measuring "
