@@ -141,6 +141,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="which camera frames the recorder keeps (default: all; none for the "
                         "car body: its ~320 full-size stations' frames would be ~67 GB, its "
                         "clouds and results are kept)")
+    p.add_argument("--plan", default=None,
+                   help="a plan.toml made before for this cell and part (e.g. an earlier run's "
+                        "runs/<time>/plan.toml) instead of planning: a cell plans a part once "
+                        "and reuses the plan (the car body's takes 13-27 min)")
     p.add_argument("--no-acceptance", action="store_true",
                    help="skip the VDI/VDE 2634 acceptance stage (ablation runs)")
     p.add_argument("--ecs", choices=("j6", "cluster"), default=None,
@@ -183,6 +187,13 @@ def main(args: argparse.Namespace) -> int:
     if args.part and part_name != args.part:
         return fail("demo", f"--part {args.part}, but {config} simulates {part_name!r}: give one "
                             f"of them")
+    if args.plan:
+        from scancell.protocols.plan import PlanError, plan_from_text
+
+        try:
+            plan_from_text(Path(args.plan).read_text(), args.plan)
+        except (OSError, UnicodeDecodeError, PlanError) as exc:
+            return fail("demo", f"--plan: {exc}")
     from scancell.sim.host import flatten_overrides, relocated_ports, sim_cell
 
     if args.compare_ecs and args.ecs == "cluster":
@@ -231,14 +242,25 @@ def main(args: argparse.Namespace) -> int:
         procs.start("recorder", ["record", "--dir", str(run_dir / "recordings"),
                                  "--job-linger-s", "30", "--frames", frames], env)
 
-        stage("stereo calibration from rendered chessboard views")
+        stage("scanner warm-up, then stereo calibration from rendered chessboard views")
         nominal_dir = run_dir / "nominal"  # the part's CAD for the inspection, exported beside
         exported = background.submit(run, ["sim", "nominal", "--part", part_name, "--out",
                                            str(nominal_dir)], env, "exporting the part's CAD")
-        # the views are the cell's: another simulator seed, another set of board poses and noise
+        warm = client.run_job("warm_up", {}, timeout_s=120)
+        if warm.get("state") != "done":
+            raise RuntimeError(f"scanner warm-up {warm.get('state')}: {warm.get('error')}")
+        powered_min = warm["result"]["powered_min"]
+        summary["scanner_warm_up"] = warm["result"]
+        (run_dir / "calibration" / "scanner_warm_up.json").write_text(
+            json.dumps(warm["result"], indent=2))
+        print(f"   the scanner on for {powered_min:g} min of simulated time (its maker's "
+              f"{warm['result']['warmup_min']:g} min warm-up) before it is calibrated")
+        # the views are the cell's: another simulator seed, another set of board poses and
+        # noise, and the scanner as warm as the daemon's is now
         print("   " + run(["sim", "targets", "--out", str(run_dir / "targets"), "--scale",
                             str(scale), "--count", "12" if quick else "18", "--seed",
-                            str(int(cfg.simulator.get("seed", 0)))], env,
+                            str(int(cfg.simulator.get("seed", 0))), "--config", str(config),
+                            "--powered-min", str(powered_min)], env,
                            "rendering targets").strip())
         out = run(["calibrate", "cameras", "--images", str(run_dir / "targets"), "--out",
                    str(run_dir / "calibration" / "stereo.yaml")], env, "stereo calibration")
@@ -293,7 +315,8 @@ def main(args: argparse.Namespace) -> int:
         by_cluster = (["--ecs", "cluster", "--set", "simulator.smr_cluster=housing",
                        "--coverage", "0.995", "--tracker-moves", str(max(2, marks)),
                        "--speed", "0.5"] if ecs == "cluster" else [])
-        planned = background.submit(plan_part, part_name, part, run_dir, config, by_cluster, env)
+        planned = background.submit(plan_part, part_name, part, run_dir, config, by_cluster, env,
+                                    args.plan)
         stage(f"hand-eye calibration: {balls} ball positions (the stations planned beside it)")
         hand_eye: list[dict] = []
         client.bus.subscribe(client.bus.keys.hand_eye, lambda s: hand_eye.append(s.decode()))
@@ -312,7 +335,7 @@ def main(args: argparse.Namespace) -> int:
         summary["hand_eye"] = truth = hand_eye_truth(
             he, {**cfg.simulator, "camera_scale": scale,
                  **({"smr_cluster": "housing"} if cluster else {})}, sim_cell,
-            run_dir / "calibration" / "stereo.yaml")
+            run_dir / "calibration" / "stereo.yaml", powered_min)
         cam = truth["camera_frame"]
         print(f"   RMS {he['rms_mm']:.4f} mm over {he['pairs']} pairs; against the truth in the "
               f"calibrated MCS: {truth['rotation_error_arcsec']:.1f}\" / "
@@ -442,10 +465,18 @@ QUICK_ACCEPTANCE_POSITIONS = {"sphere": 1, "ballbar": 2, "plane": 2}
 
 
 def plan_part(name: str, part: Path, run_dir: Path, config: Path, options: list[str],
-              env: dict[str, str]) -> str:
+              env: dict[str, str], reuse: str | None = None) -> str:
     """The simulated part ``name`` exported to ``part`` and ``scancell plan`` on it (plan.toml
-    and plan.json in ``run_dir``); what the planner printed."""
+    and plan.json in ``run_dir``), or the plan ``reuse`` copied there; what the planner
+    printed, or which plan was reused."""
     run(["sim", "part", "--part", name, "--out", str(part)], env, "exporting the part")
+    if reuse:
+        from scancell.protocols.plan import plan_from_text
+
+        text = Path(reuse).read_text()
+        stations = len(plan_from_text(text, reuse).get("station", []))
+        (run_dir / "plan.toml").write_text(text)
+        return f"reused the plan {reuse}: {stations} stations (not planned again)"
     # the planner's time grows with the part (the car body's 323 stations: 13-27 min beside
     # the hand-eye job on a 2-core machine, most of it in the numerical IK of each candidate
     # view): an hour before it is called hung
@@ -535,14 +566,15 @@ def scanner_summary(results: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def hand_eye_truth(he: dict[str, Any], simulator: dict[str, Any], sim_cell,
-                   stereo: Path) -> dict[str, Any]:
+                   stereo: Path, calibrated_at_min: float = 0.0) -> dict[str, Any]:
     """The hand-eye against the truth, two ways. ``rotation_error_arcsec`` and
     ``translation_error_mm``: against the true mounting of the MCS the stereo calibration
     ``stereo`` defines (the frame the hand-eye was calibrated in and the scans are made in:
     what its stated sigma is about). ``camera_frame``: against the true left camera, which adds
     where that calibration puts MCS (:func:`scancell.sim.calibration_truth.calibrated_frame_offset`)
     and is stated with the calibration's own sigma; the fused model does not suffer it.
-    ``simulator`` has the cameras' scale the calibration views were rendered at."""
+    ``simulator`` has the cameras' scale the calibration views were rendered at, and
+    ``calibrated_at_min`` the scanner's warm-up then (min after power-on)."""
     import numpy as np
     from scancell.analysis.stereo_calibration import StereoCalibration
     from scancell.model.transforms import rotation_angle_deg
@@ -556,7 +588,7 @@ def hand_eye_truth(he: dict[str, Any], simulator: dict[str, Any], sim_cell,
     cell = sim_cell(simulator)
     truth = cell.true_T_ecs_from_mcs(tuple(he["j6_angles_deg"][:2]))
     calib = StereoCalibration.read(stereo)
-    offset = calibrated_frame_offset(cell.rig_cold, calib)
+    offset = calibrated_frame_offset(cell.rig_at(calibrated_at_min * 60.0), calib)
     rot, trans = error(truth @ np.linalg.inv(offset.T_cal_from_true))
     rot_cam, trans_cam = error(truth)
     own = float(he.get("rotation_sigma_arcsec") or 0.0)

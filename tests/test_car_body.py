@@ -92,3 +92,29 @@ def test_the_demo_names_a_part_its_config_does_not_simulate(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "--part car_body" in err and "car_rear" in err
     assert not (tmp_path / "runs").exists()  # nothing started, nothing half-written
+
+
+def test_the_demo_reuses_a_plan_made_before_and_names_a_bad_one(tmp_path, capsys, monkeypatch):
+    import os
+
+    from scancell.cli.demo import plan_part
+    from scancell.deploy import cell_config_path
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.toml").write_text("[[station]]\nname = 3\n")
+    for bad, why in (("missing.toml", "No such file"), ("bad.toml", "bad.toml")):
+        assert scancell(["demo", "--plan", str(tmp_path / bad)]) != 0
+        err = capsys.readouterr().err
+        assert err.startswith("scancell demo: --plan:") and why in err, err
+    assert not (tmp_path / "runs").exists()  # refused before anything started
+
+    plan = ('[plan]\nname = "p"\ncell = "sim"\n\n[[station]]\nname = "s01"\n'
+            'joints_deg = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]\n')
+    (tmp_path / "old.toml").write_text(plan)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    said = plan_part("car_rear", run_dir / "car_rear.ply", run_dir, cell_config_path("sim"), [],
+                     dict(os.environ), str(tmp_path / "old.toml"))
+    assert (run_dir / "plan.toml").read_text() == plan
+    assert "reused the plan" in said and "1 stations" in said
+    assert (run_dir / "car_rear.ply").stat().st_size > 0  # the coverage's part, exported
