@@ -136,9 +136,9 @@ class Daemon:
         response.start()
         scanner = dict(self.cfg.scanner)
         warmup_min = scanner.pop("warmup_min", None)
-        self.scanner_clock = (self.simulator.scanner_clock() if self.simulator is not None
-                              else WallScannerClock())
-        self.setup = setup = ScannerSetup(response, scanner, self.scanner_clock, warmup_min)
+        clock = (self.simulator.scanner_clock() if self.simulator is not None
+                 else WallScannerClock())
+        self.setup = setup = ScannerSetup(response, scanner, clock, warmup_min)
         metrology = MetrologySettings.from_table(self.cfg.metrology)
         self.jobs = JobRunner(self.bus, {
             "calibrate_hand_eye": lambda ctx: calibrate_hand_eye(ctx, self.supervisors,
@@ -153,7 +153,7 @@ class Daemon:
                                                metrology, self.simulator),
             "home": lambda ctx: home(ctx, self.supervisors, self.cfg.daemon.home_joints_deg),
             "two_face": lambda ctx: two_face(ctx, self.supervisors, metrology),
-            "warm_up": lambda ctx: warm_up(ctx, self.scanner_clock, warmup_min)})
+            "warm_up": lambda ctx: warm_up(ctx, clock, warmup_min)})
         self.router = CommandRouter(
             self.supervisors,
             {"status": CellVerb(self._cmd_status), "devices": CellVerb(self._cmd_devices),
