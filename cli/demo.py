@@ -408,6 +408,9 @@ def main(args: argparse.Namespace) -> int:
 
         stage("summary")
         summary.update(summarise(report, time.monotonic() - t_start))
+        if summary["stations_missing"]:
+            print(f"   WARNING: the fuse worker never got stations {summary['stations_missing']}"
+                  f" (fused without them; the recording has them)")
         summary["station_timing_s"] = station_timing(final.get("result") or {})
         summary.update(part_coverage(part, report, cfg.geometry))
         if report.get("ecs_comparison"):
@@ -641,6 +644,7 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "uncertainty_coverage": (report.get("uncertainty") or {}).get("coverage"),
             "uncertainty": (report.get("uncertainty") or {}).get("stations"),
             "scanner_checks": report.get("scanner_checks", []),
+            "stations_missing": report.get("stations_missing", []),
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 

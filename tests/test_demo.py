@@ -36,7 +36,7 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     # the SMR cluster's plan: its first 3 stations from home and one from each of the two
     # other tracker stations, then the tracker back home
     assert s["true_error_mm"]["mean"] < 0.2 and s["stations"] == 5 and s["points"] > 1000
-    assert s["seconds"] > 0
+    assert s["seconds"] > 0 and s["stations_missing"] == []
     # calibrated warm: the scanner on for its maker's time (sim time) before the chessboards
     assert s["scanner_warm_up"]["powered_min"] >= s["scanner_warm_up"]["warmup_min"] == 60
     assert json.loads((run / "calibration" / "scanner_warm_up.json").read_text()) \

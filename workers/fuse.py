@@ -444,15 +444,19 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
     def finish(self, job_id: str) -> dict[str, Any] | None:
         """At the end of a job: wait for the last clouds, then fuse, measure and report."""
         deadline = time.monotonic() + self.settings.cloud_wait_s
-        while time.monotonic() < deadline:
+        while True:
             with self._lock:
                 job = self._job(job_id)
                 expected = set(job.ecs) | job.announced
-                waiting = (sorted(expected - set(job.clouds)) + sorted(job.announced - set(job.ecs))
-                           + sorted(job.announced_checks - set(job.check_clouds)))
-            if not waiting:
+                waiting = sorted((expected - set(job.clouds)) | (job.announced - set(job.ecs))
+                                 | (job.announced_checks - set(job.check_clouds)))
+            if not waiting or time.monotonic() >= deadline:
                 break
             time.sleep(0.2)
+        if waiting:
+            log.warning("job %s: stations %s measured, but their cloud or pose never came in "
+                        "%g s: fused without them (the recording has what the recorder got: "
+                        "scancell reprocess)", job_id, waiting, self.settings.cloud_wait_s)
         for station in sorted(job.ecs):
             self.add_station(job_id, station)
         with self._lock:
@@ -460,7 +464,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             he = self.hand_eye.body
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
-                    "error": "no station could be fused" + ("" if he else ": no hand-eye")}
+                    "error": "no station could be fused" + ("" if he else ": no hand-eye"),
+                    **({"stations_missing": waiting} if waiting else {})}
             self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
             return body
         t0 = time.monotonic()
@@ -495,6 +500,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if comparison is not None:
             body["ecs_comparison"] = comparison
         body["worker"] = self.share.worker_id
+        if waiting:
+            body["stations_missing"] = waiting
         with self._lock:
             job.close_spool()
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
