@@ -16,7 +16,6 @@ from typing import Any
 from scancell.daemon.jobs.devices import serving_device
 from scancell.daemon.jobs.projector_response import ResponseState
 from scancell.daemon.jobs.runner import JobContext
-from scancell.daemon.jobs.warm_up import warm_up_state, warn_if_cold
 from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.acquisition import CouplingError, acquire_sequence, display_us
 from scancell.devices.base import Camera, Projector
@@ -38,13 +37,24 @@ class ScannerSetup:
     warmup_min: float | None = None
 
     def warm_up_state(self) -> dict[str, Any] | None:
-        """:func:`warm_up_state` of the scanner (``None`` without a clock)."""
-        return None if self.clock is None else warm_up_state(self.clock, self.warmup_min)
+        """How far the scanner's warm-up is: ``powered_min``, ``warmup_min`` and ``warm``
+        (``None`` without a clock)."""
+        if self.clock is None:
+            return None
+        powered = self.clock.powered_s() / 60.0
+        return {"powered_min": round(powered, 2), "warmup_min": self.warmup_min,
+                "warm": self.warmup_min is None or powered >= self.warmup_min}
 
     def warn_if_cold(self, ctx: JobContext, what: str) -> dict[str, Any] | None:
-        """Warn (a job event) when ``what`` starts before the scanner's warm-up is over."""
-        return None if self.clock is None else warn_if_cold(ctx, self.clock, self.warmup_min,
-                                                            what)
+        """:meth:`warm_up_state`, and a warning event when ``what`` starts before the
+        scanner's warm-up is over."""
+        state = self.warm_up_state()
+        if state is not None and not state["warm"]:
+            ctx.event("running", "warning",
+                      f"{what} starts on a scanner switched on {state['powered_min']:.1f} min "
+                      f"ago, short of its {self.warmup_min:g} min warm-up: its scale still "
+                      f"drifts (cmd/job/warm_up waits for it)")
+        return state
 
 
 async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any],

@@ -38,27 +38,6 @@ class WallScannerClock:
         await asyncio.sleep(seconds)
 
 
-def warm_up_state(clock: ScannerClock, warmup_min: float | None) -> dict[str, Any]:
-    """How far the scanner's warm-up is: ``powered_min``, ``warmup_min`` (``None``: the cell
-    config names none) and ``warm``."""
-    powered = clock.powered_s() / 60.0
-    return {"powered_min": round(powered, 2), "warmup_min": warmup_min,
-            "warm": warmup_min is None or powered >= warmup_min}
-
-
-def warn_if_cold(ctx: JobContext, clock: ScannerClock, warmup_min: float | None,
-                 what: str) -> dict[str, Any]:
-    """Publish a warning event when ``what`` starts on a scanner still warming up; returns
-    :func:`warm_up_state` for the job's result."""
-    state = warm_up_state(clock, warmup_min)
-    if not state["warm"]:
-        ctx.event("running", "warning",
-                  f"{what} starts on a scanner switched on {state['powered_min']:.1f} min ago, "
-                  f"short of its {warmup_min:g} min warm-up: its scale still drifts "
-                  f"(cmd/job/warm_up waits for it)")
-    return state
-
-
 def check_request(req: dict[str, Any], clock: ScannerClock, warmup_min: float | None) -> float:
     """The minutes a warm_up request waits for; CommandError before the job starts if none
     are known, or if it sets a simulated scanner's power-on time."""
