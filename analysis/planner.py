@@ -70,6 +70,15 @@ class PlanReport:
     unmeasured: dict[str, float] = field(default_factory=dict)
     #: the tracker stations the plan uses, home first: name -> head in world (mm)
     tracker_stations: dict[str, list[float]] = field(default_factory=dict)
+    #: the coverage (as ``coverage``) after each station, in the order the plan chose them
+    #: (most new surface first): how many stations a lower target would take
+    coverage_curve: list[float] = field(default_factory=list)
+
+    def stations_for(self, share: float) -> int | None:
+        """The stations the plan's choice needs to cover ``share`` (as ``coverage``), or None
+        if it never does."""
+        reached = [i for i, c in enumerate(self.coverage_curve) if c >= share]
+        return reached[0] + 1 if reached else None
 
     def to_json(self) -> dict[str, Any]:
         ov = [o for _, _, o in self.neighbours]
@@ -81,7 +90,10 @@ class PlanReport:
                 "neighbour_overlap_median": round(float(np.median(ov)), 3) if ov else None,
                 "neighbour_overlap_max": round(max(ov), 3) if ov else None,
                 "stations_with_overlap_10_40": sum(1 for o in ov if 0.10 <= o <= 0.40),
-                "tracker_stations": self.tracker_stations}
+                "tracker_stations": self.tracker_stations,
+                "stations_for_coverage": {f"{q:g}": self.stations_for(q)
+                                          for q in (0.90, 0.95, 0.97, 0.98, 0.99, 0.995)},
+                "coverage_curve": [round(c, 4) for c in self.coverage_curve]}
 
 
 #: Why a surface sample is left unmeasured, first reason that applies:
@@ -411,6 +423,12 @@ class Planner:
         min_gain = max(5, int(np.ceil(MIN_GAIN_MM2 / self.area_per_sample_mm2)))
         chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
         covered = np.any([np.zeros(len(self.points), bool), *(c.sees for c in chosen)], axis=0)
+        zero = np.zeros(len(self.points), bool)
+        possible = np.any([zero, *(c.sees for c in cands if c.tracker in used)], axis=0)
+        curve, so_far = [], zero.copy()
+        for c in chosen:  # in the order chosen, before the tour reorders them
+            so_far |= c.sees
+            curve.append(float(so_far[possible].mean()))
         chosen = [c for t in used
                   for c in self._toured([c for c in chosen if c.tracker == t], speed)]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
@@ -427,9 +445,7 @@ class Planner:
                         for i, j in enumerate(last)]
         missed = ~covered
         # by the tracker stations the plan uses: what another station would see is "beam"
-        zero = np.zeros(len(self.points), bool)
         in_beam = np.any([zero, *(self.seen_in_beam_by.get(t, zero) for t in used)], axis=0)
-        possible = np.any([zero, *(c.sees for c in cands if c.tracker in used)], axis=0)
         reasons = {"beam": missed & self.seen_by_view & ~in_beam,
                    "reach": missed & in_beam & ~possible,
                    "view": missed & ~self.seen_by_view,
@@ -441,7 +457,7 @@ class Planner:
                             {"share": float(missed.mean()),
                              **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}},
                             {t: [float(v) for v in self.trackers[t]]
-                             for t in [HOME_TRACKER, *trackers]})
+                             for t in [HOME_TRACKER, *trackers]}, curve)
         extra = report.to_json()
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)

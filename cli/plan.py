@@ -101,6 +101,10 @@ def main(args: argparse.Namespace) -> int:
     print(f"{r['stations']} stations -> {args.out} ({time.perf_counter() - t0:.0f} s)")
     print(f"covers {r['coverage'] * r['reachable']:.1%} of the part: {r['coverage']:.1%} of the "
           f"{r['reachable']:.1%} the cell can measure")
+    needed = [f"{float(q):.1%} {n}" for q, n in r["stations_for_coverage"].items() if n]
+    if len(needed) > 1:
+        print("stations a lower --coverage would take (most new surface first): "
+              + ", ".join(needed))
     u = r["unmeasured"]
     if u["share"] > 0:
         print(f"left unmeasured: {u['share']:.1%} of the part; beam {u['beam']:.1%} (the tracker "

@@ -29,6 +29,12 @@ def planned():
 def test_every_station_is_reachable_in_limits_and_the_tracker_sees_the_smr(planned):
     cell, g, planner, plan, report = planned
     assert report.stations >= 4 and report.coverage >= 0.9, report.to_json()
+    # the coverage curve: one value a station, growing, ending at the plan's coverage
+    curve = report.coverage_curve
+    assert len(curve) == report.stations and np.all(np.diff(curve) > 0), curve
+    assert curve[-1] == pytest.approx(report.coverage)
+    assert report.stations_for(0.9) <= report.stations and report.stations_for(1.01) is None
+    assert report.to_json()["stations_for_coverage"]["0.9"] == report.stations_for(0.9)
     for st in plan.stations:
         q = np.radians(st.joints_deg)
         base = g.base_at(st.axis_mm)
