@@ -15,7 +15,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scancell.analysis.grid_kernels import CellGrid, float_type, grid_nearest, grid_normals, in_box
+from scancell.analysis.grid_kernels import (
+    CellGrid,
+    float_type,
+    grid_nearest,
+    grid_normals,
+    grid_normals_of,
+    in_box,
+)
 from scancell.analysis.station_store import StationStore, WorldFromMcs
 from scipy.spatial import cKDTree
 
@@ -53,6 +60,33 @@ def normals(points: np.ndarray, radius: float, grid: CellGrid | None = None) -> 
     grid_normals(g.sorted, g.order, g.cell_keys, g.cell_start, g.cell_end, g.dims, float(radius),
                  out, count)
     return out
+
+
+class NormalsOnDemand:
+    """The :func:`normals` of a grid's points, each worked out the first time it is asked for
+    (``[idx]``, original indices) and kept: the overlap metric needs a new station's normals
+    only where an earlier station's points meet it, and at the points it keeps for the
+    stations after it. Each one has the bits :func:`normals` gives it."""
+
+    def __init__(self, grid: CellGrid, radius: float) -> None:
+        self.grid, self.radius = grid, float(radius)
+        n = len(grid.order)
+        self.rank = np.empty(n, np.int64)  # a point's position among the sorted points
+        self.rank[grid.order] = np.arange(n)
+        self.values = np.zeros((n, 3), grid.sorted.dtype)
+        self.done = np.zeros(n, bool)
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        idx = np.asarray(idx, np.int64)
+        todo = np.unique(idx[~self.done[idx]])
+        if len(todo):
+            g = self.grid
+            out = np.empty((len(todo), 3), g.sorted.dtype)
+            grid_normals_of(self.rank[todo], g.sorted, g.cell_keys, g.cell_start, g.cell_end,
+                            g.origin, g.cell, g.dims, self.radius, out)
+            self.values[todo] = out
+            self.done[todo] = True
+        return self.values[idx]
 
 
 def nearest_within(grid: CellGrid, query: np.ndarray, radius: float
@@ -255,8 +289,8 @@ PAIR_CHUNK = 500_000
 
 
 def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], na: np.ndarray,
-          nb: np.ndarray, grid_b: CellGrid, values: OverlapValues, ua: np.ndarray | None = None,
-          ub: np.ndarray | None = None) -> PairMetrics:
+          nb: np.ndarray | NormalsOnDemand, grid_b: CellGrid, values: OverlapValues,
+          ua: np.ndarray | None = None, ub: np.ndarray | None = None) -> PairMetrics:
     # only A's points within r of B's grid can overlap it: most station pairs share none
     near = in_box(a, *grid_b.bounds(radius))
     n, d_sum, rot_sum = 0, 0.0, 0.0
@@ -281,8 +315,8 @@ def _pair(a: np.ndarray, b: np.ndarray, radius: float, names: tuple[str, str], n
     return PairMetrics(*names, n, d_sum / n, rot_sum / n)
 
 
-def pairs_with_earlier(name: str, points: np.ndarray, normals_: np.ndarray, grid: CellGrid,
-                       uncertainty: np.ndarray | None,
+def pairs_with_earlier(name: str, points: np.ndarray, normals_: np.ndarray | NormalsOnDemand,
+                       grid: CellGrid, uncertainty: np.ndarray | None,
                        earlier: list[tuple[str, tuple[np.ndarray, np.ndarray]]],
                        load: Callable[[str, np.ndarray, np.ndarray],
                                       tuple[np.ndarray, np.ndarray, np.ndarray | None]],
@@ -331,6 +365,12 @@ class MetricsReport:
         }
 
 
+def kept_rows(count: int, every: int) -> np.ndarray:
+    """The rows of a cloud of ``count`` points that are the overlap metric's C1 against the
+    clouds after it: every ``every``-th, from the first."""
+    return np.arange(0, count, every)
+
+
 class OverlapComparer:
     """The metric tool one cloud at a time, as a fuse worker receives stations: each cloud
     added is compared with every cloud added before it (the ordered pair (earlier, new)), so
@@ -339,11 +379,22 @@ class OverlapComparer:
     (:class:`OverlapValues`). A cloud's points, normals and uncertainty are kept for the pairs
     of the clouds after it: in memory, or with ``store`` on disk (a whole car body's stations
     do not fit in memory), where a new cloud reads back only the part of each earlier one
-    within its own box."""
+    within its own box.
+
+    ``every``: a cloud keeps only every ``every``-th point (:func:`kept_rows`) for the clouds
+    after it, so those are its C1 against them; its nearest points C2 are still sought among
+    all the points of each later cloud, whose normals are worked out only there
+    (:class:`NormalsOnDemand`). 1 (the default) is the paper's tool, which traverses every
+    point; a fuse worker's ~10^8 overlap points a job need not all be traversed to give
+    their mean.
+    """
 
     def __init__(self, radius_factor: float = 6.0,
-                 store: StationStore | WorldFromMcs | None = None) -> None:
+                 store: StationStore | WorldFromMcs | None = None, every: int = 1) -> None:
+        if every < 1 or (isinstance(store, WorldFromMcs) and store.every != every):
+            raise ValueError(f"every must be >= 1 and the store's own, got {every}")
         self.radius_factor = radius_factor
+        self.every = int(every)
         self.spacing_mm: float | None = None
         self.radius_mm: float | None = None
         self.pairs: list[PairMetrics] = []
@@ -367,15 +418,17 @@ class OverlapComparer:
             self.radius_mm = self.radius_factor * self.spacing_mm
         r = self.radius_mm
         grid = CellGrid(p, r)
-        nrm = normals(p, r, grid)
+        nrm = NormalsOnDemand(grid, r)
         self.pairs += pairs_with_earlier(
             name, p, nrm, grid, uncertainty, [(a, self._boxes[a]) for a in self.names],
             self.store.load if self.store is not None else lambda a, lo, hi: self._clouds[a],
             r, self.values)
+        kept = kept_rows(len(p), self.every)
+        unc = None if uncertainty is None else np.asarray(uncertainty)[kept]
         if self.store is not None:
-            self.store.put(name, p, nrm, uncertainty)
+            self.store.put(name, p[kept], nrm[kept], unc)
         else:
-            self._clouds[name] = (p, nrm, uncertainty)
+            self._clouds[name] = (p[kept], nrm[kept], unc)
         self._boxes[name] = grid.bounds()
 
     def report(self) -> MetricsReport:

@@ -188,11 +188,15 @@ class WorldFromMcs:
     the same float32 bits as the world points first given (:func:`move_points`). It saves
     the 16 bytes a point that a second copy of the points and 1-sigma cost on disk.
 
+    ``every``: the overlap keeps every ``every``-th point of a station
+    (:func:`~scancell.analysis.metrics.kept_rows`): ``put`` takes and ``load`` gives those.
+
     The interface of :class:`StationStore` that
     :class:`~scancell.analysis.metrics.OverlapComparer` uses: ``put`` and ``load``."""
 
-    def __init__(self, mcs: StationStore, folder: str | Path) -> None:
+    def __init__(self, mcs: StationStore, folder: str | Path, every: int = 1) -> None:
         self.mcs = mcs
+        self.every = int(every)
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.poses: dict[str, np.ndarray] = {}
@@ -203,25 +207,26 @@ class WorldFromMcs:
 
     def put(self, name: str, points: np.ndarray, normals: np.ndarray | None = None,
             uncertainty: np.ndarray | None = None) -> None:
-        """Keep station ``name``'s world normals; ``points`` must be its MCS cloud moved by its
-        pose (their count is checked; raises ValueError), ``uncertainty`` the 1-sigma stored
-        with it (not written again). Raises OSError on a full disk."""
+        """Keep station ``name``'s world normals; ``points`` must be its MCS cloud's kept rows
+        (every ``every``-th) moved by its pose (their count is checked; raises ValueError),
+        ``uncertainty`` the 1-sigma stored with it (not written again). Raises OSError on a
+        full disk."""
         if name not in self.poses or name not in self.mcs.stations:
             raise ValueError(f"station {name}: no pose placed or no MCS cloud stored")
-        count = self.mcs.stations[name].count
+        count = len(range(0, self.mcs.stations[name].count, self.every))
         if len(points) != count or normals is None or len(normals) != count:
             raise ValueError(f"station {name}: {len(points)} world points and "
-                             f"{0 if normals is None else len(normals)} normals for "
-                             f"{count} stored in MCS")
+                             f"{0 if normals is None else len(normals)} normals for the "
+                             f"{count} kept of its MCS cloud (every {self.every})")
         np.save(self._normals(name), np.asarray(normals, np.float32))
 
     def load(self, name: str, lo: np.ndarray | None = None, hi: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """(world points (N, 3) float32, normals, 1-sigma or None) of station ``name``: all
-        of them, or those inside the world box [lo, hi] (mm), in their stored order."""
+        """(world points (N, 3) float32, normals, 1-sigma or None) of station ``name``'s kept
+        points: all of them, or those inside the world box [lo, hi] (mm), in their order."""
         T = self.poses[name]
         if lo is None:
-            idx: np.ndarray | slice = slice(None)
+            idx: np.ndarray | slice = slice(None, None, self.every)
         else:
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                                 for z in (lo[2], hi[2])], np.float64)
@@ -229,6 +234,7 @@ class WorldFromMcs:
             c = corners @ back[:3, :3].T + back[:3, 3]
             idx = self.mcs.inside(name, c.min(axis=0) - BOX_MARGIN_MM,
                                   c.max(axis=0) + BOX_MARGIN_MM)
+            idx = idx[idx % self.every == 0]
         pts, _, unc = self.mcs.select(name, idx)
         world = move_points(pts, T)
         del pts
@@ -236,7 +242,14 @@ class WorldFromMcs:
             keep = in_box(world, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
             idx, world = idx[keep], world[keep]
             unc = None if unc is None else unc[keep]
-        return world, read_rows(self._normals(name), idx), unc
+        return world, read_rows(self._normals(name), idx // self.every if lo is not None
+                                else slice(None)), unc
+
+    def full(self, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """(every world point (N, 3) float32, 1-sigma or None) of station ``name``, kept or
+        not: the later station of a pair seeks its nearest points among all of them."""
+        pts, _, unc = self.mcs.select(name, slice(None))
+        return move_points(pts, self.poses[name]), unc
 
     def _normals(self, name: str) -> Path:
         return self.folder / f"{self.mcs.stations[name].index:05d}.normals.npy"

@@ -6,8 +6,9 @@ station through :mod:`scancell.analysis.station_store` and
 :mod:`scancell.analysis.voxel_tiles`), spread over a cluster:
 
 1. **A task per station** (:func:`station_task`): read its cloud from the recording (its own
-   channel: only its chunks are read), keep its MCS points and 1-sigma, and its world normals,
-   in the spool; write its voxel sums to a tile folder of its own.
+   channel: only its chunks are read), keep its MCS points and 1-sigma, and the world normals
+   of its kept points (every ``OVERLAP_EVERY``-th, as live), in the spool; write its voxel
+   sums to a tile folder of its own.
 2. **A task per station** (:func:`overlap_task`): its overlaps with every earlier station whose
    box meets its own, read back from the spool.
 3. **Here:** the overlaps summed (exact sums: :class:`~scancell.analysis.metrics.OverlapValues`)
@@ -37,17 +38,18 @@ from scancell.analysis.grid_kernels import CellGrid
 from scancell.analysis.metrics import (
     MetricsError,
     MetricsReport,
+    NormalsOnDemand,
     OverlapValues,
     PairMetrics,
+    kept_rows,
     mean_spacing,
-    normals,
     overlap_report,
     pairs_with_earlier,
 )
 from scancell.analysis.model_file import ModelFile
 from scancell.analysis.station_store import StationStore, StoredStation, WorldFromMcs, move_points
 from scancell.analysis.voxel_tiles import VoxelTiles, tile_means
-from scancell.workers.fuse import even_sample
+from scancell.workers.fuse import OVERLAP_EVERY, even_sample
 from scancell.workers.recorded_stations import RecordedStation, recorded_poses, station_cloud
 
 #: the overlap metric's neighbourhood: this many times the first station's mean spacing (as live)
@@ -80,7 +82,7 @@ class StationDone:
 
 def _stores(spool: Path) -> tuple[StationStore, WorldFromMcs]:
     mcs = StationStore(spool / "mcs")
-    return mcs, WorldFromMcs(mcs, spool / "world")
+    return mcs, WorldFromMcs(mcs, spool / "world", OVERLAP_EVERY)
 
 
 def tiles_folder(spool: Path, index: int) -> Path:
@@ -99,7 +101,9 @@ def station_task(recording: str, station: RecordedStation, index: int,
     del pts
     grid = CellGrid(world, radius_mm)
     world_store.place(station.name, T_world_from_mcs)
-    world_store.put(station.name, world, normals(world, radius_mm, grid), unc)
+    kept = kept_rows(len(world), OVERLAP_EVERY)
+    world_store.put(station.name, world[kept], NormalsOnDemand(grid, radius_mm)[kept],
+                    None if unc is None else unc[kept])
     cells = grid.bounds()
     del grid
     final = tiles_folder(root, index)
@@ -120,11 +124,12 @@ def overlap_task(spool: str, done: StationRef, earlier: list[StationRef], radius
     for st in (*earlier, done):
         mcs.adopt(st.name, st.stored)
         world_store.place(st.name, st.T_world_from_mcs)
-    p, nrm, unc = world_store.load(done.name)
+    p, unc = world_store.full(done.name)
     grid = CellGrid(p, radius_mm)
     values = OverlapValues()
-    pairs = pairs_with_earlier(done.name, p, nrm, grid, unc, [(a.name, a.cells) for a in earlier],
-                               world_store.load, radius_mm, values)
+    pairs = pairs_with_earlier(done.name, p, NormalsOnDemand(grid, radius_mm), grid, unc,
+                               [(a.name, a.cells) for a in earlier], world_store.load,
+                               radius_mm, values)
     return pairs, values
 
 

@@ -8,7 +8,8 @@ children``) and each process's RSS read from ``/proc/<pid>/status`` (VmRSS). A p
 by its command line (``scancell worker fuse`` -> ``worker fuse``). Printed at the end, and
 written with ``--json``: each name's peak RSS (MB), the peak of the tree's sum — the figure
 the machine must hold — with each name's RSS at that moment, and the seconds into the run of
-each peak. The command's exit code is returned. With ``--json`` the file is written again
+each peak, and each name's CPU time (user + system, s: where the machine's cores went). The
+command's exit code is returned. With ``--json`` the file is written again
 every ``--save-every`` seconds while the command runs (``"running": true``): a run of hours
 that is cut short still leaves its peaks so far.
 """
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -68,6 +70,20 @@ def rss_split_mb(pid: int) -> dict[str, float]:
     return {"anon": got["RssAnon"], "file": got["RssFile"], "shmem": got["RssShmem"]}
 
 
+def cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds process ``pid`` has used so far (``/proc/<pid>/stat``), or None
+    if it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()  # after the command, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / TICKS
+
+
+TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
 def name_of(pid: int) -> str:
     try:
         argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
@@ -93,6 +109,8 @@ class Sampler:
         self.at_peak_total: dict[str, float] = {}
         self.peak_total_at = 0.0
         self.t0 = time.monotonic()
+        #: each process's name and the CPU seconds it had used when last seen
+        self.cpu: dict[int, tuple[str, float]] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -106,6 +124,9 @@ class Sampler:
                 now[name] = now.get(name, 0.0) + mb
                 if mb > self.peak.get(name, 0.0):
                     self.peak[name], self.peak_at[name] = mb, t
+                used = cpu_s(p)
+                if used is not None:
+                    self.cpu[p] = (name, used)
             if total > self.peak_total:
                 self.peak_total, self.at_peak_total, self.peak_total_at = total, now, t
             self._stop.wait(self.every_s)
@@ -120,12 +141,16 @@ class Sampler:
 
     def report(self) -> dict[str, object]:
         by_size = sorted(self.peak.items(), key=lambda kv: -kv[1])
+        cpu: dict[str, float] = {}
+        for name, used in self.cpu.values():
+            cpu[name] = cpu.get(name, 0.0) + used
         return {"peak_total_mb": round(self.peak_total),
                 "peak_total_at_s": round(self.peak_total_at, 1),
                 "at_peak_total_mb": {k: round(v) for k, v in sorted(
                     self.at_peak_total.items(), key=lambda kv: -kv[1])},
                 "peak_mb": {k: round(v) for k, v in by_size},
-                "peak_at_s": {k: round(self.peak_at[k], 1) for k, _ in by_size}}
+                "peak_at_s": {k: round(self.peak_at[k], 1) for k, _ in by_size},
+                "cpu_s": {k: round(v, 1) for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])}}
 
 
 def save(path: Path, rep: dict[str, object]) -> None:

@@ -55,10 +55,10 @@ def in_process(monkeypatch):
 
 @pytest.mark.process
 def test_stations_fused_on_the_cluster_equal_the_fuse_workers_path(in_process, tmp_path):
-    from scancell.analysis.metrics import OverlapComparer
-    from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
+    from scancell.analysis.station_store import StationStore, move_points
     from scancell.analysis.voxel_tiles import VoxelTiles
     from scancell.batch.fuse import fuse_recording
+    from scancell.workers.fuse import overlap_comparer
 
     client, poses, clouds = in_process
     hand_eye = {"T_ecs_from_mcs": np.eye(4).tolist()}
@@ -68,7 +68,7 @@ def test_stations_fused_on_the_cluster_equal_the_fuse_workers_path(in_process, t
     assert len(ticks) == 2 * len(poses) - 1  # a station's task each; overlaps from the 2nd on
     # the fuse worker's way: one station after the other, one store, one tile folder
     mcs = StationStore(tmp_path / "live" / "mcs")
-    comparer = OverlapComparer(store=WorldFromMcs(mcs, tmp_path / "live" / "world"))
+    comparer = overlap_comparer(mcs, tmp_path / "live" / "world")
     tiles = VoxelTiles(tmp_path / "live" / "tiles", 1.0)
     for st in poses:
         pts, unc = clouds[st.name]

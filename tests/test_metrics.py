@@ -178,15 +178,16 @@ def _pose(rng: np.random.Generator, far_mm: float) -> np.ndarray:
 
 
 @pytest.mark.unit
-def test_world_points_derived_from_the_mcs_store_are_the_bits_of_a_world_copy(tmp_path):
+@pytest.mark.parametrize("every", [1, 3])
+def test_world_points_derived_from_the_mcs_store_are_the_bits_of_a_world_copy(tmp_path, every):
     """The fuse worker keeps a station's MCS cloud once and moves it into world when an
-    overlap reads it back (WorldFromMcs): any box of it has the same float32 bits, order and
-    1-sigma as a second copy of its world points would."""
+    overlap reads it back (WorldFromMcs): any box of its kept points has the same float32
+    bits, order and 1-sigma as a second copy of those world points would."""
     from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
 
     rng = np.random.default_rng(11)
     mcs, copy = StationStore(tmp_path / "mcs"), StationStore(tmp_path / "copy")
-    derived = WorldFromMcs(mcs, tmp_path / "world")
+    derived = WorldFromMcs(mcs, tmp_path / "world", every)
     for k in range(3):
         cloud = rng.uniform(-400, 400, (20_000 + 1_017 * k, 3)).astype(np.float32)
         unc = rng.uniform(0.01, 0.05, len(cloud)).astype(np.float32)
@@ -197,9 +198,12 @@ def test_world_points_derived_from_the_mcs_store_are_the_bits_of_a_world_copy(tm
         assert np.array_equal(np.concatenate([move_points(cloud[i:i + 1], T)
                                               for i in range(0, 50)]), world[:50])
         mcs.put(f"s{k}", cloud, None, unc)
-        copy.put(f"s{k}", world, nrm, unc)
+        kept = slice(None, None, every)
+        copy.put(f"s{k}", world[kept], nrm[kept], unc[kept])
         derived.place(f"s{k}", T)
-        derived.put(f"s{k}", world, nrm, unc)
+        derived.put(f"s{k}", world[kept], nrm[kept], unc[kept])
+        full, full_unc = derived.full(f"s{k}")
+        assert np.array_equal(full, world) and np.array_equal(full_unc, unc)
         for lo, hi in ((None, None), *((c - 150.0 * f, c + 150.0 * f) for c, f in
                                        ((world[rng.integers(len(world))], 1.0),
                                         (world.mean(axis=0), 0.4), (world.max(axis=0), 1.0)))):
@@ -215,16 +219,19 @@ def test_world_points_derived_from_the_mcs_store_are_the_bits_of_a_world_copy(tm
 
 
 @pytest.mark.unit
-def test_overlap_figures_from_derived_world_points_equal_a_world_copys(tmp_path):
+@pytest.mark.parametrize("every", [1, 4])
+def test_overlap_figures_from_derived_world_points_equal_a_world_copys(tmp_path, every):
     """OverlapComparer on WorldFromMcs gives the report, to the bit, of one on a store of
-    world points."""
+    world points, whether it keeps every point or every 4th (the fuse worker's)."""
     from scancell.analysis.metrics import OverlapComparer
     from scancell.analysis.station_store import StationStore, WorldFromMcs, move_points
 
     rng = np.random.default_rng(7)
     mcs = StationStore(tmp_path / "mcs")
-    copy = OverlapComparer(store=StationStore(tmp_path / "copy"))
-    derived = OverlapComparer(store=WorldFromMcs(mcs, tmp_path / "world"))
+    copy = OverlapComparer(store=StationStore(tmp_path / "copy"), every=every)
+    derived = OverlapComparer(store=WorldFromMcs(mcs, tmp_path / "world", every), every=every)
+    with pytest.raises(ValueError, match="the store's own"):
+        OverlapComparer(store=WorldFromMcs(mcs, tmp_path / "world", every), every=every + 1)
     for k, (o, x) in enumerate(((0.0, 0.0), (0.02, 20.0), (0.01, 40.0))):
         world_true = plane(offset=o, shift_xy=x, seed=k, noise=0.01) + np.array([2500.0, -1200.0, 800.0])
         T = _pose(rng, 3000.0)
@@ -239,6 +246,45 @@ def test_overlap_figures_from_derived_world_points_equal_a_world_copys(tmp_path)
     a, b = copy.report().to_json(), derived.report().to_json()
     assert sum(p["n"] for p in a["pairs"]) > 1000
     assert a == b
+
+
+@pytest.mark.unit
+def test_normals_worked_out_on_demand_are_the_bits_of_every_points():
+    from scancell.analysis.grid_kernels import CellGrid
+    from scancell.analysis.metrics import NormalsOnDemand, mean_spacing, normals
+
+    pts = plane(seed=3, noise=0.01).astype(np.float32)
+    r = 6 * mean_spacing(pts)
+    grid = CellGrid(pts, r)
+    want = normals(pts, r, grid)
+    lazy = NormalsOnDemand(grid, r)
+    idx = np.random.default_rng(1).integers(0, len(pts), 5000)
+    assert np.array_equal(lazy[idx], want[idx])
+    assert lazy.done.sum() == len(np.unique(idx))  # the rest not worked out
+    assert np.array_equal(lazy[np.arange(len(pts))], want)
+
+
+@pytest.mark.unit
+def test_every_4th_point_as_c1_gives_the_figures_of_every_point():
+    """The fuse worker's metric takes every 4th point of a station as C1 (its nearest points
+    still among all of the later station's): a sample of the same overlaps, so the same
+    figures within their sampling error, about a quarter of the points."""
+    from scancell.analysis.metrics import OverlapComparer
+
+    rng = np.random.default_rng(9)
+    clouds = {n: plane(offset=o + rng.normal(0, 0.005), shift_xy=x, seed=k, noise=0.01)
+              for k, (n, o, x) in enumerate((("a", 0.0, 0.0), ("b", 0.02, 20.0),
+                                             ("c", 0.01, 40.0)))}
+    every, all_ = OverlapComparer(every=4), OverlapComparer()
+    for n, c in clouds.items():
+        every.add(n, c, np.full(len(c), 0.01))
+        all_.add(n, c, np.full(len(c), 0.01))
+    a, b = all_.report().to_json(), every.report().to_json()
+    for pa, pb in zip(a["pairs"], b["pairs"], strict=True):
+        assert pb["n"] == pytest.approx(pa["n"] / 4, rel=0.05)  # the grid edges: not exact
+    for key in ("mean", "std", "weighted_mean"):
+        assert b["translation_mm"][key] == pytest.approx(a["translation_mm"][key], rel=0.03), key
+    assert b["rotation_deg"]["mean"] == pytest.approx(a["rotation_deg"]["mean"], rel=0.03)
 
 
 @pytest.mark.unit
