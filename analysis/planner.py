@@ -459,6 +459,7 @@ class Planner:
                             {t: [float(v) for v in self.trackers[t]]
                              for t in [HOME_TRACKER, *trackers]}, curve)
         extra = report.to_json()
+        del extra["coverage_curve"]  # a station's worth a value: the JSON report has it
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)
                                       for st, c in zip(stations, chosen, strict=True)}
