@@ -175,6 +175,35 @@ def _smallest_eigvec(a00: float, a01: float, a02: float, a11: float, a12: float,
     return c[0] * s, c[1] * s, c[2] * s
 
 
+@numba.njit(inline="always", cache=True)
+def _neighbourhood_normal(pts: np.ndarray, runs: np.ndarray, nr: int, qx: float, qy: float,
+                          qz: float, r2: float) -> tuple[int, float, float, float]:
+    """(how many points of the ``nr`` runs lie within sqrt(``r2``) of (qx, qy, qz), the unit
+    normal of their least-squares plane; +z for fewer than 3)."""
+    m = 0
+    sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+    for r in range(nr):
+        for j in range(runs[r, 0], runs[r, 1]):
+            ex, ey, ez = pts[j, 0] - qx, pts[j, 1] - qy, pts[j, 2] - qz
+            if ex * ex + ey * ey + ez * ez <= r2:
+                m += 1
+                sx += ex
+                sy += ey
+                sz += ez
+                sxx += ex * ex
+                sxy += ex * ey
+                sxz += ex * ez
+                syy += ey * ey
+                syz += ey * ez
+                szz += ez * ez
+    if m < 3:
+        return m, 0.0, 0.0, 1.0
+    mx, my, mz = sx / m, sy / m, sz / m
+    nx, ny, nz = _smallest_eigvec(sxx / m - mx * mx, sxy / m - mx * my, sxz / m - mx * mz,
+                                  syy / m - my * my, syz / m - my * mz, szz / m - mz * mz)
+    return m, nx, ny, nz
+
+
 @numba.njit(parallel=True, cache=True)
 def grid_normals(pts: np.ndarray, order: np.ndarray, keys: np.ndarray, start: np.ndarray,
                  end: np.ndarray, dims: np.ndarray, radius: float, out: np.ndarray,
@@ -192,32 +221,9 @@ def grid_normals(pts: np.ndarray, order: np.ndarray, keys: np.ndarray, start: np
         runs = np.empty((27, 2), np.int64)
         nr = _neighbour_runs(keys, start, end, dims, cx, cy, cz, runs)
         for i in range(start[c], end[c]):
-            qx, qy, qz = pts[i, 0], pts[i, 1], pts[i, 2]
-            m = 0
-            sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-            for r in range(nr):
-                for j in range(runs[r, 0], runs[r, 1]):
-                    ex, ey, ez = pts[j, 0] - qx, pts[j, 1] - qy, pts[j, 2] - qz
-                    if ex * ex + ey * ey + ez * ez <= r2:
-                        m += 1
-                        sx += ex
-                        sy += ey
-                        sz += ez
-                        sxx += ex * ex
-                        sxy += ex * ey
-                        sxz += ex * ez
-                        syy += ey * ey
-                        syz += ey * ez
-                        szz += ez * ez
             o = order[i]
-            count[o] = m
-            if m < 3:
-                out[o, 0], out[o, 1], out[o, 2] = 0.0, 0.0, 1.0
-                continue
-            mx, my, mz = sx / m, sy / m, sz / m
-            out[o, 0], out[o, 1], out[o, 2] = _smallest_eigvec(
-                sxx / m - mx * mx, sxy / m - mx * my, sxz / m - mx * mz,
-                syy / m - my * my, syz / m - my * mz, szz / m - mz * mz)
+            count[o], out[o, 0], out[o, 1], out[o, 2] = _neighbourhood_normal(
+                pts, runs, nr, pts[i, 0], pts[i, 1], pts[i, 2], r2)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -236,29 +242,8 @@ def grid_normals_of(rows: np.ndarray, pts: np.ndarray, keys: np.ndarray, start: 
         cz = math.floor((np.float64(qz) - origin[2]) / cell)
         runs = np.empty((27, 2), np.int64)
         nr = _neighbour_runs(keys, start, end, dims, cx, cy, cz, runs)
-        m = 0
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-        for r in range(nr):
-            for j in range(runs[r, 0], runs[r, 1]):
-                ex, ey, ez = pts[j, 0] - qx, pts[j, 1] - qy, pts[j, 2] - qz
-                if ex * ex + ey * ey + ez * ez <= r2:
-                    m += 1
-                    sx += ex
-                    sy += ey
-                    sz += ez
-                    sxx += ex * ex
-                    sxy += ex * ey
-                    sxz += ex * ez
-                    syy += ey * ey
-                    syz += ey * ez
-                    szz += ez * ez
-        if m < 3:
-            out[k, 0], out[k, 1], out[k, 2] = 0.0, 0.0, 1.0
-            continue
-        mx, my, mz = sx / m, sy / m, sz / m
-        out[k, 0], out[k, 1], out[k, 2] = _smallest_eigvec(
-            sxx / m - mx * mx, sxy / m - mx * my, sxz / m - mx * mz,
-            syy / m - my * my, syz / m - my * mz, szz / m - mz * mz)
+        _, out[k, 0], out[k, 1], out[k, 2] = _neighbourhood_normal(pts, runs, nr, qx, qy, qz,
+                                                                   r2)
 
 
 @numba.njit(parallel=True, cache=True)
