@@ -1,5 +1,6 @@
 """The lifecycle every queue-driven bus worker shares: subscriptions feed a queue from zenoh's
-threads, one worker thread handles the items in order, ``stop`` drains nothing and joins."""
+threads, one worker thread handles the items in order, ``stop`` drains nothing, joins, and
+only then closes what the worker holds."""
 
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ class ThreadedWorker(ABC, Generic[Item]):
         self.bus = bus
         self._queue: queue.Queue[Any] = queue.Queue()
         self._subs: list[Subscription] = []
+        self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=self.thread_name)
 
     # ---------------------------------------------------------------- lifecycle
@@ -40,12 +42,16 @@ class ThreadedWorker(ABC, Generic[Item]):
         self.on_start()
 
     def stop(self) -> None:
+        """No new items; the item being handled finishes (up to ``join_timeout_s``), the ones
+        queued behind it are left; then :meth:`on_stop`, so it never closes what an item
+        still uses (a fuse worker's spool under a station being fused)."""
         for s in self._subs:
             s.undeclare()
         self._subs.clear()
-        self.on_stop()
+        self._stopping.set()
         self._queue.put(_STOP)
         self._thread.join(self.join_timeout_s)
+        self.on_stop()
 
     def pending(self) -> int:
         """Items queued or being handled."""
@@ -76,7 +82,8 @@ class ThreadedWorker(ABC, Generic[Item]):
             try:
                 if item is _STOP:
                     return
-                self.handle(item)
+                if not self._stopping.is_set():
+                    self.handle(item)
             except Exception:
                 log.exception("%s: unexpected error on %r", self.thread_name, item)
             finally:
