@@ -1,5 +1,5 @@
 """The fuse worker's overlap metric with every 4th point as C1 against every point, on a recorded
-scan job's real stations (issue 37).
+scan job's stations (issue 37).
 
     .venv/bin/python benchmarks/overlap_every.py runs/<time>/recordings/scan_part-*.mcap \
         [--stations 20] [--every 4] [--json OUT]
