@@ -227,16 +227,14 @@ def grid_normals(pts: np.ndarray, order: np.ndarray, keys: np.ndarray, start: np
 
 
 @numba.njit(parallel=True, cache=True)
-def grid_normals_of(rows: np.ndarray, pts: np.ndarray, keys: np.ndarray, start: np.ndarray,
+def grid_normals_of(query: np.ndarray, pts: np.ndarray, keys: np.ndarray, start: np.ndarray,
                     end: np.ndarray, origin: np.ndarray, cell: float, dims: np.ndarray,
                     radius: float, out: np.ndarray) -> None:
-    """:func:`grid_normals` for the grid points at sorted positions ``rows`` only, into
-    ``out[k]`` for ``rows[k]``: the same neighbours summed in the same order, so the same
-    bits as the normals of every point."""
+    """:func:`grid_normals` at ``query`` (M, 3), points of the grid in its type: the same
+    neighbours summed in the same order, so the same bits as the normals of every point."""
     r2 = radius * radius
-    for k in numba.prange(rows.shape[0]):
-        i = rows[k]
-        qx, qy, qz = pts[i, 0], pts[i, 1], pts[i, 2]
+    for k in numba.prange(query.shape[0]):
+        qx, qy, qz = query[k, 0], query[k, 1], query[k, 2]
         cx = math.floor((np.float64(qx) - origin[0]) / cell)
         cy = math.floor((np.float64(qy) - origin[1]) / cell)
         cz = math.floor((np.float64(qz) - origin[2]) / cell)

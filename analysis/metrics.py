@@ -63,16 +63,15 @@ def normals(points: np.ndarray, radius: float, grid: CellGrid | None = None) -> 
 
 
 class NormalsOnDemand:
-    """The :func:`normals` of a grid's points, each worked out the first time it is asked for
-    (``[idx]``, original indices) and kept: the overlap metric needs a new station's normals
-    only where an earlier station's points meet it, and at the points it keeps for the
-    stations after it. Each one has the bits :func:`normals` gives it."""
+    """The :func:`normals` of ``points`` (those ``grid`` holds, in their own order), each
+    worked out the first time it is asked for (``[idx]``) and kept: the overlap metric needs
+    a new station's normals only where an earlier station's points meet it, and at the
+    points it keeps for the stations after it. Each one has the bits :func:`normals` gives
+    it."""
 
-    def __init__(self, grid: CellGrid, radius: float) -> None:
-        self.grid, self.radius = grid, float(radius)
-        n = len(grid.order)
-        self.rank = np.empty(n, np.int64)  # a point's position among the sorted points
-        self.rank[grid.order] = np.arange(n)
+    def __init__(self, points: np.ndarray, grid: CellGrid, radius: float) -> None:
+        self.points, self.grid, self.radius = points, grid, float(radius)
+        n = len(points)
         self.values = np.zeros((n, 3), grid.sorted.dtype)
         self.done = np.zeros(n, bool)
 
@@ -87,8 +86,9 @@ class NormalsOnDemand:
         if len(todo):
             g = self.grid
             out = np.empty((len(todo), 3), g.sorted.dtype)
-            grid_normals_of(self.rank[todo], g.sorted, g.cell_keys, g.cell_start, g.cell_end,
-                            g.origin, g.cell, g.dims, self.radius, out)
+            grid_normals_of(np.ascontiguousarray(self.points[todo], g.sorted.dtype), g.sorted,
+                            g.cell_keys, g.cell_start, g.cell_end, g.origin, g.cell, g.dims,
+                            self.radius, out)
             self.values[todo] = out
             self.done[todo] = True
         return self.values[idx]
@@ -423,7 +423,7 @@ class OverlapComparer:
             self.radius_mm = self.radius_factor * self.spacing_mm
         r = self.radius_mm
         grid = CellGrid(p, r)
-        nrm = NormalsOnDemand(grid, r)
+        nrm = NormalsOnDemand(p, grid, r)
         self.pairs += pairs_with_earlier(
             name, p, nrm, grid, uncertainty, [(a, self._boxes[a]) for a in self.names],
             self.store.load if self.store is not None else lambda a, lo, hi: self._clouds[a],

@@ -102,7 +102,7 @@ def station_task(recording: str, station: RecordedStation, index: int,
     grid = CellGrid(world, radius_mm)
     world_store.place(station.name, T_world_from_mcs)
     kept = kept_rows(len(world), OVERLAP_EVERY)
-    world_store.put(station.name, world[kept], NormalsOnDemand(grid, radius_mm)[kept],
+    world_store.put(station.name, world[kept], NormalsOnDemand(world, grid, radius_mm)[kept],
                     None if unc is None else unc[kept])
     cells = grid.bounds()
     del grid
@@ -127,7 +127,7 @@ def overlap_task(spool: str, done: StationRef, earlier: list[StationRef], radius
     p, unc = world_store.full(done.name)
     grid = CellGrid(p, radius_mm)
     values = OverlapValues()
-    pairs = pairs_with_earlier(done.name, p, NormalsOnDemand(grid, radius_mm), grid, unc,
+    pairs = pairs_with_earlier(done.name, p, NormalsOnDemand(p, grid, radius_mm), grid, unc,
                                [(a.name, a.cells) for a in earlier], world_store.load,
                                radius_mm, values)
     return pairs, values

@@ -257,7 +257,7 @@ def test_normals_worked_out_on_demand_are_the_bits_of_every_points():
     r = 6 * mean_spacing(pts)
     grid = CellGrid(pts, r)
     want = normals(pts, r, grid)
-    lazy = NormalsOnDemand(grid, r)
+    lazy = NormalsOnDemand(pts, grid, r)
     idx = np.random.default_rng(1).integers(0, len(pts), 5000)
     assert np.array_equal(lazy[idx], want[idx])
     assert lazy.done.sum() == len(np.unique(idx))  # the rest not worked out
