@@ -370,10 +370,13 @@ class MetricsReport:
         }
 
 
-def kept_rows(count: int, every: int) -> np.ndarray:
-    """The rows of a cloud of ``count`` points that are the overlap metric's C1 against the
-    clouds after it: every ``every``-th, from the first."""
-    return np.arange(0, count, every)
+def kept_cloud(points: np.ndarray, normals_: NormalsOnDemand, uncertainty: np.ndarray | None,
+               every: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(points, normals, 1-sigma or None) of the rows of a cloud that are the overlap metric's
+    C1 against the clouds after it: every ``every``-th, from the first."""
+    kept = np.arange(0, len(points), every)
+    return (points[kept], normals_[kept],
+            None if uncertainty is None else np.asarray(uncertainty)[kept])
 
 
 class OverlapComparer:
@@ -386,7 +389,7 @@ class OverlapComparer:
     do not fit in memory), where a new cloud reads back only the part of each earlier one
     within its own box.
 
-    ``every``: a cloud keeps only every ``every``-th point (:func:`kept_rows`) for the clouds
+    ``every``: a cloud keeps only every ``every``-th point (:func:`kept_cloud`) for the clouds
     after it, so those are its C1 against them; its nearest points C2 are still sought among
     all the points of each later cloud, whose normals are worked out only there
     (:class:`NormalsOnDemand`). 1 (the default) is the paper's tool, which traverses every
@@ -428,12 +431,11 @@ class OverlapComparer:
             name, p, nrm, grid, uncertainty, [(a, self._boxes[a]) for a in self.names],
             self.store.load if self.store is not None else lambda a, lo, hi: self._clouds[a],
             r, self.values)
-        kept = kept_rows(len(p), self.every)
-        unc = None if uncertainty is None else np.asarray(uncertainty)[kept]
+        kept = kept_cloud(p, nrm, uncertainty, self.every)
         if self.store is not None:
-            self.store.put(name, p[kept], nrm[kept], unc)
+            self.store.put(name, *kept)
         else:
-            self._clouds[name] = (p[kept], nrm[kept], unc)
+            self._clouds[name] = kept
         self._boxes[name] = grid.bounds()
 
     def report(self) -> MetricsReport:

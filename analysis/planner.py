@@ -422,13 +422,12 @@ class Planner:
                                 f"the part in reach of the robot (world frame, mm)?")
         min_gain = max(5, int(np.ceil(MIN_GAIN_MM2 / self.area_per_sample_mm2)))
         chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
-        covered = np.any([np.zeros(len(self.points), bool), *(c.sees for c in chosen)], axis=0)
         zero = np.zeros(len(self.points), bool)
         possible = np.any([zero, *(c.sees for c in cands if c.tracker in used)], axis=0)
-        curve, so_far = [], zero.copy()
+        curve, covered = [], zero.copy()
         for c in chosen:  # in the order chosen, before the tour reorders them
-            so_far |= c.sees
-            curve.append(float(so_far[possible].mean()))
+            covered |= c.sees
+            curve.append(float(covered[possible].mean()))
         chosen = [c for t in used
                   for c in self._toured([c for c in chosen if c.tracker == t], speed)]
         stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),

@@ -189,7 +189,7 @@ class WorldFromMcs:
     the 16 bytes a point that a second copy of the points and 1-sigma cost on disk.
 
     ``every``: the overlap keeps every ``every``-th point of a station
-    (:func:`~scancell.analysis.metrics.kept_rows`): ``put`` takes and ``load`` gives those.
+    (:func:`~scancell.analysis.metrics.kept_cloud`): ``put`` takes and ``load`` gives those.
 
     The interface of :class:`StationStore` that
     :class:`~scancell.analysis.metrics.OverlapComparer` uses: ``put`` and ``load``."""

@@ -41,7 +41,7 @@ from scancell.analysis.metrics import (
     NormalsOnDemand,
     OverlapValues,
     PairMetrics,
-    kept_rows,
+    kept_cloud,
     mean_spacing,
     overlap_report,
     pairs_with_earlier,
@@ -101,9 +101,8 @@ def station_task(recording: str, station: RecordedStation, index: int,
     del pts
     grid = CellGrid(world, radius_mm)
     world_store.place(station.name, T_world_from_mcs)
-    kept = kept_rows(len(world), OVERLAP_EVERY)
-    world_store.put(station.name, world[kept], NormalsOnDemand(world, grid, radius_mm)[kept],
-                    None if unc is None else unc[kept])
+    world_store.put(station.name, *kept_cloud(world, NormalsOnDemand(world, grid, radius_mm),
+                                              unc, OVERLAP_EVERY))
     cells = grid.bounds()
     del grid
     final = tiles_folder(root, index)

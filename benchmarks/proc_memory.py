@@ -70,6 +70,10 @@ def rss_split_mb(pid: int) -> dict[str, float]:
     return {"anon": got["RssAnon"], "file": got["RssFile"], "shmem": got["RssShmem"]}
 
 
+#: clock ticks a second, the unit of /proc/<pid>/stat
+TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
 def cpu_s(pid: int) -> float | None:
     """User + system CPU seconds process ``pid`` has used so far (``/proc/<pid>/stat``), or None
     if it is gone."""
@@ -79,9 +83,6 @@ def cpu_s(pid: int) -> float | None:
         return None
     fields = stat[stat.rindex(")") + 2:].split()  # after the command, which may hold spaces
     return (int(fields[11]) + int(fields[12])) / TICKS
-
-
-TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def name_of(pid: int) -> str:

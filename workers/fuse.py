@@ -163,6 +163,7 @@ class FuseSettings:
 #: traverses every point)
 OVERLAP_EVERY = 4
 
+
 def overlap_comparer(mcs: StationStore, folder: Path) -> OverlapComparer:
     """A job's overlap metric as the fuse worker keeps it: each station's kept points'
     world normals in ``folder``, their points read from the job's MCS store ``mcs``."""
