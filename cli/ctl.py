@@ -23,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     sp.add_argument("--plan", required=True, help="plan TOML/JSON (scancell plan writes one)")
     sp.add_argument("--stations", nargs="+", help="only these stations")
     sp.add_argument("--no-wait", action="store_true", help="start the job and return")
+    sp.add_argument("--max-skipped", type=int, metavar="N",
+                    help="stations the job may skip when one fails alone (default: 5 %% of "
+                         "the plan's, at least 1; 0: the first failure fails the job)")
     sub.add_parser("abort", help="abort the running job")
     es = sub.add_parser("estop", help="stop robot and axis at once, abort the job")
     es.add_argument("--reason", default="scancell ctl estop")
@@ -80,6 +83,8 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
     request: dict[str, Any] = {"plan": plan}
     if args.stations:
         request["stations"] = args.stations
+    if args.max_skipped is not None:
+        request["max_skipped_stations"] = args.max_skipped
 
     def started(reply: dict[str, Any]) -> None:
         print(f"job {reply['job_id']} started; events on {reply['events']}", flush=True)
@@ -88,6 +93,8 @@ def _scan_part(client: CellClient, args: argparse.Namespace) -> int:
         started(client.call("job/scan_part", request))
         return 0
     final = client.run_job("scan_part", request, on_start=started, on_event=print_event)
+    for s in (final.get("result") or {}).get("stations_skipped", []):
+        print(f"skipped  station {s['station']} at step {s['failed_step']}: {s['error']}")
     return 0 if final.get("state") == "done" else 1
 
 

@@ -411,6 +411,10 @@ def main(args: argparse.Namespace) -> int:
         if summary["stations_missing"]:
             print(f"   WARNING: the fuse worker never got stations {summary['stations_missing']}"
                   f" (fused without them; the recording has them)")
+        summary["stations_skipped"] = (final.get("result") or {}).get("stations_skipped", [])
+        for s in summary["stations_skipped"]:
+            print(f"   WARNING: station {s['station']} skipped at step {s['failed_step']}: "
+                  f"{s['error']}")
         summary["station_timing_s"] = station_timing(final.get("result") or {})
         summary.update(part_coverage(part, report, cfg.geometry))
         if report.get("ecs_comparison"):
@@ -721,7 +725,9 @@ def table(s: dict[str, Any]) -> str:
               if h.get("camera_frame") else []),
             ("true error of the fused model, mean / max (mm)",
              f"{f(e['mean'], '.4f')} / {f(e['max'], '.4f')}", "not measurable"),
-            ("stations / points", f"{s['stations']} / {s['points']}", "~22 / ~2 M")]
+            ("stations / points", f"{s['stations']} / {s['points']}"
+             + (f" ({len(s['stations_skipped'])} skipped)" if s.get("stations_skipped") else ""),
+             "~22 / ~2 M")]
     if s.get("measurable_coverage_2mm") is not None and s.get("measurable_share", 1.0) < 1.0:
         rows.append(("measurable surface within 2 mm of a fused point",
                      f"{s['measurable_coverage_2mm']:.1%} (of the {s['measurable_share']:.1%} "

@@ -267,6 +267,57 @@ def test_abort_mid_station_keeps_the_measured_stations_and_the_job_runs_again(si
 
 
 @pytest.mark.e2e
+def test_a_station_the_tracker_cannot_see_is_skipped_and_the_job_goes_on(sim, client):
+    """Someone stands in the beam to s02's SMR: s02 is skipped, named in the job's result, an
+    event and the fusion report, and s03 is measured after the tracker found the SMR again.
+    With max_skipped_stations 0, or when every station fails, the job fails instead."""
+    import open3d as o3d
+    from scancell.sim.scene import SceneObject
+
+    world = sim
+    events = Events(client.bus)
+    reports: list = []
+    client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))
+    records: list = []
+    client.bus.subscribe(client.bus.keys.station_ecs("*"), lambda s: records.append(s.decode()))
+    with world.lock:
+        plan = plan_for(world.cell, name="blocked")
+        smr = world.cell.smr_center_world(np.radians(plan["station"][1]["joints_deg"]))
+        T = np.eye(4)  # a 60 mm block 15 % of the way from s02's SMR to the tracker
+        T[:3, 3] = smr + 0.15 * (world.cell.tracker.position - smr)
+        block = o3d.geometry.TriangleMesh.create_box(60.0, 60.0, 60.0).translate([-30.0] * 3)
+        world.cell.scene.add(SceneObject("passer_by", block, T, visible_to_cameras=False))
+    with pytest.raises(CommandError, match="max_skipped_stations"):
+        client.call("job/scan_part", {"plan": plan, "max_skipped_stations": -1})
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    report = wait_until(lambda: next((r for r in reports if r["job_id"] == job), None), 240,
+                        period_s=0.5, what="fusion report")
+    final = events.final(job)
+    assert final["state"] == "done", final
+    assert [d["station"] for d in final["result"]["stations"]] == ["s01", "s03"]
+    [skip] = final["result"]["stations_skipped"]
+    assert skip["station"] == "s02" and skip["failed_step"] == "p1", skip
+    assert "beam" in skip["error"] and "occluded" in skip["error"], skip
+    [event] = [e for e in events.of(job) if e["step"] == "station_skipped"]
+    assert event["station"] == "s02" and "1 of at most 1 skipped" in event["message"], event
+    assert sorted(r["station"] for r in records if r["job_id"] == job) == ["s01", "s03"]
+    assert report["stations"] == 2 and report["stations_skipped"] == ["s02"], report
+    assert report["translation_mm"]["mean"] is not None  # s01 and s03 still compared
+    # no skip allowed: the same station fails the job, naming the limit
+    job = client.call("job/scan_part", {"plan": plan, "stations": ["s02", "s03"],
+                                        "max_skipped_stations": 0})["job_id"]
+    final = wait_until(lambda: events.final(job), 60, what="the job's end")
+    assert final["state"] == "failed" and final["failed_step"] == "p1", final
+    assert "station s02" in final["error"] and "max_skipped_stations 0" in final["error"]
+    assert final["result"]["stations_done"] == []
+    # every station failed: nothing measured is a failure, not a job done
+    job = client.call("job/scan_part", {"plan": plan, "stations": ["s02"]})["job_id"]
+    final = wait_until(lambda: events.final(job), 60, what="the job's end")
+    assert final["state"] == "failed" and "no station measured" in final["error"], final
+    assert [s["station"] for s in final["result"]["stations_skipped"]] == ["s02"]
+
+
+@pytest.mark.e2e
 def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
     world = sim
     with world.lock:

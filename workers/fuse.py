@@ -97,6 +97,8 @@ class JobStations:
     #: The stations the job's final event says were measured (its samples travel on other keys
     #: and may still be on their way).
     announced: set[str] = field(default_factory=set)
+    #: The stations the job skipped (``stations_skipped`` of its final event): never fused.
+    skipped: list[str] = field(default_factory=list)
     #: The plan's nominal CAD, when it names one (for the inspect worker).
     nominal: str | None = None
     #: station -> its Monte Carlo uncertainty over every modelled source
@@ -306,6 +308,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 job = self._job(e["job_id"])
                 job.ended = e["state"]
                 job.announced = {str(d.get("station")) for d in done if isinstance(d, dict)}
+                job.skipped = [str(d.get("station")) for d in result.get("stations_skipped")
+                               or [] if isinstance(d, dict)]
                 job.announced_checks = {str(c.get("station")) for c in
                                         result.get("scanner_checks") or [] if isinstance(c, dict)}
                 job.nominal = result.get("nominal")
@@ -479,7 +483,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
                     "error": "no station could be fused" + ("" if he else ": no hand-eye"),
-                    **({"stations_missing": waiting} if waiting else {})}
+                    **({"stations_missing": waiting} if waiting else {}),
+                    **({"stations_skipped": job.skipped} if job.skipped else {})}
             self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
             return body
         t0 = time.monotonic()
@@ -516,6 +521,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         body["worker"] = self.share.worker_id
         if waiting:
             body["stations_missing"] = waiting
+        if job.skipped:
+            body["stations_skipped"] = job.skipped
         with self._lock:
             job.close_spool()
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")

@@ -27,6 +27,7 @@ class StepFailed(Exception):
 
     def __init__(self, station: str, step: str, why: str) -> None:
         self.message = f"station {station}, step {step}: {why}"
+        self.why = why
         super().__init__(self.message)
         self.where = {"station": station, "failed_step": step}
 

@@ -5,15 +5,20 @@ tracker P1 → coupled scan (``dev/<camera>/image`` frames, scan id ``<job>-<sta
 with P2, P3 → J6 back. Each station ends with ``scan/<station>/ecs`` (``scancell.StationEcs``: the
 three tracker points and their J6 angles), from which the fuse worker builds ``T_world_from_ecs``.
 
-A failing station fails the job with the station and the step named; an abort stops the robot
-and the axis at once. Either way, the stations already measured stay on the bus (and in the
-recording) and are listed in the final event.
+A station whose tracker points or scan fail (a passer-by in the beam, a scan that does not
+decode) is skipped and named in the result's ``stations_skipped``; the job goes on, the tracker
+found again at the next station. More than ``max_skipped_stations`` skipped, a failed robot
+move, or a failure between stations (nests, tracker moves, scanner checks) fails the job with the
+station and the step named; an abort stops the robot and the axis at once. Either way, the
+stations already measured stay on the bus (and in the recording) and are listed in the final
+event.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import time
 from dataclasses import replace
 from typing import Any
@@ -45,6 +50,27 @@ from scancell.protocols.plan import (
 )
 
 VERB = "scan_part"
+
+#: the steps of a station that may fail it alone: the tracker's view of the scanner and the
+#: scan. A robot move that fails, or anything between stations, fails the job.
+SKIPPABLE_STEPS = ("cluster", "p1", "scan", "ecs")
+
+#: ``max_skipped_stations`` by default, as a share of the plan's stations: more than 1 station in
+#: 20 failing is a systematic fault (a tracker that lost the scanner for good, a camera gone),
+#: not a passer-by in the beam, and the job stops rather than measure on without it
+DEFAULT_SKIPPED_SHARE = 0.05
+
+
+def max_skipped_of(req: dict[str, Any], n: int) -> int:
+    """How many stations the job may skip: the request's ``max_skipped_stations`` (0: the first
+    failed station fails the job), else DEFAULT_SKIPPED_SHARE of the ``n`` stations, at least 1."""
+    value = req.get("max_skipped_stations")
+    if value is None:
+        return max(1, math.ceil(DEFAULT_SKIPPED_SHARE * n))
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise CommandError("invalid", f"max_skipped_stations must be a whole number >= 0, got "
+                                      f"{value!r}")
+    return value
 
 
 def plan_from_request(req: dict[str, Any], geometry: CellGeometry | None = None,
@@ -150,16 +176,19 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
     axis = serving_device(supervisors, req.get("axis"), Axis, VERB).device if needs_axis else None
     check_plan(plan, robot, axis)
     ecs_method_of(req, plan, geometry)
+    max_skipped_of(req, len(plan.stations))
 
 
 
 
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           st: PlanStation, how: Station, i: int, n: int, eta: float | None,
-                          plan_name: str) -> dict[str, Any]:
+                          plan_name: str, relock: bool = False) -> dict[str, Any]:
     """One station: move, then the scanner's pose by the station's ECS method and the scan;
     publishes ``scan/<station>/ecs`` (``scancell.StationEcs``) and returns it. A failure is a
-    StepFailed naming the station and the step.
+    StepFailed naming the station and the step. ``relock``: the tracker may have lost the
+    scanner (the station before was skipped); it is found again where the robot model puts the
+    SMR, when the cell's geometry is known.
 
     - ``j6`` (the paper's): tracker P1, scan, J6 turns for P2 and P3, J6 back.
     - ``cluster``: the SMRs of the cluster facing the tracker, each found at its predicted
@@ -210,8 +239,8 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
         if cluster is None:
             step = "p1"
             event("p1", f"station {st.name}: tracker P1")
-            if how.geometry is not None and how.geometry.smr_cluster:
-                # the tracker may be locked on a cluster SMR: back to the rear one
+            if how.geometry is not None and (how.geometry.smr_cluster or relock):
+                # the tracker may be locked on a cluster SMR, or have lost the beam: the rear one
                 await how.tracker.find_reflector(
                     how.geometry.smr_positions(q0, st.axis_mm, T_wt)[REAR_SMR][0])
             p, s, settle_s = await settled_point(how.tracker, how.repeats,
@@ -294,6 +323,23 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
     return record
 
 
+def skip_or_raise(ctx: JobContext, exc: StepFailed, skipped: list[dict[str, Any]],
+                  max_skipped: int, i: int, n: int) -> None:
+    """Skip the station ``exc`` failed, naming it in ``skipped`` and in an event, if its step
+    may fail it alone and fewer than ``max_skipped`` were skipped; else raise, counting them."""
+    station, step = exc.where["station"], exc.where["failed_step"]
+    if step not in SKIPPABLE_STEPS:
+        raise exc
+    if len(skipped) >= max_skipped:
+        raise StepFailed(station, step, f"{exc.why}; {len(skipped)} station(s) skipped before "
+                                        f"it, max_skipped_stations {max_skipped}") from exc
+    skipped.append({"station": station, "failed_step": step, "error": exc.why})
+    ctx.event("running", "station_skipped",
+              f"station {station} ({i + 1}/{n}) skipped, step {step}: {exc.why} "
+              f"({len(skipped)} of at most {max_skipped} skipped)", i, n, station=station,
+              failed_step=step)
+
+
 def tracker_point(record: dict[str, Any]) -> np.ndarray:
     """Where the tracker last saw the scanner at a station (its own frame, mm)."""
     if record.get("ecs_method") == "cluster":
@@ -352,8 +398,11 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     axis: Axis | None = axis_s.device if axis_s is not None else None
     check_plan(plan, robot, axis)
     n = len(plan.stations)
+    max_skipped = max_skipped_of(req, n)
     done: list[dict[str, Any]] = []
-    ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n)
+    skipped: list[dict[str, Any]] = []
+    ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n,
+                    stations_skipped=skipped)
     t_start = time.monotonic()
 
     metrology = metrology or MetrologySettings()
@@ -365,11 +414,11 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         moves.mover = (simulator.tracker_mover() if simulator is not None
                        else OperatorTrackerMover(ctx))
         ctx.kept.update(tracker_moves=moves.moves)
-    result: dict[str, Any] = {"plan": plan.name, "stations": done}
+    result: dict[str, Any] = {"plan": plan.name, "stations": done, "stations_skipped": skipped}
     if setup is not None and (warm := setup.warn_if_cold(ctx, "the scan job")) is not None:
         result["scanner_warm_up"] = warm
 
-    async def nest_check(label: str, scanner_at: np.ndarray) -> None:
+    async def nest_check(label: str, scanner_at: np.ndarray | None) -> None:
         ctx.event("running", "nests", f"nest check {label}: measuring "
                                       f"{len(drift.survey)} reference nests")
         try:
@@ -439,6 +488,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           repeats, turns, setup, metrology, drift if drift.enabled else None,
                           bool(result["weather"].get("source")), geometry, ecs_method,
                           compare)
+            beam_lost = False
             for i, st in enumerate(plan.stations):
                 if st.tracker != moves.station:
                     await move_tracker(st.tracker, st.name)
@@ -448,7 +498,14 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 if i and due(metrology.scanner_check, i):
                     await check_scanner(f"before {st.name}")
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
-                record = await measure_station(ctx, supervisors, st, how, i, n, eta, plan.name)
+                try:
+                    record = await measure_station(ctx, supervisors, st, how, i, n, eta,
+                                                   plan.name, relock=beam_lost)
+                except StepFailed as exc:
+                    skip_or_raise(ctx, exc, skipped, max_skipped, i, n)
+                    beam_lost, scanner_at = True, None  # found again at the next station
+                    continue
+                beam_lost = False
                 scanner_at = tracker_point(record)
                 done.append({"station": st.name, "scan_id": record["scan_id"],
                              "tracker_station": st.tracker,
@@ -456,11 +513,14 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                              "timing_s": record["timing_s"],
                              **({"cluster_fallback": record["cluster_fallback"]}
                                 if "cluster_fallback" in record else {})})
+            if skipped and not done:
+                raise StepFailed(skipped[-1]["station"], skipped[-1]["failed_step"],
+                                 f"no station measured: all {n} failed")
             if moves.station != HOME_TRACKER:
                 # the cell as the job found it: the tracker back home, located with every
                 # set-up of the job in one bundle (the network's closing check)
                 await move_tracker(HOME_TRACKER, None)
-            elif drift.enabled and scanner_at is not None:
+            elif drift.enabled and (scanner_at is not None or beam_lost):
                 await nest_check("end", scanner_at)
         except BaseException:
             await stop_motion([robot, axis])
