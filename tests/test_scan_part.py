@@ -318,6 +318,46 @@ def test_a_station_the_tracker_cannot_see_is_skipped_and_the_job_goes_on(sim, cl
 
 
 @pytest.mark.e2e
+def test_a_recorder_that_cannot_write_stops_the_job_before_its_next_station(sim, client):
+    """A recorder's write error (its ``error`` event, as on a full disk) during s01 stops the
+    job before s02, naming the recorder, s01 kept; with stop_on_recorder_error false the job
+    goes on and lists the error."""
+    world = sim
+    events = Events(client.bus)
+    with world.lock:
+        plan = plan_for(world.cell, TARGETS[:2], name="disk")
+
+    def full_disk_during_scan_of_s01(job: str) -> None:
+        wait_until(lambda: any(e["step"] == "scan" and e.get("station") == "s01"
+                               for e in events.of(job)), 60, period_s=0.05, what="s01 scanning")
+        client.bus.publish_json(client.bus.keys.recorder_event("archive"), {
+            "recorder": "archive", "event": "error", "file": "/data/x.mcap",
+            "message": "write failed: /data/x.mcap: No space left on device",
+            "stamp_ns": messages.now_ns()}, "scancell.RecorderEvent")
+
+    with pytest.raises(CommandError, match="stop_on_recorder_error"):
+        client.call("job/scan_part", {"plan": plan, "stop_on_recorder_error": "no"})
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    full_disk_during_scan_of_s01(job)
+    final = wait_until(lambda: events.final(job), 120, what="the job's end")
+    assert final["state"] == "failed" and final["failed_step"] == "recording", final
+    assert final["station"] == "before s02", final
+    assert "'archive'" in final["error"] and "No space left" in final["error"], final["error"]
+    assert [s["station"] for s in final["result"]["stations_done"]] == ["s01"]
+    assert final["result"]["recorder_errors"][0]["file"] == "/data/x.mcap"
+    q = client.call("device/robot/joints")["joints_deg"]
+    assert np.allclose(q, plan["station"][0]["joints_deg"], atol=0.05)  # never left s01
+    job = client.call("job/scan_part", {"plan": plan, "stations": ["s01"],
+                                        "stop_on_recorder_error": False})["job_id"]
+    full_disk_during_scan_of_s01(job)
+    final = wait_until(lambda: events.final(job), 120, what="the job's end")
+    assert final["state"] == "done", final
+    assert [e["recorder"] for e in final["result"]["recorder_errors"]] == ["archive"]
+    assert any(e["step"] == "recording" and "No space left" in e["message"]
+               for e in events.of(job))
+
+
+@pytest.mark.e2e
 def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
     world = sim
     with world.lock:

@@ -8,8 +8,8 @@ three tracker points and their J6 angles), from which the fuse worker builds ``T
 A station whose tracker points or scan fail (a passer-by in the beam, a scan that does not
 decode) is skipped and named in the result's ``stations_skipped``; the job goes on, the tracker
 found again at the next station. More than ``max_skipped_stations`` skipped, a failed robot
-move, or a failure between stations (nests, tracker moves, scanner checks) fails the job with the
-station and the step named; an abort stops the robot and the axis at once. Either way, the
+move, a failure between stations (nests, tracker moves, scanner checks) or a recorder that
+cannot write (``recorder/*/event`` error) fails the job with the station and the step named; an abort stops the robot and the axis at once. Either way, the
 stations already measured stay on the bus (and in the recording) and are listed in the final
 event.
 """
@@ -30,6 +30,7 @@ from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop
 from scancell.daemon.jobs.ecs_measure import EcsPoint, measure_ecs, settled_point
 from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.nests import DriftControl
+from scancell.daemon.jobs.recorder_watch import RecorderWatch
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scanner_check import due, scanner_check
@@ -389,6 +390,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     compare = req.get("compare_ecs", False)
     if not isinstance(compare, bool):
         raise CommandError("invalid", f"compare_ecs must be true or false, got {compare!r}")
+    stop_on_recorder_error = req.get("stop_on_recorder_error", True)
+    if not isinstance(stop_on_recorder_error, bool):
+        raise CommandError("invalid", f"stop_on_recorder_error must be true or false, got "
+                                      f"{stop_on_recorder_error!r}")
     devs = measuring_devices(supervisors, req, VERB)
     robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
@@ -401,8 +406,9 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     max_skipped = max_skipped_of(req, n)
     done: list[dict[str, Any]] = []
     skipped: list[dict[str, Any]] = []
+    recorder_errors: list[dict[str, Any]] = []
     ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n,
-                    stations_skipped=skipped)
+                    stations_skipped=skipped, recorder_errors=recorder_errors)
     t_start = time.monotonic()
 
     metrology = metrology or MetrologySettings()
@@ -470,7 +476,19 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         except CommandError as exc:
             raise StepFailed(label, "scanner_check", exc.message) from exc
 
+    def recorder_check(recording: RecorderWatch, before: str | None) -> None:
+        """Name each new recorder error in an event and the result; stop ``before`` a
+        station if so asked (at the job's end, None, everything is measured already)."""
+        new = recording.new_errors(len(recorder_errors))
+        for e in new:
+            recorder_errors.append(e)
+            ctx.event("running", "recording", f"recorder {e['recorder']!r} cannot write: "
+                                              f"{e['message']}", recorder=e["recorder"])
+        if new and stop_on_recorder_error and before is not None:
+            recording.stop_if_failed(before)
+
     async with contextlib.AsyncExitStack() as stack:
+        recording = stack.enter_context(RecorderWatch(ctx.bus))
         await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
             try:
@@ -490,6 +508,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           compare)
             beam_lost = False
             for i, st in enumerate(plan.stations):
+                recorder_check(recording, f"before {st.name}")
                 if st.tracker != moves.station:
                     await move_tracker(st.tracker, st.name)
                     scanner_at = None
@@ -526,6 +545,9 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             await stop_motion([robot, axis])
             raise
     result["seconds"] = round(time.monotonic() - t_start, 1)
+    recorder_check(recording, None)
+    if recorder_errors:
+        result["recorder_errors"] = recorder_errors
     if drift.enabled:
         result["drift_checks"] = drift.checks
     if moves.moves:
