@@ -120,11 +120,37 @@ def wait_for(pred, timeout_s: float, what: str, period_s: float = 0.3) -> Any:
         time.sleep(period_s)
 
 
+def fuse_what_was_measured(final: dict[str, Any], reports: list[dict[str, Any]],
+                           timeout_s: float, fused_dir: Path) -> None:
+    """A scan job that failed or was aborted: the fuse worker still fuses the stations it
+    measured; wait for its report before the demo stops its workers, and say where it is."""
+    measured = (final.get("result") or {}).get("stations_done") or []
+    if not measured:
+        return
+    print(f"   scan job {final.get('state')} after {len(measured)} stations "
+          f"({final.get('error') or 'aborted'}); waiting for the fuse worker to fuse them",
+          flush=True)
+    try:
+        report = wait_for(lambda: [r for r in reports if r.get("job_id") == final["job_id"]],
+                          timeout_s, "fusion report")[-1]
+    except TimeoutError as exc:
+        print(f"   {exc}: no fused model", flush=True)
+        return
+    if report.get("error") or report.get("files_error"):
+        print(f"   fusion: {report.get('error') or report.get('files_error')}", flush=True)
+        return
+    t = report.get("translation_mm") or {}
+    print(f"   {report['stations']} stations fused into {fused_dir / final['job_id']}"
+          + (f"; overlap translation mean {t['mean']:.4f} mm" if t.get("mean") is not None
+             else ""), flush=True)
+
+
 def print_progress(e: dict[str, Any], prefix: str = "   ") -> None:
     """A job's progress line (station i/N, step, time left), for the steps worth a line."""
     if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
                                                  "ballbar", "plane", "nests", "scanner_check",
-                                                 "weather", "tracker_move"):
+                                                 "weather", "tracker_move",
+                                                 "station_skipped", "recording"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
         print(f"{prefix}{where}{e['message']}{eta}", flush=True)
@@ -229,6 +255,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         stage(f"daemon on {config} (cameras 1/{scale}, tracker on {args.tracker.upper()}), "
               f"recorder -> {run_dir}/recordings")
+        print(f"   the daemon listens on {endpoint} (scancell ctl --connect {endpoint} --cell "
+              f"{cfg.cell} status | abort)", flush=True)
         summary["tracker_protocol"] = args.tracker
         procs.start("daemon", ["daemon", "--config", str(config), "--listen", endpoint,
                                *[a for s in sets for a in ("--set", s)]], env)
@@ -369,16 +397,17 @@ def main(args: argparse.Namespace) -> int:
         final = client.run_job("scan_part", request, on_event=print_progress,
                                timeout_s=max(1800.0, 300.0 * n_stations))
         job = final["job_id"]
+        # writing the model, the mesh and the report, and inspecting the model, grow with the
+        # stations (about 0.25 M fused points each): 10 min, and 6 s more per station
+        after_s = 600.0 + 6.0 * n_stations
         if final.get("state") != "done":
+            fuse_what_was_measured(final, reports, after_s, run_dir / "fused")
             raise RuntimeError(f"scan job {final.get('state')}: {final.get('error')}")
         print("   measured; the fuse worker now fuses the stations (their overlaps measured as "
               "they came) and writes the model, the mesh and the report", flush=True)
         # the cell is free: its acceptance test runs while the workers fuse and inspect
         accepted = (None if args.no_acceptance
                     else background.submit(run_acceptance, client, quick, "   [acceptance] "))
-        # writing the model, the mesh and the report, and inspecting the model, grow with the
-        # stations (about 0.25 M fused points each): 10 min, and 6 s more per station
-        after_s = 600.0 + 6.0 * n_stations
         report = wait_for(lambda: [r for r in reports if r.get("job_id") == job], after_s,
                           "fusion report")[-1]
         if report.get("error"):

@@ -118,3 +118,30 @@ def test_the_demo_reuses_a_plan_made_before_and_names_a_bad_one(tmp_path, capsys
     assert (run_dir / "plan.toml").read_text() == plan
     assert "reused the plan" in said and "1 stations" in said
     assert (run_dir / "car_rear.ply").stat().st_size > 0  # the coverage's part, exported
+
+
+def test_a_failed_or_aborted_scan_job_still_waits_for_the_fusion_of_its_stations(tmp_path,
+                                                                                capsys):
+    """A long job stopped part way (an abort, a recorder that cannot write): the demo waits
+    for the fuse worker's report on the stations measured before it stops the workers, and
+    says where the model is; with nothing measured it does not wait."""
+    import threading
+
+    from scancell.cli.demo import fuse_what_was_measured
+
+    final = {"job_id": "scan_part-1", "state": "aborted", "error": None,
+             "result": {"stations_done": [{"station": "s01"}, {"station": "s02"}]}}
+    reports: list[dict] = []
+    later = threading.Timer(0.3, lambda: reports.append(
+        {"job_id": "scan_part-1", "stations": 2, "translation_mm": {"mean": 0.0591}}))
+    later.start()
+    fuse_what_was_measured(final, reports, 10.0, tmp_path / "fused")
+    out = capsys.readouterr().out
+    assert "aborted after 2 stations" in out, out
+    assert f"2 stations fused into {tmp_path / 'fused' / 'scan_part-1'}" in out, out
+    assert "overlap translation mean 0.0591 mm" in out
+    # the fuse worker never answers: said, and the demo goes on stopping
+    fuse_what_was_measured({**final, "job_id": "scan_part-2"}, reports, 0.5, tmp_path)
+    assert "no fusion report after 0 s: no fused model" in capsys.readouterr().out
+    fuse_what_was_measured({**final, "result": {"stations_done": []}}, [], 60.0, tmp_path)
+    assert capsys.readouterr().out == ""  # nothing measured: nothing to wait for
