@@ -190,7 +190,7 @@ def test_plan_run_and_watch_on_the_simulated_cell(planned, make_daemon, client,
         "tracker_repeats = 5", "tracker_repeats = 1"))
     env = dict(os.environ, SCANCELL_CONNECT=endpoint, SCANCELL_CELL=cell)
     out = subprocess.run([sys.executable, "-m", "scancell", "ctl", "scan-part", "--plan",
-                          str(tmp_path / "plan.toml"), "--stations",
+                          str(tmp_path / "plan.toml"), "--max-skipped", "0", "--stations",
                           *[s.name for s in plan.stations[:3]]],
                          capture_output=True, text=True, timeout=240, env=env)
     assert out.returncode == 0, out.stdout + out.stderr
@@ -208,6 +208,10 @@ def test_plan_run_and_watch_on_the_simulated_cell(planned, make_daemon, client,
                           str(tmp_path / "nope.toml")], capture_output=True, text=True,
                          timeout=60, env=env)
     assert bad.returncode == 2 and "nope.toml" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "scancell", "ctl", "scan-part", "--plan",
+                          str(tmp_path / "plan.toml"), "--max-skipped", "-1"],
+                         capture_output=True, text=True, timeout=60, env=env)
+    assert bad.returncode != 0 and "max_skipped_stations" in bad.stderr, bad.stdout + bad.stderr
 
 
 @pytest.mark.unit
