@@ -137,6 +137,23 @@ def test_ball_centre_from_a_simulated_scan_with_its_opening_and_stand():
     assert abs(free.fit.radius - parts.SMR_RADIUS_MM) < 0.1
 
 
+def test_voted_centres_find_a_cluster_whole_where_a_cell_boundary_cuts_it():
+    """The proposals' vote: the fullest cube's mean, on two grids half a cube apart. A cluster
+    centred on a corner of the first grid's cells is split in eight there, whole in the second."""
+    from scancell.analysis.fit import voted_centres
+
+    rng = np.random.default_rng(3)
+    reach = 1.2
+    corner = np.array([2.4, -4.8, 400.8])  # a corner of the unshifted grid (cube 2.4 mm)
+    ball = corner + rng.normal(0.0, 0.15, (20_000, 3))
+    stray = np.array([30.0, 5.0, 390.0]) + rng.normal(0.0, 0.15, (3_000, 3))
+    background = rng.uniform(-50.0, 50.0, (50_000, 3)) + [0.0, 0.0, 400.0]
+    centres = voted_centres(np.vstack([background, stray, ball]), reach)
+    assert len(centres) == 20
+    assert np.linalg.norm(centres[0] - corner) < 0.01  # the whole cluster's mean
+    assert any(np.linalg.norm(c - [30.0, 5.0, 390.0]) < 0.05 for c in centres[:4])
+
+
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "scancell", "calibrate", *args],
                           capture_output=True, text=True, timeout=60)
