@@ -302,6 +302,10 @@ def test_a_station_whose_cloud_never_came_is_named_in_the_report(cell, endpoint,
         wait_until(lambda: c.reports, 60, period_s=0.2, what="the job's report")
         report = c.reports[0]
         assert report["stations"] == 2 and report["stations_missing"] == ["s02"], report
+        # the files say so too: the summary and the report beside the model
+        folder = tmp_path / "wa" / report["job_id"]
+        assert json.loads((folder / "summary.json").read_text())["stations_missing"] == ["s02"]
+        assert "never received" in (folder / "report" / "report.md").read_text()
     finally:
         c.close()
 

@@ -512,17 +512,14 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 metrics = exc
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job),
-                            self.scan_workers(job), metrics, dict(job.true_error))
+                            self.scan_workers(job), metrics, dict(job.true_error),
+                            {"stations_missing": waiting, "stations_skipped": job.skipped})
         with self._lock:
             records, clouds = dict(job.ecs), dict(job.clouds)
         comparison = ecs_comparison(records, clouds, he, self.settings.truth)
         if comparison is not None:
             body["ecs_comparison"] = comparison
         body["worker"] = self.share.worker_id
-        if waiting:
-            body["stations_missing"] = waiting
-        if job.skipped:
-            body["stations_skipped"] = job.skipped
         with self._lock:
             job.close_spool()
         self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
@@ -613,17 +610,20 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  checks: list[dict[str, Any]] | None = None,
                  scan_workers: dict[str, Any] | None = None,
                  metrics: MetricsReport | MetricsError | None = None,
-                 true_errors: dict[str, float] | None = None) -> dict[str, Any]:
+                 true_errors: dict[str, float] | None = None,
+                 not_fused: dict[str, list[str]] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
     ``metrics``: the stations' MetricsReport, compared as they came, or the MetricsError;
     None for a single station. ``true_errors``: each station's mean true error (simulation),
-    from all its points."""
+    from all its points. ``not_fused``: the job's stations left out and why
+    (``stations_missing``, ``stations_skipped``), in the report and its files alike."""
     t0 = time.perf_counter()
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
                             "points_merged": fused.merged_count, "points": fused.size,
                             "hand_eye_job": hand_eye.get("job_id"),
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
+    body.update({k: v for k, v in (not_fused or {}).items() if v})
     if scan_workers is not None:
         body["scan_workers"] = scan_workers
     if isinstance(metrics, MetricsError):
@@ -686,6 +686,18 @@ def station_true_error(truth: Any, points: np.ndarray, samples: int = 100_000) -
     return float(np.abs(truth(points[::k])).mean())
 
 
+def not_fused_text(body: dict[str, Any]) -> dict[str, str]:
+    """The report's sections on the job's stations that are not in the model, by why."""
+    out = {}
+    if body.get("stations_missing"):
+        out["stations measured but never received (fused without them)"] = (
+            ", ".join(body["stations_missing"]) + ": the recording has what the recorder got "
+            "(scancell reprocess)")
+    if body.get("stations_skipped"):
+        out["stations the job skipped"] = ", ".join(body["stations_skipped"])
+    return out
+
+
 def failed_workers_text(body: dict[str, Any]) -> str | None:
     """The report's lines on scan workers that failed mid-station, or None if none did."""
     sw = body.get("scan_workers") or {}
@@ -725,7 +737,8 @@ def write_outputs(folder: Path, fused: FusedCloud, metrics: Any, truth: TrueErro
                                            f"scancell fusion report: {body['job_id']}",
                                            extra={"true_error_mm": body.get("true_error_mm"),
                                                   "scan workers that failed":
-                                                      failed_workers_text(body)},
+                                                      failed_workers_text(body),
+                                                  **not_fused_text(body)},
                                            error_budget=body.get("error_budget"),
                                            truth=truth,
                                            scanner_checks=body.get("scanner_checks")))
