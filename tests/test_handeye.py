@@ -147,7 +147,7 @@ def test_voted_centres_find_a_cluster_whole_where_a_cell_boundary_cuts_it():
     corner = np.array([2.4, -4.8, 400.8])  # a corner of the unshifted grid (cube 2.4 mm)
     ball = corner + rng.normal(0.0, 0.15, (20_000, 3))
     stray = np.array([30.0, 5.0, 390.0]) + rng.normal(0.0, 0.15, (3_000, 3))
-    background = rng.uniform(-50.0, 50.0, (50_000, 3)) + [0.0, 0.0, 400.0]
+    background = rng.uniform(-50.0, 50.0, (50_000, 3)) + np.array([0.0, 0.0, 400.0])
     centres = voted_centres(np.vstack([background, stray, ball]), reach)
     assert len(centres) == 20
     assert np.linalg.norm(centres[0] - corner) < 0.01  # the whole cluster's mean

@@ -9,9 +9,9 @@ A station whose tracker points or scan fail (a passer-by in the beam, a scan tha
 decode) is skipped and named in the result's ``stations_skipped``; the job goes on, the tracker
 found again at the next station. More than ``max_skipped_stations`` skipped, a failed robot
 move, a failure between stations (nests, tracker moves, scanner checks) or a recorder that
-cannot write (``recorder/*/event`` error) fails the job with the station and the step named; an abort stops the robot and the axis at once. Either way, the
-stations already measured stay on the bus (and in the recording) and are listed in the final
-event.
+cannot write (``recorder/*/event`` error) fails the job with the station and the step named;
+an abort stops the robot and the axis at once. Either way, the stations already measured stay
+on the bus (and in the recording) and are listed in the final event.
 """
 
 from __future__ import annotations
