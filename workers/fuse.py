@@ -480,11 +480,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         with self._lock:
             stations = list(job.fused.values())
             he = self.hand_eye.body
+        not_fused = {k: v for k, v in (("stations_missing", waiting),
+                                       ("stations_skipped", job.skipped)) if v}
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
                     "error": "no station could be fused" + ("" if he else ": no hand-eye"),
-                    **({"stations_missing": waiting} if waiting else {}),
-                    **({"stations_skipped": job.skipped} if job.skipped else {})}
+                    **not_fused}
             self.bus.publish_json(self.bus.keys.fusion_report, body, "scancell.FusionReport")
             return body
         t0 = time.monotonic()
@@ -512,8 +513,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 metrics = exc
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job),
-                            self.scan_workers(job), metrics, dict(job.true_error),
-                            {"stations_missing": waiting, "stations_skipped": job.skipped})
+                            self.scan_workers(job), metrics, dict(job.true_error), not_fused)
         with self._lock:
             records, clouds = dict(job.ecs), dict(job.clouds)
         comparison = ecs_comparison(records, clouds, he, self.settings.truth)
@@ -623,7 +623,7 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                             "points_merged": fused.merged_count, "points": fused.size,
                             "hand_eye_job": hand_eye.get("job_id"),
                             "hand_eye_rms_mm": hand_eye.get("rms_mm")}
-    body.update({k: v for k, v in (not_fused or {}).items() if v})
+    body.update(not_fused or {})
     if scan_workers is not None:
         body["scan_workers"] = scan_workers
     if isinstance(metrics, MetricsError):

@@ -11,7 +11,6 @@ import threading
 from typing import Any
 
 from scancell.bus.protocol import BusLike
-from scancell.daemon.jobs.runner import StepFailed
 
 
 class RecorderWatch:
@@ -19,7 +18,7 @@ class RecorderWatch:
 
     def __init__(self, bus: BusLike) -> None:
         self.bus = bus
-        self.errors: list[dict[str, Any]] = []
+        self._new: list[dict[str, Any]] = []
         self._lock = threading.Lock()
         self._sub: Any = None
 
@@ -39,21 +38,12 @@ class RecorderWatch:
             return
         if isinstance(e, dict) and e.get("event") == "error":
             with self._lock:
-                self.errors.append({"recorder": str(e.get("recorder")),
-                                    "message": str(e.get("message", "")),
-                                    "file": e.get("file"), "stamp_ns": e.get("stamp_ns")})
+                self._new.append({"recorder": str(e.get("recorder")),
+                                  "message": str(e.get("message", "")),
+                                  "file": e.get("file"), "stamp_ns": e.get("stamp_ns")})
 
-    def new_errors(self, seen: int) -> list[dict[str, Any]]:
-        """The errors after the first ``seen``."""
+    def take_new(self) -> list[dict[str, Any]]:
+        """The errors that came since the last call."""
         with self._lock:
-            return self.errors[seen:]
-
-    def stop_if_failed(self, before: str) -> None:
-        """StepFailed (step ``recording``) naming the recorder and its error, if one failed."""
-        with self._lock:
-            first = self.errors[0] if self.errors else None
-        if first is not None:
-            raise StepFailed(before, "recording",
-                             f"recorder {first['recorder']!r} cannot write ({first['message']}); "
-                             f"stopped rather than measure what is not archived "
-                             f"(stop_on_recorder_error)")
+            new, self._new = self._new, []
+        return new

@@ -479,13 +479,17 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     def recorder_check(recording: RecorderWatch, before: str | None) -> None:
         """Name each new recorder error in an event and the result; stop ``before`` a
         station if so asked (at the job's end, None, everything is measured already)."""
-        new = recording.new_errors(len(recorder_errors))
+        new = recording.take_new()
         for e in new:
             recorder_errors.append(e)
             ctx.event("running", "recording", f"recorder {e['recorder']!r} cannot write: "
                                               f"{e['message']}", recorder=e["recorder"])
         if new and stop_on_recorder_error and before is not None:
-            recording.stop_if_failed(before)
+            first = recorder_errors[0]
+            raise StepFailed(before, "recording",
+                             f"recorder {first['recorder']!r} cannot write ({first['message']}); "
+                             f"stopped rather than measure what is not archived "
+                             f"(stop_on_recorder_error)")
 
     async with contextlib.AsyncExitStack() as stack:
         recording = stack.enter_context(RecorderWatch(ctx.bus))
