@@ -205,6 +205,8 @@ class OpcUaGateway:
                 ("LastJobId", "", ua.VariantType.String),
                 ("OverlapMeanMm", float("nan"), ua.VariantType.Double),
                 ("Stations", 0, ua.VariantType.UInt32),
+                ("StationsSkipped", [], ua.VariantType.String),
+                ("StationsMissing", [], ua.VariantType.String),
                 ("InspectionPass", False, ua.VariantType.Boolean),
                 ("InspectionDeviationMeanMm", float("nan"), ua.VariantType.Double),
                 ("InspectionOutShare", float("nan"), ua.VariantType.Double),
@@ -279,6 +281,10 @@ class OpcUaGateway:
                 elif kind == "fusion" and "error" not in body:
                     await self._set("Results.LastJobId", body.get("job_id", ""), S)
                     await self._set("Results.Stations", int(body.get("stations") or 0), U)
+                    for name, key in (("StationsSkipped", "stations_skipped"),
+                                      ("StationsMissing", "stations_missing")):
+                        await self._set(f"Results.{name}", [str(st) for st in body.get(key) or []],
+                                        S)
                     mean = (body.get("translation_mm") or {}).get("mean")
                     await self._set("Results.OverlapMeanMm",
                                     float("nan") if mean is None else float(mean), D)

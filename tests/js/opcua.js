@@ -6,6 +6,8 @@
 //   node opcua.js refused ENDPOINT CELL USER PASSWORD PLAN
 //     call StartJob(PLAN) and StartJob() without its argument; report the status codes and
 //     LastError.
+//   node opcua.js results ENDPOINT CELL USER PASSWORD
+//     read every variable of Results.
 //
 // Prints one JSON object on stdout.
 "use strict";
@@ -44,6 +46,20 @@ async function main() {
       .value.value;
     const call = (args) => session.call({ objectId: cellId, methodId: startId,
                                           inputArguments: args });
+    if (mode === "results") {
+      const names = ["LastJobId", "Stations", "OverlapMeanMm", "StationsSkipped",
+                     "StationsMissing", "LastResultPass"];
+      const found = await session.translateBrowsePath(names.map((n) =>
+        require("node-opcua-client").makeBrowsePath(
+          "RootFolder", `/Objects/2:Machines/2:${cell}/2:Results/2:${n}`)));
+      for (let i = 0; i < names.length; i += 1) {
+        const v = (await session.read({ nodeId: found[i].targets[0].targetId,
+                                        attributeId: AttributeIds.Value })).value;
+        out[names[i]] = Array.isArray(v.value) || ArrayBuffer.isView(v.value)
+          ? Array.from(v.value) : v.value;
+      }
+      return out;
+    }
     if (mode === "refused") {
       const r1 = await call([{ dataType: DataType.String, value: plan }]);
       out.start = r1.statusCode.name;
