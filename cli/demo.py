@@ -150,7 +150,7 @@ def print_progress(e: dict[str, Any], prefix: str = "   ") -> None:
     if e["state"] == "running" and e["step"] in ("move", "ball", "station_done", "ecs", "sphere",
                                                  "ballbar", "plane", "nests", "scanner_check",
                                                  "weather", "tracker_move",
-                                                 "station_skipped", "recording"):
+                                                 "station_skipped", "recording", "fusion"):
         where = f"[{e['index'] + 1}/{e['total']}] " if e.get("total") else ""
         eta = f"  (about {e['eta_s']:.0f} s left)" if e.get("eta_s") else ""
         print(f"{prefix}{where}{e['message']}{eta}", flush=True)

@@ -281,10 +281,10 @@ class OpcUaGateway:
                 elif kind == "fusion" and "error" not in body:
                     await self._set("Results.LastJobId", body.get("job_id", ""), S)
                     await self._set("Results.Stations", int(body.get("stations") or 0), U)
-                    for name, key in (("StationsSkipped", "stations_skipped"),
-                                      ("StationsMissing", "stations_missing")):
-                        await self._set(f"Results.{name}", [str(st) for st in body.get(key) or []],
-                                        S)
+                    missing = [*body.get("stations_missing", []), *body.get("stations_failed", [])]
+                    await self._set("Results.StationsMissing", sorted(map(str, missing)), S)
+                    await self._set("Results.StationsSkipped",
+                                    [str(st) for st in body.get("stations_skipped", [])], S)
                     mean = (body.get("translation_mm") or {}).get("mean")
                     await self._set("Results.OverlapMeanMm",
                                     float("nan") if mean is None else float(mean), D)

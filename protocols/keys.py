@@ -103,6 +103,11 @@ class CellKeys:
         return f"{self.prefix}/fusion/report"
 
     @property
+    def fusion_event(self) -> str:
+        """A fuse worker's errors while a job is fused (``scancell.FusionEvent``)."""
+        return f"{self.prefix}/fusion/event"
+
+    @property
     def acceptance_sample(self) -> str:
         """One scan of an acceptance job with its artefact's placement (``scancell.AcceptanceSample``)."""
         return f"{self.prefix}/acceptance/sample"
@@ -223,6 +228,9 @@ KEY_CATALOGUE: tuple[KeyDoc, ...] = (
     KeyDoc("fusion/report", "sample", "scancell.FusionReport", "fuse worker",
            "a job's fusion report: overlap errors, uncertainty, true error in simulation",
            "fusion"),
+    KeyDoc("fusion/event", "sample", "scancell.FusionEvent", "fuse worker",
+           "a station's cloud the fuse worker cannot keep or fuse (a full spool disk): the "
+           "job stops before its next station", "fusion"),
     KeyDoc("tf/<frame>", "sample", "foxglove.FrameTransform", "fuse worker",
            "the frame tree `world <- ecs_<station> <- mcs_<station>`; the inspect worker adds `part`",
            "fusion"),

@@ -318,10 +318,12 @@ def test_a_station_the_tracker_cannot_see_is_skipped_and_the_job_goes_on(sim, cl
 
 
 @pytest.mark.e2e
-def test_a_recorder_that_cannot_write_stops_the_job_before_its_next_station(sim, client):
+def test_a_recorder_or_fuse_worker_that_cannot_write_stops_the_job_before_its_next_station(
+        sim, client):
     """A recorder's write error (its ``error`` event, as on a full disk) during s01 stops the
     job before s02, naming the recorder, s01 kept; with stop_on_recorder_error false the job
-    goes on and lists the error."""
+    goes on and lists the error. The fuse worker's error on the job's clouds (``fusion/event``)
+    stops it the same way; one on another job's does not."""
     world = sim
     events = Events(client.bus)
     with world.lock:
@@ -355,6 +357,20 @@ def test_a_recorder_that_cannot_write_stops_the_job_before_its_next_station(sim,
     assert [e["recorder"] for e in final["result"]["recorder_errors"]] == ["archive"]
     assert any(e["step"] == "recording" and "No space left" in e["message"]
                for e in events.of(job))
+    # the fuse worker's spool refuses s01 of this job (another job's trouble is not this one's)
+    job = client.call("job/scan_part", {"plan": plan})["job_id"]
+    wait_until(lambda: any(e["step"] == "scan" and e.get("station") == "s01"
+                           for e in events.of(job)), 60, period_s=0.05, what="s01 scanning")
+    for job_id in ("scan_part-other", job):
+        client.bus.publish_json(client.bus.keys.fusion_event, {
+            "event": "error", "worker": "fa", "job_id": job_id, "station": "s01",
+            "message": "station s01: its cloud cannot be kept (No space left on device: /spool)",
+            "folder": "/spool", "stamp_ns": messages.now_ns()}, "scancell.FusionEvent")
+    final = wait_until(lambda: events.final(job), 120, what="the job's end")
+    assert final["state"] == "failed" and final["failed_step"] == "fusion", final
+    assert final["station"] == "before s02" and "stop_on_fusion_error" in final["error"], final
+    assert "fuse worker 'fa'" in final["error"] and "No space left" in final["error"]
+    assert [e["station"] for e in final["result"]["fusion_errors"]] == ["s01"]
 
 
 @pytest.mark.e2e

@@ -17,6 +17,7 @@ from scancell.model.patterns import FringeSequence
 from scancell.protocols import foxglove_schemas as fg
 from scancell.protocols import messages
 from scancell.protocols.encoding import Attachment
+from scancell.workers.fuse import not_fused_text
 from scancell.workers.scan import ScanWorker
 from scancell.workers.work_share import WorkShare, owner_of
 
@@ -422,5 +423,55 @@ def test_a_disk_that_fills_still_reports_the_figures_and_the_worker_goes_on(
         publish_job(c.sessions["obs"], owned["wb"])
         wait_until(lambda: len(c.reports) == 2, 60, period_s=0.2, what="the next job's report")
         assert Path(c.reports[1]["files"]["ply"]).is_file()
+    finally:
+        c.close()
+
+
+@pytest.mark.process
+def test_a_spool_that_fills_mid_job_is_published_for_the_job_and_names_the_stations(
+        cell, endpoint, tmp_path, monkeypatch):
+    """The owner's spool refuses s02's cloud (ENOSPC) and then s03's voxel sums: each is named
+    once on fusion/event, by the owner only (the job stops on it, test_scan_part), with the
+    folder; the report fuses s01 and names s02 and s03 as failed, without waiting for them."""
+    import errno
+
+    from scancell.analysis.station_store import StationStore
+    from scancell.analysis.voxel_tiles import VoxelTiles
+
+    c = FuseCluster(cell, endpoint, tmp_path)
+    events: list[dict] = []
+    obs = c.sessions["obs"]
+    obs.subscribe(obs.keys.fusion_event, lambda s: events.append(s.decode()))
+    owner = c.workers["wa"]
+    put, add = StationStore.put, VoxelTiles.add
+
+    def put_refusing_s02(store, name, *args, **kwargs):
+        if name == "s02" and str(owner.spool_root) in str(store.folder):
+            raise OSError(errno.ENOSPC, "No space left on device", str(store.folder))
+        return put(store, name, *args, **kwargs)
+
+    def add_refusing_after_the_first(tiles, *args, **kwargs):
+        if any(tiles.folder.iterdir()):
+            raise OSError(errno.ENOSPC, "No space left on device", str(tiles.folder))
+        return add(tiles, *args, **kwargs)
+
+    try:
+        job = jobs_owned()["wa"]
+        monkeypatch.setattr(StationStore, "put", put_refusing_s02)
+        monkeypatch.setattr(VoxelTiles, "add", add_refusing_after_the_first)
+        publish_job(obs, job)
+        wait_until(lambda: c.reports, 60, period_s=0.2, what="the report")
+        r = c.reports[0]
+        assert [(e["job_id"], e["worker"], e["station"]) for e in events] == [
+            (job, "wa", "s02"), (job, "wa", "s03")], events
+        assert "No space left on device" in events[0]["message"], events[0]
+        assert events[0]["folder"] == str(owner.spool_root)
+        assert "cannot be kept" in events[0]["message"] and "cannot be fused" in events[1]["message"]
+        assert r["stations"] == 1 and "stations_missing" not in r, json.dumps(r)[:1500]
+        assert r["stations_failed"] == ["s02", "s03"], json.dumps(r)[:1500]
+        summary = json.loads((Path(r["files"]["ply"]).parent / "summary.json").read_text())
+        assert summary["stations_failed"] == ["s02", "s03"]
+        [(title, text)] = not_fused_text(summary).items()
+        assert "not kept or fused" in title and text.startswith("s02, s03: the recording has")
     finally:
         c.close()

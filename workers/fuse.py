@@ -99,6 +99,8 @@ class JobStations:
     announced: set[str] = field(default_factory=set)
     #: The stations the job skipped (``stations_skipped`` of its final event): never fused.
     skipped: list[str] = field(default_factory=list)
+    #: station -> why this worker could not keep or fuse its cloud (a full spool disk)
+    failed: dict[str, str] = field(default_factory=dict)
     #: The plan's nominal CAD, when it names one (for the inspect worker).
     nominal: str | None = None
     #: station -> its Monte Carlo uncertainty over every modelled source
@@ -273,18 +275,26 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                             job_id, station, scan_id, meta.get("worker"))
                 return
             job.scan_ids[station] = scan_id
-            job.open_spool(self.spool_root)
-            try:  # the whole cloud waits on disk: a job's clouds do not fit in memory
-                job.mcs.put(station, pts, None, unc)
-            except (OSError, ValueError) as exc:
-                log.error("job %s station %s: its cloud cannot be kept (%s); not fused",
-                          job_id, station, getattr(exc, "strerror", None) or exc)
-                return
-            job.clouds[station] = even_sample(pts)
-            job.counts[station] = len(pts)
-            if unc is not None:
-                job.uncertainty[station] = even_sample(unc)
+            trouble = self._keep(job, station, pts, unc)
+        if trouble is not None:
+            self._storage_error(job_id, station, "its cloud cannot be kept", trouble)
+            return
         self.submit(("station", f"{job_id}\0{station}"))
+
+    def _keep(self, job: JobStations, station: str, pts: np.ndarray,
+              unc: np.ndarray | None) -> Exception | None:
+        """Keep a station's whole cloud on disk (a job's clouds do not fit in memory) and its
+        sample in memory; the error if the disk refuses it (called under the lock)."""
+        try:
+            job.open_spool(self.spool_root)
+            job.mcs.put(station, pts, None, unc)
+        except (OSError, ValueError) as exc:
+            return exc
+        job.clouds[station] = even_sample(pts)
+        job.counts[station] = len(pts)
+        if unc is not None:
+            job.uncertainty[station] = even_sample(unc)
+        return None
 
     def _on_scan_result(self, sample: Any) -> None:
         try:
@@ -329,6 +339,25 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 if job is not None:
                     job.close_spool()
 
+    def _storage_error(self, job_id: str, station: str, what: str, exc: Exception) -> None:
+        """A station this worker cannot keep or fuse (a full or lost spool disk): logged, and
+        for its own job published on ``fusion/event`` so that the job stops before measuring
+        more that would not be fused either (the recording keeps the station)."""
+        where = getattr(exc, "filename", None) or self.spool_root
+        why = getattr(exc, "strerror", None) or str(exc)
+        message = (f"station {station} of {job_id}: {what} ({why}: {where}); not fused, the "
+                   f"recording keeps it")
+        log.error("%s", message)
+        with self._lock:
+            job = self._job(job_id)
+            named = station in job.failed
+            job.failed[station] = message
+        if self.share.mine(job_id) and not named:
+            self.bus.publish_json(self.bus.keys.fusion_event, {
+                "event": "error", "worker": self.share.worker_id, "job_id": job_id,
+                "station": station, "message": message, "folder": str(self.spool_root),
+                "stamp_ns": messages.now_ns()}, "scancell.FusionEvent")
+
     def _take_over(self, worker: str) -> None:
         for job_id in self.share.take_over(worker):
             self.submit(("end", job_id))
@@ -342,11 +371,19 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 self.share.hold(job_id)
             return
         if kind == "station":
-            self.add_station(*arg.split("\0"))
+            self.fuse_station(job_id, arg.split("\0")[1])
         elif kind == "check":
             self.evaluate_check(*arg.split("\0"))
         else:
             self.finish(arg)
+
+    def fuse_station(self, job_id: str, station: str) -> Station | None:
+        """:meth:`add_station`, a spool that refuses it named (:meth:`_storage_error`)."""
+        try:
+            return self.add_station(job_id, station)
+        except OSError as exc:
+            self._storage_error(job_id, station, "it cannot be fused", exc)
+            return None
 
     def add_station(self, job_id: str, station: str) -> Station | None:
         """Fuse one station once its cloud, its ECS and a hand-eye calibration are all in: its
@@ -387,6 +424,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
             job.fused[station] = st
+            job.failed.pop(station, None)
             job.display[station] = thinned
             n_stations = len(job.fused)
             shown = np.concatenate(list(job.display.values()))
@@ -466,8 +504,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             with self._lock:
                 job = self._job(job_id)
                 expected = set(job.ecs) | job.announced
-                waiting = sorted((expected - set(job.clouds)) | (job.announced - set(job.ecs))
-                                 | (job.announced_checks - set(job.check_clouds)))
+                waiting = sorted(((expected - set(job.clouds)) | (job.announced - set(job.ecs))
+                                  | (job.announced_checks - set(job.check_clouds)))
+                                 - set(job.failed))
             if not waiting or time.monotonic() >= deadline:
                 break
             time.sleep(0.2)
@@ -476,11 +515,13 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                         "%g s: fused without them (the recording has what the recorder got: "
                         "scancell reprocess)", job_id, waiting, self.settings.cloud_wait_s)
         for station in sorted(job.ecs):
-            self.add_station(job_id, station)
+            self.fuse_station(job_id, station)
         with self._lock:
             stations = list(job.fused.values())
             he = self.hand_eye.body
+            failed = sorted(job.failed)
         not_fused = {k: v for k, v in (("stations_missing", waiting),
+                                       ("stations_failed", failed),
                                        ("stations_skipped", job.skipped)) if v}
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
@@ -617,7 +658,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     ``metrics``: the stations' MetricsReport, compared as they came, or the MetricsError;
     None for a single station. ``true_errors``: each station's mean true error (simulation),
     from all its points. ``not_fused``: the job's stations left out and why
-    (``stations_missing``, ``stations_skipped``), in the report and its files alike."""
+    (``stations_missing``, ``stations_failed``, ``stations_skipped``), in the report and its
+    files alike."""
     t0 = time.perf_counter()
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
                             "points_merged": fused.merged_count, "points": fused.size,
@@ -693,6 +735,9 @@ def not_fused_text(body: dict[str, Any]) -> dict[str, str]:
         out["stations measured but never received (fused without them)"] = (
             ", ".join(body["stations_missing"]) + ": the recording has what the recorder got "
             "(scancell reprocess)")
+    if body.get("stations_failed"):
+        out["stations received but not kept or fused (fusion/event: a full spool disk)"] = (
+            ", ".join(body["stations_failed"]) + ": the recording has them (scancell reprocess)")
     if body.get("stations_skipped"):
         out["stations the job skipped"] = ", ".join(body["stations_skipped"])
     return out

@@ -8,8 +8,9 @@ three tracker points and their J6 angles), from which the fuse worker builds ``T
 A station whose tracker points or scan fail (a passer-by in the beam, a scan that does not
 decode) is skipped and named in the result's ``stations_skipped``; the job goes on, the tracker
 found again at the next station. More than ``max_skipped_stations`` skipped, a failed robot
-move, a failure between stations (nests, tracker moves, scanner checks) or a recorder that
-cannot write (``recorder/*/event`` error) fails the job with the station and the step named;
+move, a failure between stations (nests, tracker moves, scanner checks), a recorder that
+cannot write (``recorder/*/event`` error) or a fuse worker that cannot keep the job's clouds
+(``fusion/event`` error) fails the job with the station and the step named;
 an abort stops the robot and the axis at once. Either way, the stations already measured stay
 on the bus (and in the recording) and are listed in the final event.
 """
@@ -30,11 +31,11 @@ from scancell.daemon.jobs.devices import measuring_devices, serving_device, stop
 from scancell.daemon.jobs.ecs_measure import EcsPoint, measure_ecs, settled_point
 from scancell.daemon.jobs.metrology import MetrologySettings, apply_weather
 from scancell.daemon.jobs.nests import DriftControl
-from scancell.daemon.jobs.recorder_watch import RecorderWatch
 from scancell.daemon.jobs.runner import JobContext, StepFailed
 from scancell.daemon.jobs.scan import ScannerSetup, scan
 from scancell.daemon.jobs.scanner_check import due, scanner_check
 from scancell.daemon.jobs.station import Station
+from scancell.daemon.jobs.storage_watch import StorageWatch
 from scancell.daemon.jobs.tracker_move import OperatorTrackerMover, TrackerMoves
 from scancell.daemon.supervision.supervisor import DeviceSupervisor, hold_for_job
 from scancell.devices.base import Axis, Robot, Tracker
@@ -390,10 +391,12 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     compare = req.get("compare_ecs", False)
     if not isinstance(compare, bool):
         raise CommandError("invalid", f"compare_ecs must be true or false, got {compare!r}")
-    stop_on_recorder_error = req.get("stop_on_recorder_error", True)
-    if not isinstance(stop_on_recorder_error, bool):
-        raise CommandError("invalid", f"stop_on_recorder_error must be true or false, got "
-                                      f"{stop_on_recorder_error!r}")
+    stop_on = {source: req.get(f"stop_on_{source}_error", True)
+               for source in ("recorder", "fusion")}
+    for source, value in stop_on.items():
+        if not isinstance(value, bool):
+            raise CommandError("invalid", f"stop_on_{source}_error must be true or false, "
+                                          f"got {value!r}")
     devs = measuring_devices(supervisors, req, VERB)
     robot_s, tracker_s, proj_s, cam_s = devs.robot, devs.tracker, devs.projector, devs.cameras
     needs_axis = any(s.axis_mm is not None for s in plan.stations)
@@ -406,9 +409,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
     max_skipped = max_skipped_of(req, n)
     done: list[dict[str, Any]] = []
     skipped: list[dict[str, Any]] = []
-    recorder_errors: list[dict[str, Any]] = []
+    storage_errors: dict[str, list[dict[str, Any]]] = {"recorder": [], "fusion": []}
     ctx.kept.update(plan=plan.name, stations_done=done, stations_total=n,
-                    stations_skipped=skipped, recorder_errors=recorder_errors)
+                    stations_skipped=skipped, recorder_errors=storage_errors["recorder"],
+                    fusion_errors=storage_errors["fusion"])
     t_start = time.monotonic()
 
     metrology = metrology or MetrologySettings()
@@ -476,23 +480,35 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         except CommandError as exc:
             raise StepFailed(label, "scanner_check", exc.message) from exc
 
-    def recorder_check(recording: RecorderWatch, before: str | None) -> None:
-        """Name each new recorder error in an event and the result; stop ``before`` a
-        station if so asked (at the job's end, None, everything is measured already)."""
-        new = recording.take_new()
-        for e in new:
-            recorder_errors.append(e)
-            ctx.event("running", "recording", f"recorder {e['recorder']!r} cannot write: "
-                                              f"{e['message']}", recorder=e["recorder"])
-        if new and stop_on_recorder_error and before is not None:
-            first = recorder_errors[0]
-            raise StepFailed(before, "recording",
-                             f"recorder {first['recorder']!r} cannot write ({first['message']}); "
-                             f"stopped rather than measure what is not archived "
-                             f"(stop_on_recorder_error)")
+    def storage_check(storage: StorageWatch, before: str | None) -> None:
+        """Name each new recorder or fuse-worker error in an event and the result; stop
+        ``before`` a station if so asked (at the job's end, None, everything is measured)."""
+        sources = set()
+        for e in storage.take_new():
+            source = e.pop("source")
+            sources.add(source)
+            storage_errors[source].append(e)
+            if source == "recorder":
+                ctx.event("running", "recording", f"recorder {e['recorder']!r} cannot write: "
+                                                  f"{e['message']}", recorder=e["recorder"])
+            else:
+                ctx.event("running", "fusion", f"fuse worker {e['worker']!r}: {e['message']}",
+                          worker=e["worker"])
+        for source in sorted(sources):
+            if before is None or not stop_on[source]:
+                continue
+            first = storage_errors[source][0]
+            if source == "recorder":
+                raise StepFailed(before, "recording",
+                                 f"recorder {first['recorder']!r} cannot write "
+                                 f"({first['message']}); stopped rather than measure what is "
+                                 f"not archived (stop_on_recorder_error)")
+            raise StepFailed(before, "fusion",
+                             f"fuse worker {first['worker']!r}: {first['message']}; stopped "
+                             f"rather than measure what is not fused (stop_on_fusion_error)")
 
     async with contextlib.AsyncExitStack() as stack:
-        recording = stack.enter_context(RecorderWatch(ctx.bus))
+        storage = stack.enter_context(StorageWatch(ctx.bus, ctx.job_id))
         await hold_for_job(stack, ctx.job_id, [*devs.all, *([axis_s] if axis_s else [])])
         try:
             try:
@@ -512,7 +528,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           compare)
             beam_lost = False
             for i, st in enumerate(plan.stations):
-                recorder_check(recording, f"before {st.name}")
+                storage_check(storage, f"before {st.name}")
                 if st.tracker != moves.station:
                     await move_tracker(st.tracker, st.name)
                     scanner_at = None
@@ -549,9 +565,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             await stop_motion([robot, axis])
             raise
     result["seconds"] = round(time.monotonic() - t_start, 1)
-    recorder_check(recording, None)
-    if recorder_errors:
-        result["recorder_errors"] = recorder_errors
+    storage_check(storage, None)
+    for source, errors in storage_errors.items():
+        if errors:
+            result[f"{source}_errors"] = errors
     if drift.enabled:
         result["drift_checks"] = drift.checks
     if moves.moves:
