@@ -294,7 +294,8 @@ def test_one_fuse_worker_per_job_and_a_gone_ones_job_taken_over(cell, endpoint, 
 
 
 @pytest.mark.process
-def test_a_station_whose_cloud_never_came_is_named_in_the_report(cell, endpoint, tmp_path):
+def test_a_station_whose_cloud_never_came_is_named_in_the_report(cell, endpoint, tmp_path,
+                                                                 caplog):
     """Seen live under a 2-core overload: one station's cloud reached the recorder but not the
     fuse worker, which fused the others and said nothing."""
     c = FuseCluster(cell, endpoint, tmp_path)
@@ -307,6 +308,8 @@ def test_a_station_whose_cloud_never_came_is_named_in_the_report(cell, endpoint,
         folder = tmp_path / "wa" / report["job_id"]
         assert json.loads((folder / "summary.json").read_text())["stations_missing"] == ["s02"]
         assert "never received" in (folder / "report" / "report.md").read_text()
+        # the log says what came of it: the pose did, the cloud alone was lost
+        assert "s02 measured, but its cloud never came (pose did)" in caplog.text
     finally:
         c.close()
 

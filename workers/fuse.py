@@ -377,6 +377,18 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         else:
             self.finish(arg)
 
+    def _what_never_came(self, job: JobStations, station: str) -> str:
+        """Which of a station's samples did not come, and which did: a cloud lost alone while
+        its scan result came is the bus's loss, not the scan worker's."""
+        with self._lock:
+            if station in job.announced_checks:
+                return "its scanner check's record or cloud never came"
+            came = [what for what, there in (
+                ("pose", station in job.ecs), ("cloud", station in job.clouds),
+                ("scan result", f"{job.job_id}-{station}" in self.decoded_by)) if there]
+        missing = "its pose" if "pose" not in came else "its cloud"
+        return f"{missing} never came ({', '.join(came) or 'nothing of it'} did)"
+
     def fuse_station(self, job_id: str, station: str) -> Station | None:
         """:meth:`add_station`, a spool that refuses it named (:meth:`_storage_error`)."""
         try:
@@ -510,10 +522,10 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             if not waiting or time.monotonic() >= deadline:
                 break
             time.sleep(0.2)
-        if waiting:
-            log.warning("job %s: stations %s measured, but their cloud or pose never came in "
-                        "%g s: fused without them (the recording has what the recorder got: "
-                        "scancell reprocess)", job_id, waiting, self.settings.cloud_wait_s)
+        for station in waiting:
+            log.warning("job %s: %s measured, but %s in %g s: fused without it (the recording "
+                        "has what the recorder got: scancell reprocess)", job_id, station,
+                        self._what_never_came(job, station), self.settings.cloud_wait_s)
         for station in sorted(job.ecs):
             self.fuse_station(job_id, station)
         with self._lock:
