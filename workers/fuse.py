@@ -378,8 +378,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self.finish(arg)
 
     def _what_never_came(self, job: JobStations, station: str) -> str:
-        """Which of a station's samples did not come, and which did: a cloud lost alone while
-        its scan result came is the bus's loss, not the scan worker's."""
+        """Which of a station's samples did not come, and which did: with its scan result in,
+        the scan worker's log says whether the scan decoded (a scan that did not decode has no
+        cloud to send; s173 and s197 of the car body: a dark right camera)."""
         with self._lock:
             if station in job.announced_checks:
                 return "its scanner check's record or cloud never came"
