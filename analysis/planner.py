@@ -327,8 +327,13 @@ class Planner:
         return None
 
     def seen(self, T_world_from_flange: np.ndarray) -> np.ndarray:
+        """Which surface samples the scanner measures at this flange pose: inside the field and
+        depth about the rig's bisector, facing the rig's midpoint within ``max_incidence_deg``,
+        and in sight of both cameras and the projector (the midpoint), past the part and the
+        cell's objects. One camera that sees none of the lit surface decodes nothing."""
         g = self.g
-        origin = T_world_from_flange[:3, :3] @ g.rig_mid_in_flange + T_world_from_flange[:3, 3]
+        centres = g.optical_centres(T_world_from_flange)  # left camera, projector, right camera
+        origin = centres[1]
         R = T_world_from_flange[:3, :3]
         rel = (self.points - origin) @ R  # flange axes: x baseline, z view
         z = rel[:, 2]
@@ -341,10 +346,32 @@ class Planner:
         ok &= np.einsum("ij,ij->i", self.normals, to_scanner) > np.cos(
             np.radians(g.max_incidence_deg))
         idx = np.flatnonzero(ok)
-        if len(idx):
-            start = self.points[idx] + 0.5 * to_scanner[idx]  # just off the surface
-            ok[idx] = self._clear(start, np.repeat(origin[None], len(idx), axis=0))
+        for centre in centres:
+            if not len(idx):
+                break
+            towards = centre - self.points[idx]
+            towards /= np.linalg.norm(towards, axis=1)[:, None]
+            start = self.points[idx] + 0.5 * towards  # just off the surface
+            idx = idx[self._clear(start, np.repeat(centre[None], len(idx), axis=0))]
+        ok[:] = False
+        ok[idx] = True
         return ok
+
+    def part_clearance(self, T_world_from_flange: np.ndarray) -> float:
+        """How near (mm) the scanner's nearest optical centre comes to the part at this flange
+        pose: the part is an obstacle too, and a view tilted near a concave edge (a wheel
+        arch, a door opening) brings one camera within reach of the sheet."""
+        centres = self.g.optical_centres(T_world_from_flange).astype(np.float32)
+        return float(self.scene.compute_distance(o3d.core.Tensor(centres)).numpy().min())
+
+    def too_near(self, T_world_from_flange: np.ndarray, j6_sign: float | None = None) -> bool:
+        """The scanner at this flange pose comes nearer a cell object, the floor or the part
+        than the cell's ``clearance_mm``; with ``j6_sign`` (``ecs = "j6"``) at either J6 turn
+        too, which swings the cameras about the flange's axis."""
+        turns = (0.0,) if j6_sign is None else (0.0, *(j6_sign * a for a in self.g.j6_angles_deg))
+        return any(self.g.clearance_problem(T) is not None
+                   or self.part_clearance(T) < self.g.clearance_mm
+                   for T in (T_world_from_flange @ T_rot_z(a) for a in turns))
 
     # ------------------------------------------------------------------ planning
     def candidates(self, overlap: float) -> tuple[list[Candidate], int]:
@@ -352,7 +379,7 @@ class Planner:
         :attr:`seen_in_beam_by` record what the views see at all and, per tracker station,
         where it would see the SMR (the unmeasured surface's reasons)."""
         g = self.g
-        self.too_near = 0  # views dropped for a cell object within the clearance
+        self.dropped_too_near = 0  # views dropped for a cell object or the part too near
         self.seen_by_view = np.zeros(len(self.points), bool)
         self.seen_in_beam_by: dict[str, np.ndarray] = {}
         step = (1.0 - overlap) * min(g.field_mm)
@@ -377,8 +404,9 @@ class Planner:
                     tried += 1
                     continue
                 tracker, T, smrs, sign = found
-                if g.clearance_problem(T) is not None:  # a bar, a nest, a fixture too near
-                    self.too_near += 1
+                # a bar, a nest, a fixture, the part itself
+                if self.too_near(T, sign if self.ecs == "j6" else None):
+                    self.dropped_too_near += 1
                     tried += 1
                     continue
                 if smrs:

@@ -440,6 +440,8 @@ def main(args: argparse.Namespace) -> int:
         if summary["stations_missing"]:
             print(f"   WARNING: the fuse worker never got stations {summary['stations_missing']}"
                   f" (fused without them; the recording has them)")
+        for station, error in summary["scan_errors"].items():
+            print(f"   WARNING: station {station}'s scan did not decode: {error}")
         summary["stations_skipped"] = (final.get("result") or {}).get("stations_skipped", [])
         for s in summary["stations_skipped"]:
             print(f"   WARNING: station {s['station']} skipped at step {s['failed_step']}: "
@@ -678,6 +680,7 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
             "uncertainty": (report.get("uncertainty") or {}).get("stations"),
             "scanner_checks": report.get("scanner_checks", []),
             "stations_missing": report.get("stations_missing", []),
+            "scan_errors": report.get("scan_errors", {}),
             "job_id": report["job_id"], "seconds": round(seconds, 1)}
 
 

@@ -281,7 +281,8 @@ class OpcUaGateway:
                 elif kind == "fusion" and "error" not in body:
                     await self._set("Results.LastJobId", body.get("job_id", ""), S)
                     await self._set("Results.Stations", int(body.get("stations") or 0), U)
-                    missing = [*body.get("stations_missing", []), *body.get("stations_failed", [])]
+                    missing = [*body.get("stations_missing", []), *body.get("stations_failed", []),
+                               *body.get("stations_not_decoded", [])]
                     await self._set("Results.StationsMissing", sorted(map(str, missing)), S)
                     await self._set("Results.StationsSkipped",
                                     [str(st) for st in body.get("stations_skipped", [])], S)

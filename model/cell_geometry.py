@@ -156,6 +156,12 @@ class CellGeometry:
         mid = np.asarray(self.rig_mid_in_flange, float)
         return np.stack([left, mid, 2 * mid - left])
 
+    def optical_centres(self, T_world_from_flange: np.ndarray) -> np.ndarray:
+        """(3, 3) :meth:`optical_centres_in_flange` with the flange at ``T_world_from_flange``
+        (world, mm)."""
+        T = np.asarray(T_world_from_flange, float)
+        return self.optical_centres_in_flange() @ T[:3, :3].T + T[:3, 3]
+
     def below_floor(self, T_world_from_flange: np.ndarray) -> bool:
         """The scanner's optical centres at this flange pose come nearer the floor than
         ``clearance_mm`` (never, when the floor is not stated)."""
@@ -166,9 +172,7 @@ class CellGeometry:
         the floor is not stated)."""
         if self.floor_z_mm is None:
             return float("inf")
-        T = np.asarray(T_world_from_flange, float)
-        return float((self.optical_centres_in_flange() @ T[2, :3] + T[2, 3]).min()
-                     - self.floor_z_mm)
+        return float(self.optical_centres(T_world_from_flange)[:, 2].min() - self.floor_z_mm)
 
     def clearance_problem(self, T_world_from_flange: np.ndarray) -> str | None:
         """Why the scanner at this flange pose is too near a cell object or the floor, or
@@ -178,8 +182,7 @@ class CellGeometry:
                     f"above the floor (clearance {self.clearance_mm:g} mm)")
         if not self.obstacles:
             return None
-        T = np.asarray(T_world_from_flange, float)
-        pts = self.optical_centres_in_flange() @ T[:3, :3].T + T[:3, 3]
+        pts = self.optical_centres(T_world_from_flange)
         worst = min((float(o.distance(pts).min()), o.name) for o in self.obstacles)
         if worst[0] >= self.clearance_mm:
             return None

@@ -62,6 +62,11 @@ UNIFORM_BASE = -3
 #: a point lit by the projector may lie this far (mm) behind its shadow map's samples: the
 #: clearance the per-pixel shadow rays left at the surface and at the projector (2 x 0.05 mm)
 SHADOW_TOLERANCE_MM = 0.1
+#: how far the scanner's housing reaches round the optical centres of its cameras and projector
+#: (mm): ``sim.parts.scanner_body`` stands 60 mm beyond the left camera, 55 mm either side of
+#: the baseline and 67 mm beyond the right camera. A move that brings an optical centre nearer
+#: the part than this drives the housing into it.
+HOUSING_REACH_MM = 60.0
 
 
 def uniform_level(k: int) -> float:
@@ -243,6 +248,10 @@ class SimCellConfig:
         from scancell.sim.layouts import cell_layout
 
         return cls(part=part, **{**cell_layout(part), **kwargs})
+
+
+class CollisionError(ValueError):
+    """A move would drive the scanner's housing into the part: the arm does not go there."""
 
 
 @dataclass
@@ -484,7 +493,8 @@ class SimCell:
     # ------------------------------------------------------------------ actuators
     def move_joints(self, q_rad: np.ndarray, duration_s: float = 0.0,
                     speed: float | None = None) -> None:
-        """Arrive at ``q_rad`` with the configured repeatability, ``duration_s`` of sim time
+        """Arrive at ``q_rad`` (CollisionError where :meth:`collision` says the housing would
+        hit the part) with the configured repeatability, ``duration_s`` of sim time
         after the move started. A joint that does not travel (less than 0.01 deg, e.g.
         commanded to its own reported position) holds where it is (``self.q``): only the joints
         that move land with fresh repeatability noise. A move that travels leaves the arm
@@ -493,6 +503,9 @@ class SimCell:
         q = np.asarray(q_rad, float).copy()
         if not self.robot.within_limits(q):
             raise ValueError(f"joints outside the limits: {np.degrees(q).round(3)} deg")
+        crash = self.collision(q)
+        if crash:
+            raise CollisionError(f"joints {np.degrees(q).round(3)} deg: {crash}")
         noise = self._rng.normal(0, np.radians(self.cfg.joint_repeatability_deg), 6)
         noise[5] += self._rng.normal(0, np.radians(self.cfg.j6_repeatability_deg))
         moved = np.abs(q - self.q) > np.radians(0.01)
@@ -502,6 +515,24 @@ class SimCell:
         if moved.any():
             self._start_ringing(1.0 if speed is None else speed / self.mech.ring_reference_speed)
         self._update_body()
+
+    def collision(self, q_rad: np.ndarray) -> str | None:
+        """What the scanner's housing would hit at joints ``q_rad`` on the rail where it is
+        (the part, within :data:`HOUSING_REACH_MM` of an optical centre), or None. As a
+        controller's collision detection stops the arm on contact, the move does not happen.
+        Only the pose a move ends at is tested, not its path."""
+        if not self.cfg.part:
+            return None
+        T = self.T_world_from_mcs(q_rad)
+        names = ("left camera", "right camera", "projector")
+        centres = [T[:3, 3], *(apply_T(T, M[:3, 3][None])[0] for M in (
+            self.rig.T_mcs_from_right, self.rig.T_mcs_from_projector))]
+        near = self.surface_distance(np.array(centres))
+        i = int(np.argmin(near))
+        if near[i] >= HOUSING_REACH_MM:
+            return None
+        return (f"the scanner's {names[i]} would be {near[i]:.0f} mm from the part, inside its "
+                f"housing's {HOUSING_REACH_MM:g} mm: a collision")
 
     def move_rail(self, position_mm: float, duration_s: float = 0.0, arrived: bool = True
                   ) -> None:

@@ -7,6 +7,8 @@ simulated robot at its real joint speeds.
   taken for execution. Requests the KAREL server does not serve (PING included) get FAILURE.
 - State port (default 11002): JOINT_POSITION (rad) and STATUS topics at ``state_hz``.
 - Faults can be injected (``set_fault``): STATUS shows in_error, motion stops, new points fail.
+  A move that would drive the scanner into the part (``SimCell.collision``) stops the arm where
+  the move began with error code 50, as a controller's collision detection would.
 """
 
 from __future__ import annotations
@@ -18,12 +20,15 @@ import time
 
 import numpy as np
 from scancell.protocols import simple_message as sm
-from scancell.sim.cell import SimCell
+from scancell.sim.cell import CollisionError, SimCell
 
 log = logging.getLogger(__name__)
 
 #: the error code the simulated controller shows when a move raised inside the simulation
 MOVE_FAILED = 9
+#: the code it shows when the move would drive the scanner into the part (a FANUC controller's
+#: collision detection raises SRVO-050, "Collision Detect alarm")
+COLLISION_DETECTED = 50
 
 
 class KarelRobotServer:
@@ -161,6 +166,9 @@ class KarelRobotServer:
                         break
                     await asyncio.sleep(dt)
                 self.cell._update_body()
+            except CollisionError as exc:  # the arm stops where the move began
+                log.error("robot simulator: collision detected, motion stopped: %s", exc)
+                self.set_fault(COLLISION_DETECTED)
             except Exception:  # as a controller would: an error the driver sees, not silence
                 log.exception("robot simulator: the move to %s failed", q_target)
                 self.set_fault(MOVE_FAILED)

@@ -122,12 +122,15 @@ def test_an_independent_client_starts_a_stored_plan_and_follows_it(make_daemon, 
         assert client.call("job/status")["last"]["job_id"] == r["job_id"]
         print(f"OPC UA job of 2 stations: {time.monotonic() - t0:.1f} s")
         # the fusion report names the stations the model lacks (no fuse worker runs here: the
-        # report a fuse worker publishes after a job that skipped s02 and lost s03 on the bus)
+        # report a fuse worker publishes after a job that skipped s02, lost s03 on the bus and
+        # could not decode s04's scan)
         assert node("results", opc, cell, "viewer", "view-pw")["StationsSkipped"] == []
         client.bus.publish_json(client.bus.keys.fusion_report, {
             "job_id": r["job_id"], "state": "done", "stations": 1,
             "translation_mm": {"mean": 0.031}, "stations_skipped": ["s02"],
-            "stations_missing": ["s03"]}, "scancell.FusionReport")
+            "stations_missing": ["s03"], "stations_not_decoded": ["s04"],
+            "scan_errors": {"s04": "right images: only 0 pixels decodable"}},
+            "scancell.FusionReport")
 
         def results_of_the_report() -> dict | None:
             res = node("results", opc, cell, "viewer", "view-pw")
@@ -135,7 +138,7 @@ def test_an_independent_client_starts_a_stored_plan_and_follows_it(make_daemon, 
 
         res = wait_until(results_of_the_report, 30, period_s=0.5, what="Results updated")
         assert res["LastJobId"] == r["job_id"] and res["OverlapMeanMm"] == pytest.approx(0.031)
-        assert res["StationsSkipped"] == ["s02"] and res["StationsMissing"] == ["s03"], res
+        assert res["StationsSkipped"] == ["s02"] and res["StationsMissing"] == ["s03", "s04"], res
     finally:
         gw.terminate()
         gw.wait(10)

@@ -273,3 +273,49 @@ def test_a_move_that_fails_inside_the_simulator_shows_as_a_controller_error():
             await server.close()
 
     run(main())
+
+
+def _into_the_part(cell: SimCell, q0: np.ndarray, standoff_mm: float) -> np.ndarray:
+    """Joints putting the rig's midpoint ``standoff_mm`` from the part, on the bisector of the
+    view at ``q0``."""
+    from scancell.sim.cell import rig_bisector
+
+    T = cell.T_world_from_mcs(q0)
+    view = T[:3, :3] @ rig_bisector(cell.rig)
+    mid = T[:3, 3] + T[:3, :3] @ (cell.rig.T_mcs_from_right[:3, 3] / 2)
+    hit = cell.scene.cast(mid, view[None].astype(np.float32)).t[0]
+    target = mid + view * float(hit)
+    return cell.ik_for_mcs(cell.mcs_pose_looking_at(target, standoff_mm, view), q0)
+
+
+@pytest.mark.process
+def test_a_move_that_drives_the_scanner_into_the_part_is_a_collision_alarm():
+    """The car body's first plan put a camera 7 mm from the body (s197): the simulated arm
+    went there and only the dark images told. A controller's collision detection stops it."""
+    from scancell.sim.cell import HOUSING_REACH_MM, CollisionError
+    from scancell.sim.robot_server import COLLISION_DETECTED
+
+    async def main():
+        cell, server, robot = await _pair()
+        try:
+            q0 = cell.start_joints()
+            await robot.move_joints(q0, speed=1.0)
+            assert cell.collision(q0) is None
+            near = _into_the_part(cell, q0, 100.0)  # clear of the housing: the arm goes
+            assert cell.collision(near) is None
+            crash = _into_the_part(cell, q0, 40.0)
+            reason = cell.collision(crash)
+            assert reason and "from the part, inside its housing's 60 mm" in reason, reason
+            with pytest.raises(CollisionError, match="a collision"):
+                cell.move_joints(crash)
+            start = cell.q.copy()
+            with pytest.raises(DeviceFault, match=f"controller error {COLLISION_DETECTED} "):
+                await robot.move_joints(crash, speed=1.0)
+            np.testing.assert_array_equal(cell.q, start)  # stopped where the move began
+            right = cell.T_world_from_camera("right")[:3, 3]
+            assert cell.surface_distance(right[None])[0] > HOUSING_REACH_MM
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())

@@ -188,12 +188,19 @@ def test_a_gone_workers_scans_are_taken_over_once(cluster, scan_frames, dies):
 
 # ---------------------------------------------------------------- fuse workers: one per job
 
+#: the scan worker's error at the car body's s173 (session 38)
+DARK_RIGHT_CAMERA = ("right images: only 0 pixels decodable ({'low_modulation': 5013504, "
+                     "'saturated': 0, 'order_inconsistent': 0, 'outside_projector': 0}); mean "
+                     "intensity 49.7: all dark, saturated or no fringes in view")
+
+
 def publish_job(bus: Bus, job_id: str, n: int = 3, answers: bool = False,
-                lost: str | None = None) -> None:
+                lost: str | None = None, undecoded: str | None = None) -> None:
     """A synthetic scan_part job: ``n`` stations at one pose, each sampling the same gentle bowl
     afresh, their ECS and clouds, then its end. ``answers``: also each scan's result, as scan
     worker ``wx`` gives it (station s02 taken over from ``dead``), and then each cloud and result
-    again from worker ``late``. ``lost``: a station whose cloud never goes out."""
+    again from worker ``late``. ``lost``: a station whose cloud never goes out. ``undecoded``:
+    a station whose scan result says it did not decode, and no cloud."""
     pts = np.array([[2900.0, 100.0, 300.0], [2950.0, 180.0, 330.0], [2860.0, 160.0, 260.0]])
     for i in range(n):
         station = f"s{i + 1:02d}"
@@ -204,6 +211,12 @@ def publish_job(bus: Bus, job_id: str, n: int = 3, answers: bool = False,
             "job_id": job_id, "station": station, "scan_id": f"{job_id}-{station}",
             "points_mm": (pts + shift).tolist(), "j6_deg": [0.0, 120.0, -120.0],
             "stamp_ns": messages.now_ns()}, "scancell.StationEcs")
+        if station == undecoded:
+            bus.publish(bus.keys.scan_result(station), messages.encode_json({
+                "scan_id": f"{job_id}-{station}", "station": station, "ok": False,
+                "error": DARK_RIGHT_CAMERA, "worker": "wx", "taken_over_from": None},
+                "scancell.ScanResult"))
+            continue
         for worker in ("wx", "late") if answers else () if station == lost else ("wx",):
             stamp = messages.now_ns()
             meta = {"job_id": job_id, "station": station, "scan_id": f"{job_id}-{station}",
@@ -310,6 +323,33 @@ def test_a_station_whose_cloud_never_came_is_named_in_the_report(cell, endpoint,
         assert "never received" in (folder / "report" / "report.md").read_text()
         # the log says what came of it: the pose did, the cloud alone was lost
         assert "s02 measured, but its cloud never came (pose did)" in caplog.text
+    finally:
+        c.close()
+
+
+@pytest.mark.process
+def test_a_station_whose_scan_did_not_decode_is_named_with_its_reason_and_not_waited_for(
+        cell, endpoint, tmp_path, caplog):
+    """The car body's s173 and s197: the right camera saw no fringes, the scan worker said so,
+    and the fuse worker waited its cloud_wait_s for a cloud that could never come, then
+    reported the stations as never received."""
+    c = FuseCluster(cell, endpoint, tmp_path)
+    try:
+        t0 = time.monotonic()
+        publish_job(c.sessions["obs"], jobs_owned()["wa"], undecoded="s02")
+        wait_until(lambda: c.reports, 60, period_s=0.2, what="the job's report")
+        waited = time.monotonic() - t0
+        report = c.reports[0]
+        assert report["stations"] == 2 and "stations_missing" not in report, report
+        assert report["stations_not_decoded"] == ["s02"]
+        assert report["scan_errors"] == {"s02": DARK_RIGHT_CAMERA}
+        assert waited < c.workers["wa"].settings.cloud_wait_s, waited
+        folder = tmp_path / "wa" / report["job_id"]
+        assert json.loads((folder / "summary.json").read_text())["scan_errors"] == {
+            "s02": DARK_RIGHT_CAMERA}
+        text = (folder / "report" / "report.md").read_text()
+        assert "did not decode" in text and "s02: right images: only 0 pixels" in text
+        assert "s02 measured, but its scan did not decode (right images" in caplog.text
     finally:
         c.close()
 

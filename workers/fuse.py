@@ -305,6 +305,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         with self._lock:
             if scan_id not in self.decoded_by:  # the first answer; a second changes nothing
                 self.decoded_by[scan_id] = {"worker": r.get("worker"), "ok": r.get("ok"),
+                                            "error": r.get("error"),
                                             "taken_over_from": r.get("taken_over_from")}
                 while len(self.decoded_by) > 4096:
                     del self.decoded_by[next(iter(self.decoded_by))]
@@ -377,10 +378,17 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         else:
             self.finish(arg)
 
+    def _scan_error(self, job: JobStations, station: str) -> str | None:
+        """The scan worker's error when the first answer for this station's scan says it did
+        not decode (a camera that saw no fringes: the car body's s173 and s197), else None."""
+        answer = self.decoded_by.get(f"{job.job_id}-{station}")
+        if answer is None or answer.get("ok") is not False:
+            return None
+        return str(answer.get("error") or "no reason given")
+
     def _what_never_came(self, job: JobStations, station: str) -> str:
-        """Which of a station's samples did not come, and which did: with its scan result in,
-        the scan worker's log says whether the scan decoded (a scan that did not decode has no
-        cloud to send; s173 and s197 of the car body: a dark right camera)."""
+        """Which of a station's samples did not come, and which did (a scan result that came
+        and says the scan decoded, with no cloud after it, is the bus's loss)."""
         with self._lock:
             if station in job.announced_checks:
                 return "its scanner check's record or cloud never came"
@@ -520,9 +528,15 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 waiting = sorted(((expected - set(job.clouds)) | (job.announced - set(job.ecs))
                                   | (job.announced_checks - set(job.check_clouds)))
                                  - set(job.failed))
+                # a scan that did not decode sends no cloud: its station is not waited for
+                scan_errors = {st: e for st in waiting if (e := self._scan_error(job, st))}
+                waiting = [st for st in waiting if st not in scan_errors]
             if not waiting or time.monotonic() >= deadline:
                 break
             time.sleep(0.2)
+        for station, error in scan_errors.items():
+            log.warning("job %s: %s measured, but its scan did not decode (%s): fused without it",
+                        job_id, station, error)
         for station in waiting:
             log.warning("job %s: %s measured, but %s in %g s: fused without it (the recording "
                         "has what the recorder got: scancell reprocess)", job_id, station,
@@ -535,6 +549,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             failed = sorted(job.failed)
         not_fused = {k: v for k, v in (("stations_missing", waiting),
                                        ("stations_failed", failed),
+                                       ("stations_not_decoded", sorted(scan_errors)),
+                                       ("scan_errors", scan_errors),
                                        ("stations_skipped", job.skipped)) if v}
         if not stations or he is None:
             body = {"job_id": job_id, "state": job.ended, "stations": len(stations),
@@ -665,14 +681,14 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  scan_workers: dict[str, Any] | None = None,
                  metrics: MetricsReport | MetricsError | None = None,
                  true_errors: dict[str, float] | None = None,
-                 not_fused: dict[str, list[str]] | None = None) -> dict[str, Any]:
+                 not_fused: dict[str, Any] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
     ``metrics``: the stations' MetricsReport, compared as they came, or the MetricsError;
     None for a single station. ``true_errors``: each station's mean true error (simulation),
     from all its points. ``not_fused``: the job's stations left out and why
-    (``stations_missing``, ``stations_failed``, ``stations_skipped``), in the report and its
-    files alike."""
+    (``stations_missing``, ``stations_failed``, ``stations_not_decoded`` with their
+    ``scan_errors``, ``stations_skipped``), in the report and its files alike."""
     t0 = time.perf_counter()
     body: dict[str, Any] = {"job_id": job_id, "state": state, "stations": len(stations),
                             "points_merged": fused.merged_count, "points": fused.size,
@@ -751,6 +767,10 @@ def not_fused_text(body: dict[str, Any]) -> dict[str, str]:
     if body.get("stations_failed"):
         out["stations received but not kept or fused (fusion/event: a full spool disk)"] = (
             ", ".join(body["stations_failed"]) + ": the recording has them (scancell reprocess)")
+    if body.get("stations_not_decoded"):
+        errors = body.get("scan_errors") or {}
+        out["stations measured whose scan did not decode (no cloud)"] = "; ".join(
+            f"{st}: {errors.get(st, 'no reason given')}" for st in body["stations_not_decoded"])
     if body.get("stations_skipped"):
         out["stations the job skipped"] = ", ".join(body["stations_skipped"])
     return out
