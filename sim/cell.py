@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 import open3d as o3d
+from scancell.model.cell_geometry import DEFAULT_VIEW_TILTS_DEG
 from scancell.model.ecs import ecs_from_points
 from scancell.model.patterns import FringeSequence
 from scancell.model.rail_path import RailModule, RailPath
@@ -206,7 +207,7 @@ class SimCellConfig:
     #: where a moved tracker may stand (world, mm; the planner's ``tracker_stations_mm``)
     tracker_stations_mm: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     #: the planner's view tilts from a patch's normal (deg)
-    view_tilts_deg: tuple[float, ...] = (20.0,)
+    view_tilts_deg: tuple[float, ...] = DEFAULT_VIEW_TILTS_DEG
     #: what the scanner looks at when the cell starts (world, mm); None: the part's origin
     start_target_world: tuple[float, float, float] | None = None
     joint_repeatability_deg: float = 0.002  # 1 sigma per joint (~±0.07 mm at the flange)

@@ -58,9 +58,6 @@ CAR_BODY_CHECK_BAR = ((3200.0, -4500.0, -450.0), (0.81, 0.58, 0.0))
 #: balls (560-680 mm out) go there, clear of the body, in the tracker's sight under the
 #: scanner's housing
 CAR_BODY_START_TARGET = (2750.0, -2000.0, -200.0)
-#: the planner tilts views further than the car rear's 20 deg: the roof's and the lids' views
-#: lean 45 deg towards a tracker so that the scanner's SMR faces it
-CAR_BODY_VIEW_TILTS_DEG = (20.0, 45.0)
 
 
 def _track_positions(step_mm: float = 400.0) -> tuple[float, ...]:
@@ -81,5 +78,4 @@ def cell_layout(part: str | None) -> dict[str, Any]:
             "nests_world_mm": dict(CAR_BODY_NESTS),
             "check_bar_world": CAR_BODY_CHECK_BAR,
             "tracker_stations_mm": dict(CAR_BODY_TRACKER_STATIONS),
-            "view_tilts_deg": CAR_BODY_VIEW_TILTS_DEG,
             "start_target_world": CAR_BODY_START_TARGET}
