@@ -150,6 +150,59 @@ def test_worker_waits_for_a_sample_later_than_the_job_end_and_reports_once():
         worker.stop()
 
 
+@pytest.mark.unit
+def test_worker_waits_for_a_part3_stations_ecs_that_comes_after_its_cloud():
+    """The fresh clone's quick demo (2 cores, 3 test workers): Part 3 reported "no fused cloud"
+    for bar0b, whose cloud had come but whose ECS record had not yet."""
+    from scancell.bus.local import LocalBus
+    from scancell.protocols import foxglove_schemas as fg
+    from scancell.protocols import messages
+    from scancell.protocols.encoding import Attachment
+
+    bus = LocalBus("acc3")
+    bus.latched(bus.keys.hand_eye).publish(messages.encode_json({
+        "T_ecs_from_mcs": np.eye(4).tolist(), "j6_angles_deg": [120.0, -120.0],
+        "rms_mm": 0.0, "job_id": "he"}, "scancell.HandEye"))
+    worker = AcceptanceWorker(bus, cloud_wait_s=10.0)
+    reports: list = []
+    bus.subscribe(bus.keys.acceptance_report, lambda s: reports.append(s.decode()))
+    worker.start()
+    try:
+        job = "acceptance-3"
+        smrs = [[2900.0, 100.0, 300.0], [2950.0, 180.0, 330.0], [2860.0, 160.0, 260.0]]
+
+        def ecs(station: str) -> None:
+            bus.publish_json(bus.keys.station_ecs(station), {
+                "job_id": job, "station": station, "scan_id": f"{job}-{station}",
+                "points_mm": smrs, "j6_deg": [0.0, 120.0, -120.0],
+                "stamp_ns": messages.now_ns()}, "scancell.StationEcs")
+
+        for i, station in enumerate(("bar0a", "bar0b")):
+            stamp = messages.now_ns()
+            bus.publish(bus.keys.scan_cloud(station), fg.encode_proto(fg.point_cloud(
+                sphere_cloud(np.array([0.0, 0.0, 620.0]), 15.0), stamp, "mcs")),
+                Attachment(stamp, i, None, {"job_id": job, "job_kind": "acceptance",
+                                            "scan_id": f"{job}-{station}"}))
+        ecs("bar0a")
+        bus.publish_json(bus.keys.acceptance_sample, {
+            "job_id": job, "scan_id": f"{job}-bar0", "part": 3, "total": 1,
+            "artefact": {"length_mm": 800.0, "sphere_diameter_mm": 30.0},
+            "placement": {"index": 0, "centre_world": [3000.0, 0.0, 0.0],
+                          "direction_world": [0.0, 1.0, 0.0]}, "mpe_mm": {"SD": 0.1},
+            "stations": [{"scan_id": f"{job}-bar0a"}, {"scan_id": f"{job}-bar0b"}]},
+            "scancell.AcceptanceSample")
+        bus.publish_json(bus.keys.job_event(job), {
+            "job_id": job, "kind": "acceptance", "state": "done", "step": "end",
+            "result": {"part": 3, "positions": 1}}, "scancell.JobEvent")
+        time.sleep(0.6)
+        assert reports == []  # both clouds in, bar0b's ECS still on its way
+        ecs("bar0b")
+        wait_until(lambda: reports, 10, what="the acceptance report")
+        assert not [e for e in reports[0]["errors"] if "no fused cloud" in e], reports[0]
+    finally:
+        worker.stop()
+
+
 @pytest.mark.timeout(300)  # ~70 s alone, over 120 s beside the demo on 2 cores
 @pytest.mark.e2e
 def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon, client,

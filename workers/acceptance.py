@@ -41,6 +41,13 @@ class AcceptanceJob:
         return [st["scan_id"] for s in self.samples.values()
                 for st in s.get("stations", [{"scan_id": s["scan_id"]}])]
 
+    def waiting(self) -> list[str]:
+        """The scans whose cloud has not come yet, or (a Part 3 station) whose ECS record has
+        not: it travels on its own key, and may come after the job's end."""
+        return [sid for sid in self.scan_ids() if sid not in self.clouds] + [
+            st["scan_id"] for s in self.samples.values() for st in s.get("stations", [])
+            if st["scan_id"] not in self.ecs]
+
 
 class AcceptanceWorker(ThreadedWorker[str]):
     thread_name = "acceptance-worker"
@@ -114,7 +121,7 @@ class AcceptanceWorker(ThreadedWorker[str]):
         while time.monotonic() < deadline:  # the last clouds may still be decoding
             with self._lock:
                 job = self.jobs.setdefault(job_id, AcceptanceJob())
-                waiting = [s for s in job.scan_ids() if s not in job.clouds]
+                waiting = job.waiting()
             if not waiting and len(job.samples) >= job.expected:
                 break
             time.sleep(0.2)
