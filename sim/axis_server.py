@@ -90,7 +90,7 @@ class SimulatedDrive:
             self._update()
             self._error = code
             self._state = "FAULT"
-            self._target = None
+            self._stop_target()
             self._homing = False
 
     # ---------------------------------------------------------------- kinematics
@@ -111,14 +111,17 @@ class SimulatedDrive:
         # the simulated clock advances by the distance travelled at the speed, not the ticks
         if abs(delta) <= step:
             self.cell.move_rail(self._target, abs(delta) / speed)
-            self._target = None
+            self._stop_target()
             if self._homing:
                 self._finish_homing()
         else:
             self.cell.move_rail(rail + step * (1 if delta > 0 else -1), dt, arrived=False)
 
+    def _stop_target(self) -> None:
+        self._target = self.cell.rail_target_mm = None
+
     def _start_motion(self, target_rail_mm: float, velocity: float) -> None:
-        self._target = target_rail_mm
+        self._target = self.cell.rail_target_mm = target_rail_mm
         self._velocity = max(1.0, min(float(velocity), self.max_velocity))
         self._t_last = time.monotonic()
         self._halted = False
@@ -202,7 +205,7 @@ class SimulatedDrive:
         if self._state != "OPERATION ENABLED":
             return
         if cw & p.CW_HALT:
-            self._target = None
+            self._stop_target()
             self._homing = False
             self._halted = True
         rising = cw & p.CW_NEW_SET_POINT and not prev & p.CW_NEW_SET_POINT
@@ -215,7 +218,7 @@ class SimulatedDrive:
                 self._start_homing()
 
     def _disable(self) -> None:
-        self._target = None
+        self._stop_target()
         self._homing = False
 
     def _new_set_point(self, cw: int) -> None:

@@ -306,6 +306,8 @@ class SimCell:
         self.q_commanded = np.radians(np.asarray(self.cfg.home_deg, float))
         self.q = self.q_commanded.copy()
         self.rail_mm = 0.0
+        #: where the rail is moving to (mm), while it moves (set by its drive's emulator)
+        self.rail_target_mm: float | None = None
         self.rail = RailPath(tuple(map(float, self.cfg.rail_axis)), tuple(self.cfg.rail_path))
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
@@ -518,13 +520,17 @@ class SimCell:
         self._update_body()
 
     def collision(self, q_rad: np.ndarray) -> str | None:
-        """What the scanner's housing would hit at joints ``q_rad`` on the rail where it is
-        (the part, within :data:`HOUSING_REACH_MM` of an optical centre), or None. As a
-        controller's collision detection stops the arm on contact, the move does not happen.
-        Only the pose a move ends at is tested, not its path."""
+        """What the scanner's housing would hit at joints ``q_rad`` on the rail where it is, or
+        where it is going while it moves (the part, within :data:`HOUSING_REACH_MM` of an
+        optical centre), or None. As a controller's collision detection stops the arm on
+        contact, the move does not happen. Only the pose a move ends at is tested, not its
+        path."""
         if not self.cfg.part:
             return None
         T = self.T_world_from_mcs(q_rad)
+        if self.rail_target_mm is not None:  # the arm and the rail move together: where both end
+            T = (self.rail.base_at(self.cfg.T_world_from_rail0, self.rail_target_mm)
+                 @ np.linalg.inv(self.T_world_from_base) @ T)
         names = ("left camera", "right camera", "projector")
         centres = [T[:3, 3], *(apply_T(T, M[:3, 3][None])[0] for M in (
             self.rig.T_mcs_from_right, self.rig.T_mcs_from_projector))]

@@ -64,6 +64,25 @@ def test_the_cell_reaches_round_the_body_and_its_tracker_stations_see_the_nests(
     assert SimCellConfig.for_part("car_rear").rail_path == ()
 
 
+def test_an_arm_that_arrives_before_the_rail_is_judged_where_the_rail_ends():
+    """The car body's quick demo: the arm took s291's pose while the rail still ran from s215
+    round the curved track; the arm and the rail move together, and their move ends where the
+    rail stops (598 mm from the body), not where the rail was as the arm arrived."""
+    cell = sim_cell({"part": "car_body", "camera_scale": 16})
+    q = np.radians([36.876801, 51.859693, 24.125232, -73.598209, 94.031655, 256.566195])  # s291
+    start, end = 14846.1, 16852.4  # s215's rail position, s291's
+    cell.rail_mm = end
+    assert cell.collision(q) is None
+    through = []
+    for rail in np.linspace(start, end, 21):
+        cell.rail_mm = float(rail)
+        cell.rail_target_mm = None
+        through.append(cell.collision(q))
+        cell.rail_target_mm = end
+        assert cell.collision(q) is None, rail
+    assert any(through)  # that pose swept along the track would go through the body
+
+
 def test_the_car_body_cell_config_states_the_simulated_layout():
     from scancell.config import load_cell_config
     from scancell.deploy import cell_config_path
