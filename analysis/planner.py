@@ -14,6 +14,9 @@ three J6 positions.
 5. Stations are chosen greedily by new coverage until ``coverage`` is reached, and ordered by
    the time the moves between them take (the arm at the plan's speed and the rail moving
    together): a nearest-neighbour tour from the first, shortened by 2-opt and or-opt.
+   Each move of the tour is swept (``model.move_path``): one that would carry the scanner
+   within ``clearance_mm`` of the part, a cell object or the floor on the way goes through
+   both stations' views backed off, and failing that through the park pose as well.
 6. With ``tracker_moves`` and the cell's reference nests, views where the tracker at home cannot
    see the scanner's SMR(s) may be measured from another tracker station: candidate stations on
    a ring around the part (at home's distance and height) that see >= 4 nests past the part.
@@ -25,15 +28,17 @@ three J6 positions.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
 import open3d as o3d
 from scancell.analysis.smr_cluster import ClusterGeometryError, check_cluster_geometry
 from scancell.model.cell_geometry import CellGeometry, GeometryError
+from scancell.model.move_path import move_flange_poses
 from scancell.model.robot_model import IKError
 from scancell.model.transforms import T_rot_z, look_at_flange
-from scancell.protocols.plan import ECS_METHODS, HOME_TRACKER, Plan, PlanStation, TrackerStation
+from scancell.protocols.plan import ECS_METHODS, HOME_TRACKER, Plan, PlanStation, TrackerStation, Via
 
 
 class PlanningError(GeometryError):
@@ -73,6 +78,14 @@ class PlanReport:
     #: the coverage (as ``coverage``) after each station, in the order the plan chose them
     #: (most new surface first): how many stations a lower target would take
     coverage_curve: list[float] = field(default_factory=list)
+    #: how the moves between stations keep ``clearance_mm`` (:meth:`Planner.route`):
+    #: "direct", "backed_off", "parked", "round", or "tight" (none does) -> count; "dropped":
+    #: stations left out for no way in that keeps it; "park_<how>": each station's way to the
+    #: park pose (where a scanner check between stations goes)
+    moves: dict[str, int] = field(default_factory=dict)
+    #: the "tight" moves: {"from", "to" (a station or "park"), "via" (poses), "nearest_mm",
+    #: "to_what"}, run the way that comes least near
+    moves_tight: list[dict[str, Any]] = field(default_factory=list)
 
     def stations_for(self, share: float) -> int | None:
         """The stations the plan's choice needs to cover ``share`` (as ``coverage``), or None
@@ -93,7 +106,8 @@ class PlanReport:
                 "tracker_stations": self.tracker_stations,
                 "stations_for_coverage": {f"{q:g}": self.stations_for(q)
                                           for q in (0.90, 0.95, 0.97, 0.98, 0.99, 0.995)},
-                "coverage_curve": [round(c, 4) for c in self.coverage_curve]}
+                "coverage_curve": [round(c, 4) for c in self.coverage_curve],
+                "moves": self.moves, "moves_tight": self.moves_tight}
 
 
 #: Why a surface sample is left unmeasured, first reason that applies:
@@ -125,6 +139,23 @@ MOVE_DISCOUNT = 0.5
 #: a view is taken only if it adds this much surface not measured yet (mm²; 5 samples at the
 #: least): a 30 mm square, under 1 % of the field
 MIN_GAIN_MM2 = 900.0
+
+#: How far a routed move backs the scanner off along its view before it turns, as shares of the
+#: standoff, tried in order: half the working distance first (the surface the station looks at
+#: 1.5 standoffs away, room for the wrist to turn the scanner round), then a whole one (round a
+#: sill or a bumper's edge), then a quarter (where the floor or the reach allows no more).
+BACK_OFF_SHARES = (0.5, 1.0, 0.25)
+
+#: How many poses a route round the part tries (:meth:`Planner.route`), and their spread about
+#: the joints' midpoint (rad): a third of a turn reaches the other side of a sill or a bumper.
+ROUND_TRIES = 40
+ROUND_SPREAD_RAD = np.radians(40.0)
+
+#: how many stations in a row a plan may leave out for no clear way in (:meth:`Planner.routed`)
+MAX_DROPPED_IN_A_ROW = 2
+
+#: a pose on a route: joints (rad) and the rail (mm, None: no rail)
+Pose = tuple[np.ndarray, float | None]
 #: the job measures the SMRs facing the tracker within the acceptance less this (deg)
 FACING_MARGIN_DEG = 3.0
 #: how far a moved tracker's tripod, set up by eye on its mark, may land off it (mm): 3 x the
@@ -373,6 +404,97 @@ class Planner:
                    or self.part_clearance(T) < self.g.clearance_mm
                    for T in (T_world_from_flange @ T_rot_z(a) for a in turns))
 
+    def move_clearance(self, start: Pose, end: Pose, speed: float) -> tuple[float, str]:
+        """How near (mm) the scanner's optical centres come along the move from ``start`` to
+        ``end`` (the arm at ``speed`` and the rail moving together, ``model.move_path``), and to
+        what: "the part", a cell object's name or "the floor"."""
+        g = self.g
+        Ts = move_flange_poses(g, start[0], start[1], end[0], end[1], speed,
+                               max(g.clearance_mm, 1.0) / 2)
+        local = g.optical_centres_in_flange()
+        centres = (np.einsum("nij,kj->nki", Ts[:, :3, :3], local)
+                   + Ts[:, None, :3, 3]).reshape(-1, 3)
+        near = [(float(self.scene.compute_distance(o3d.core.Tensor(
+            centres.astype(np.float32))).numpy().min()), "the part")]
+        near += [(float(o.distance(centres).min()), o.name) for o in g.obstacles]
+        if g.floor_z_mm is not None:
+            near.append((float(centres[:, 2].min() - g.floor_z_mm), "the floor"))
+        return min(near)
+
+    def backed_off(self, pose: Pose) -> list[Pose]:
+        """The station ``pose`` with the scanner backed off along its view by each of
+        :data:`BACK_OFF_SHARES` of the standoff that the robot reaches inside its limits with
+        the scanner ``clearance_mm`` clear (:meth:`too_near`)."""
+        q, rail = pose
+        base = self.g.base_at(rail)
+        T = base @ self.g.robot.fk(q)
+        out = []
+        for share in BACK_OFF_SHARES:
+            back = T.copy()
+            back[:3, 3] -= T[:3, 2] * share * self.g.standoff_mm
+            T_base = np.linalg.inv(base) @ back
+            if not self.g.robot.within_reach(T_base):
+                continue
+            try:
+                q_back = self.g.robot.ik(T_base, q)
+            except IKError:
+                continue
+            T_back = base @ self.g.robot.fk(q_back)
+            if self.g.robot.within_limits(q_back) and not self.too_near(T_back):
+                out.append((q_back, rail))
+        return out
+
+    def route(self, start: Pose, end: Pose, speed: float
+              ) -> tuple[str, list[Pose], tuple[float, str]]:
+        """How the move from ``start`` to ``end`` keeps ``clearance_mm``, the poses it passes
+        through and how near it comes (mm, to what): "direct" (no poses); "backed_off" (either
+        station or both backed off along its view, :data:`BACK_OFF_SHARES`); "parked" (the
+        park pose at each station's rail, with or without the back-offs); "round" (a pose
+        found at random about the joints' midpoint, :data:`ROUND_TRIES`). When none keeps it:
+        "tight", the way that comes least near."""
+        direct = self.move_clearance(start, end, speed)
+        if direct[0] >= self.g.clearance_mm:
+            return "direct", [], direct
+        outs, backs = self.backed_off(start), self.backed_off(end)
+        pairs = [pair for k in range(len(BACK_OFF_SHARES))
+                 for pair in ((_at(outs, k), _at(backs, k)), (_at(outs, k), None),
+                              (None, _at(backs, k))) if pair != (None, None)]
+        ways = [("backed_off", [p for p in pair if p is not None]) for pair in pairs]
+        if self.g.park_joints_deg is not None:
+            park = np.radians(self.g.park_joints_deg)
+            for pair in [*pairs, (None, None)]:
+                parked = [pair[0], (park, start[1]), (park, end[1]), pair[1]]
+                ways.append(("parked", [p for p in parked if p is not None]))
+        swept: dict[tuple[int, int], tuple[float, str]] = {}  # legs the ways share: once
+
+        def leg(a: Pose, b: Pose) -> tuple[float, str]:
+            if (id(a), id(b)) not in swept:
+                swept[id(a), id(b)] = self.move_clearance(a, b, speed)
+            return swept[id(a), id(b)]
+
+        best: tuple[str, list[Pose], tuple[float, str]] = ("tight", [], direct)
+        for how, via in ways:
+            nearest = min(leg(a, b) for a, b in pairwise([start, *via, end]))
+            if nearest[0] >= self.g.clearance_mm:
+                return how, via, nearest
+            if nearest[0] > best[2][0]:
+                best = ("tight", via, nearest)
+        # a way round: one pose between the widest back-offs, the joints their midpoint
+        # shaken at random (seeded: a plan is made again the same)
+        a, b = (outs[0] if outs else start), (backs[0] if backs else end)
+        rng = np.random.default_rng(0)
+        lo, hi = self.g.robot.limits_rad[:, 0], self.g.robot.limits_rad[:, 1]
+        for _ in range(ROUND_TRIES):
+            mid = np.clip((a[0] + b[0]) / 2 + rng.normal(0.0, ROUND_SPREAD_RAD, 6), lo, hi)
+            way = [p for p in (outs[0] if outs else None, (mid, a[1]), (mid, b[1]),
+                               backs[0] if backs else None) if p is not None]
+            nearest = min(leg(x, y) for x, y in pairwise([start, *way, end]))
+            if nearest[0] >= self.g.clearance_mm:
+                return "round", way, nearest
+            if nearest[0] > best[2][0]:
+                best = ("tight", way, nearest)
+        return best
+
     # ------------------------------------------------------------------ planning
     def candidates(self, overlap: float) -> tuple[list[Candidate], int]:
         """The usable views and how many were tried; :attr:`seen_by_view` and
@@ -452,14 +574,45 @@ class Planner:
         chosen, used = self._greedy(cands, coverage, min_gain, max_stations)
         zero = np.zeros(len(self.points), bool)
         possible = np.any([zero, *(c.sees for c in cands if c.tracker in used)], axis=0)
+        toured = [c for t in used
+                  for c in self._toured([c for c in chosen if c.tracker == t], speed)]
+        kept_at, routes = self.routed([(c.q, c.rail_mm) for c in toured], speed)
+        dropped = len(toured) - len(kept_at)
+        toured = [toured[i] for i in kept_at]
+        kept = {id(c) for c in toured}
         curve, covered = [], zero.copy()
         for c in chosen:  # in the order chosen, before the tour reorders them
-            covered |= c.sees
-            curve.append(float(covered[possible].mean()))
-        chosen = [c for t in used
-                  for c in self._toured([c for c in chosen if c.tracker == t], speed)]
-        stations = tuple(PlanStation(f"s{i + 1:02d}", tuple(float(v) for v in np.degrees(c.q)),
-                                     c.rail_mm, None, int(c.j6_sign), tracker=c.tracker)
+            if id(c) in kept:
+                covered |= c.sees
+                curve.append(float(covered[possible].mean()))
+        chosen = toured
+        names = [f"s{i + 1:02d}" for i in range(len(chosen))]
+        moves: dict[str, int] = {}
+        tight: list[dict[str, Any]] = []
+        vias: list[tuple[Via, ...]] = []
+        for i, (how, via, (near, what)) in enumerate(routes):
+            if how == "tight":
+                tight.append({"from": names[i - 1], "to": names[i], "via": len(via),
+                              "nearest_mm": round(near, 1), "to_what": what})
+            if how != "start":
+                moves[how] = moves.get(how, 0) + 1
+            vias.append(_vias(via))
+        if dropped:
+            moves["dropped"] = dropped
+        park_vias: list[tuple[Via, ...]] = [()] * len(chosen)
+        if self.g.park_joints_deg is not None:  # a scanner check leaves a station by it
+            park = np.radians(self.g.park_joints_deg)
+            park_vias = []
+            for name, c in zip(names, chosen, strict=True):
+                how, via, (near, what) = self.route((c.q, c.rail_mm), (park, c.rail_mm), speed)
+                moves[f"park_{how}"] = moves.get(f"park_{how}", 0) + 1
+                if how == "tight":
+                    tight.append({"from": name, "to": "park", "via": len(via),
+                                  "nearest_mm": round(near, 1), "to_what": what})
+                park_vias.append(_vias(via))
+        stations = tuple(PlanStation(names[i], tuple(float(v) for v in np.degrees(c.q)),
+                                     c.rail_mm, None, int(c.j6_sign), tracker=c.tracker,
+                                     via=vias[i], park_via=park_vias[i])
                          for i, c in enumerate(chosen))
         overlaps = []
         if len(chosen) > 1:
@@ -484,14 +637,15 @@ class Planner:
                             {"share": float(missed.mean()),
                              **{k: float(reasons[k].mean()) for k in UNMEASURED_REASONS}},
                             {t: [float(v) for v in self.trackers[t]]
-                             for t in [HOME_TRACKER, *trackers]}, curve)
+                             for t in [HOME_TRACKER, *trackers]}, curve, moves, tight)
         extra = report.to_json()
         del extra["coverage_curve"]  # a station's worth a value: the JSON report has it
         if self.ecs == "cluster":
             extra["smrs_in_sight"] = {st.name: list(c.smrs)
                                       for st, c in zip(stations, chosen, strict=True)}
         plan = Plan(name, stations, j6_angles_deg=self.g.j6_angles_deg, speed=speed,
-                    extra=extra, ecs=self.ecs, trackers=trackers)
+                    extra=extra, ecs=self.ecs, trackers=trackers,
+                    park_joints_deg=self.g.park_joints_deg)
         return plan, report
 
     def _greedy(self, cands: list[Candidate], coverage: float, min_gain: int,
@@ -537,6 +691,29 @@ class Planner:
                 used.append(str(trackers[best]))
         return [cands[i] for i in chosen], used
 
+    def routed(self, poses: list[Pose], speed: float, drop: bool = True
+               ) -> tuple[list[int], list[tuple[str, list[Pose], tuple[float, str]]]]:
+        """The stations at ``poses``, in order, each with the way it is reached from the one
+        before (:meth:`route`; the first: "start", no poses): the indices kept and their ways.
+        With ``drop``, a station that no way reaches within ``clearance_mm`` is left out when
+        the move past it to the next keeps it, up to :data:`MAX_DROPPED_IN_A_ROW` (a pocket
+        between a sill and the floor that the arm cannot enter without sweeping the scanner
+        into the part)."""
+        kept, ways = [0], [("start", [], (np.inf, ""))]
+        i = 1
+        while i < len(poses):
+            way = self.route(poses[kept[-1]], poses[i], speed)
+            for skip in range(1, MAX_DROPPED_IN_A_ROW + 1) if drop else ():
+                if way[0] != "tight" or i + skip >= len(poses):
+                    break
+                past = self.route(poses[kept[-1]], poses[i + skip], speed)
+                if past[0] != "tight":
+                    i, way = i + skip, past
+            kept.append(i)
+            ways.append(way)
+            i += 1
+        return kept, ways
+
     def _toured(self, cands: list[Candidate], speed: float) -> list[Candidate]:
         def seconds(a: Candidate, b: Candidate) -> float:
             rail = abs((a.rail_mm or 0.0) - (b.rail_mm or 0.0)) / self.g.rail_speed_mm_s
@@ -544,6 +721,14 @@ class Planner:
 
         cost = np.array([[seconds(a, b) for b in cands] for a in cands]).reshape(len(cands), -1)
         return [cands[i] for i in _tour(cost)]
+
+
+def _vias(poses: list[Pose]) -> tuple[Via, ...]:
+    return tuple(Via(tuple(float(v) for v in np.degrees(q)), rail) for q, rail in poses)
+
+
+def _at(poses: list[Pose], k: int) -> Pose | None:
+    return poses[k] if k < len(poses) else None
 
 
 def _closed_and_outward(mesh: o3d.geometry.TriangleMesh) -> bool:

@@ -119,4 +119,24 @@ def main(args: argparse.Namespace) -> int:
     print(f"nearest-neighbour overlap: min {r['neighbour_overlap_min']}, median "
           f"{r['neighbour_overlap_median']}, max {r['neighbour_overlap_max']}; "
           f"{r['stations_with_overlap_10_40']}/{r['stations']} stations within 10-40 %")
+    print(moves_summary(r["moves"], r["moves_tight"]))
     return 0
+
+
+def moves_summary(moves: dict[str, int], tight: list[dict]) -> str:
+    """One paragraph on how the plan's moves keep the scanner clear of the part."""
+    between = {k: v for k, v in moves.items() if not k.startswith("park_") and k != "dropped"}
+    routed = sum(v for k, v in between.items() if k not in ("direct", "tight"))
+    text = (f"moves between stations: {between.get('direct', 0)} direct, {routed} routed round "
+            f"the part (" + ", ".join(f"{k} {v}" for k, v in between.items()
+                                      if k not in ("direct", "tight")) + ")")
+    if moves.get("dropped"):
+        text += f"; {moves['dropped']} stations left out: no way in keeps the clearance"
+    park = {k.removeprefix("park_"): v for k, v in moves.items() if k.startswith("park_")}
+    if park:
+        text += ("; to the park pose (scanner checks): "
+                 + ", ".join(f"{k} {v}" for k, v in park.items()))
+    for t in tight:
+        text += (f"\nWARNING: no way from {t['from']} to {t['to']} keeps the clearance: the "
+                 f"best passes {t['nearest_mm']:g} mm from {t['to_what']}")
+    return text

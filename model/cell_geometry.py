@@ -80,6 +80,10 @@ PLANNER_KEYS: dict[str, KeySpec] = {
                          "radius}}", "cell objects the scanner keeps clear of (world)", [], "mm"),
     "clearance_mm": KeySpec("number", "how far the scanner's optical centres keep from an "
                                       "obstacle", DEFAULT_CLEARANCE_MM, "mm"),
+    "park_joints_deg": KeySpec("6 numbers", "the arm folded clear of the part: a move between "
+                               "stations that would sweep the scanner too near the part goes "
+                               "through it when backing off along the views is not enough; "
+                               "absent: back off only", None, "°"),
 }
 
 
@@ -156,6 +160,8 @@ class CellGeometry:
     floor_z_mm: float | None = None
     #: the planner's view tilts from a patch's normal (deg)
     view_tilts_deg: tuple[float, ...] = DEFAULT_VIEW_TILTS_DEG
+    #: the arm folded clear of the part (deg): a move's last way round (None: not stated)
+    park_joints_deg: tuple[float, ...] | None = None
 
     def optical_centres_in_flange(self) -> np.ndarray:
         """(3, 3) the left camera (MCS origin), the rig midpoint (the projector sits near it)
@@ -297,7 +303,9 @@ class CellGeometry:
                     floor_z_mm=(float(t["floor_z_mm"]) if t.get("floor_z_mm") is not None
                                 else None),
                     view_tilts_deg=tuple(float(v) for v in t.get("view_tilts_deg",
-                                                                       DEFAULT_VIEW_TILTS_DEG)))
+                                                                       DEFAULT_VIEW_TILTS_DEG)),
+                    park_joints_deg=(tuple(float(v) for v in t["park_joints_deg"])
+                                     if t.get("park_joints_deg") is not None else None))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:
@@ -306,6 +314,11 @@ class CellGeometry:
             raise GeometryError(f"clearance_mm must be >= 0 mm, got {g.clearance_mm}")
         if not g.rail_speed_mm_s > 0:
             raise GeometryError(f"rail_speed_mm_s must be > 0 mm/s, got {g.rail_speed_mm_s}")
+        if g.park_joints_deg is not None and (
+                len(g.park_joints_deg) != 6
+                or not g.robot.within_limits(np.radians(g.park_joints_deg))):
+            raise GeometryError(f"park_joints_deg must be 6 joint angles (deg) inside the "
+                                f"robot's limits, got {list(g.park_joints_deg)}")
         return g
 
 

@@ -11,6 +11,8 @@ TOML (or the same structure as JSON)::
                                  # SMR) or "cluster" (the SMR cluster, no robot motion; J6
                                  # turns where fewer than 3 SMRs face the tracker)
     nominal = "/data/cad/car_rear.step"  # optional: the part's CAD, for the inspect worker
+    park_joints_deg = [0.0, 0.0, 0.0, 0.0, -90.0, 0.0]  # optional: the arm folded clear of
+                                 # the part; a scanner check between stations goes there first
 
     [[station]]
     name = "s01"
@@ -19,6 +21,11 @@ TOML (or the same structure as JSON)::
     ecs = "j6"                   # optional: this station's ECS method (default the plan's)
     tracker = "t1"               # optional: the tracker station it is measured from (default
                                  # "home": where the tracker stands when the job starts)
+    via = [{joints_deg = [...], axis_mm = 0.0}]  # optional: the poses the move from the
+                                 # station before passes through, in order (``scancell plan``
+                                 # routes a move that would sweep the scanner through the part)
+    park_via = [{joints_deg = [...]}]  # optional: the poses from the station to the park pose
+                                 # (at its rail), in order; the way back is the reverse
 
     [tracker.t1]                 # a tracker station the job moves the tracker to (roughly:
     position_mm = [2500.0, -3000.0, 0.0]   # the reference nests locate it), world, mm
@@ -38,7 +45,7 @@ scanner mount)::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from scancell.protocols.keys import check_name
@@ -62,6 +69,19 @@ class PlanError(ValueError):
 
 
 @dataclass(frozen=True)
+class Via:
+    """A pose the arm passes through on its way to a station: joints (deg) and the rail (mm,
+    None: where it is)."""
+
+    joints_deg: tuple[float, ...]
+    axis_mm: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"joints_deg": list(self.joints_deg),
+                **({} if self.axis_mm is None else {"axis_mm": self.axis_mm})}
+
+
+@dataclass(frozen=True)
 class PlanStation:
     name: str
     joints_deg: tuple[float, ...] | None
@@ -75,6 +95,11 @@ class PlanStation:
     #: the tracker station it is measured from (HOME_TRACKER: where the tracker stands at the
     #: job's start)
     tracker: str = HOME_TRACKER
+    #: the poses the move from the station before passes through, in order
+    via: tuple[Via, ...] = ()
+    #: the poses from the station to the plan's park pose at its rail, in order (and back,
+    #: reversed)
+    park_via: tuple[Via, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -110,6 +135,36 @@ class Plan:
     ecs: str = "j6"
     #: the tracker stations the stations name, besides HOME_TRACKER
     trackers: dict[str, TrackerStation] = field(default_factory=dict)
+    #: the arm folded clear of the part (deg), where a scanner check between stations starts
+    #: and ends (each station's ``park_via`` leads there); None: the plan does not say
+    park_joints_deg: tuple[float, ...] | None = None
+
+    def subset(self, names: set[str] | list[str]) -> Plan:
+        """The stations named, in the plan's order. A station whose planned predecessor is left
+        out is reached through the park pose (its predecessor's ``park_via`` out, the rail
+        with the arm parked, its own back) when the plan has one; otherwise by its ``via`` as
+        planned."""
+        keep = [s for s in self.stations if s.name in names]
+        if self.park_joints_deg is None:
+            return replace(self, stations=tuple(keep))
+        before = {s.name: p for p, s in zip(self.stations, self.stations[1:], strict=False)}
+        out = []
+        for prev, s in zip([None, *keep], keep, strict=False):
+            if prev is not None and before.get(s.name) is not prev:
+                s = replace(s, via=self.park_between(prev, s))
+            out.append(s)
+        return replace(self, stations=tuple(out))
+
+    def park_between(self, a: PlanStation | None, b: PlanStation,
+                     axis_mm: float | None = None) -> tuple[Via, ...]:
+        """The way from station ``a`` (None: the park pose at rail ``axis_mm``) to station
+        ``b`` through the park pose: ``a``'s ``park_via``, the park pose at ``a``'s rail and at
+        ``b``'s, then ``b``'s ``park_via`` reversed. Needs :attr:`park_joints_deg`."""
+        assert self.park_joints_deg is not None
+        park = self.park_joints_deg
+        head = () if a is None else a.park_via
+        return (*head, Via(park, axis_mm if a is None else a.axis_mm), Via(park, b.axis_mm),
+                *reversed(b.park_via))
 
     def to_json(self) -> dict[str, Any]:
         head: dict[str, Any] = {"name": self.name, "speed": self.speed,
@@ -119,6 +174,8 @@ class Plan:
             head["nominal"] = self.nominal
         if self.ecs != "j6":
             head["ecs"] = self.ecs
+        if self.park_joints_deg is not None:
+            head["park_joints_deg"] = list(self.park_joints_deg)
         if self.extra:
             head["report"] = self.extra
         stations = []
@@ -136,6 +193,10 @@ class Plan:
                 d["axis_mm"] = s.axis_mm
             if s.tracker != HOME_TRACKER:
                 d["tracker"] = s.tracker
+            if s.via:
+                d["via"] = [v.to_json() for v in s.via]
+            if s.park_via:
+                d["park_via"] = [v.to_json() for v in s.park_via]
             stations.append(d)
         out: dict[str, Any] = {"plan": head, "station": stations}
         if self.trackers:
@@ -177,6 +238,8 @@ def _toml(v: Any) -> str:
         return "true" if v else "false"
     if isinstance(v, list):
         return "[" + ", ".join(_toml(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + "}"
     if isinstance(v, float):
         return repr(round(v, 6))
     return str(v)
@@ -257,10 +320,35 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
                             f"the plan ({', '.join([HOME_TRACKER, *trackers])})")
         out.append(PlanStation(name, joints, None if axis is None
                                else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign,
-                               station_ecs, str(tracker)))
+                               station_ecs, str(tracker),
+                               _vias(s.get("via", []), f"{at} ({name}) via"),
+                               _vias(s.get("park_via", []), f"{at} ({name}) park_via")))
+    park = head.get("park_joints_deg")
+    if park is not None and (not isinstance(park, list) or len(park) != 6):
+        raise PlanError(f"{where}: [plan] park_joints_deg must be 6 angles in degrees")
     return Plan(str(head.get("name", "plan")), tuple(out), speed, (a[0], a[1]), repeats,
                 dict(head.get("report", {})) if isinstance(head.get("report"), dict) else {},
-                nominal, ecs, trackers)
+                nominal, ecs, trackers,
+                None if park is None else tuple(_number(x, f"{where}: [plan] park_joints_deg")
+                                                 for x in park))
+
+
+def _vias(table: Any, where: str) -> tuple[Via, ...]:
+    if not isinstance(table, list):
+        raise PlanError(f"{where}: must be a list of {{joints_deg, axis_mm}} tables")
+    out = []
+    for k, v in enumerate(table):
+        at = f"{where}[{k}]"
+        if not isinstance(v, dict) or set(v) - {"joints_deg", "axis_mm"}:
+            raise PlanError(f"{at}: must be a table of joints_deg (6 angles, deg) and, "
+                            f"optionally, axis_mm")
+        q = v.get("joints_deg")
+        if not isinstance(q, list) or len(q) != 6:
+            raise PlanError(f"{at}: joints_deg must be 6 angles in degrees")
+        axis = v.get("axis_mm")
+        out.append(Via(tuple(_number(x, f"{at} joints_deg") for x in q),
+                       None if axis is None else _number(axis, f"{at} axis_mm")))
+    return tuple(out)
 
 
 def _tracker_stations(table: Any, where: str) -> dict[str, TrackerStation]:

@@ -108,6 +108,16 @@ class SimulatedDrive:
         speed = self._velocity / self.counts_per_mm  # mm/s
         step = speed * dt
         delta = self._target - rail
+        ahead = self._target if abs(delta) <= step else rail + step * (1 if delta > 0 else -1)
+        hit = self.cell.path_collision(self.cell.q, rail, self.cell.q, ahead)
+        if hit is not None:  # the carriage drives the scanner into the part: it stalls there
+            log.error("axis simulator: the rail carried the scanner into the part: %s", hit[0])
+            self.cell.move_rail(hit[2], dt, arrived=False)
+            self.cell.collided = hit[0]
+            self._error, self._state = p.ERROR_FOLLOWING, "FAULT"
+            self._stop_target()
+            self._homing = False
+            return
         # the simulated clock advances by the distance travelled at the speed, not the ticks
         if abs(delta) <= step:
             self.cell.move_rail(self._target, abs(delta) / speed)

@@ -69,6 +69,10 @@ SHADOW_TOLERANCE_MM = 0.1
 #: the part than this drives the housing into it.
 HOUSING_REACH_MM = 60.0
 
+#: how far (mm) an optical centre may travel between two poses of a move's collision check: a
+#: sixth of the housing's reach, so the housing cannot pass a sheet unseen
+SWEEP_STEP_MM = 10.0
+
 
 def uniform_level(k: int) -> float:
     """Relative level (0 … 1) of a uniform pattern index k < 0."""
@@ -308,6 +312,9 @@ class SimCell:
         self.rail_mm = 0.0
         #: where the rail is moving to (mm), while it moves (set by its drive's emulator)
         self.rail_target_mm: float | None = None
+        #: what the scanner's housing hit on a move's way (set by the robot's or the rail's
+        #: simulator, cleared with the robot's fault), None: nothing
+        self.collided: str | None = None
         self.rail = RailPath(tuple(map(float, self.cfg.rail_axis)), tuple(self.cfg.rail_path))
         self.pattern = -1  # -1: projector dark
         self.scene = Scene()
@@ -466,7 +473,9 @@ class SimCell:
                 # the objects the scanner keeps clear of: the scanner-check bar (its spheres'
                 # radius around its axis) and the reference nests (a 1.5" SMR's nest, 25 mm)
                 "clearance_mm": 100.0,
-                "obstacles": self._obstacles_table()}
+                "obstacles": self._obstacles_table(),
+                # the controller's home: the arm up, the scanner looking down at the base
+                "park_joints_deg": list(self.cfg.home_deg)}
 
     def _obstacles_table(self) -> list[dict]:
         out = []
@@ -540,6 +549,42 @@ class SimCell:
             return None
         return (f"the scanner's {names[i]} would be {near[i]:.0f} mm from the part, inside its "
                 f"housing's {HOUSING_REACH_MM:g} mm: a collision")
+
+    def path_collision(self, q_from: np.ndarray, rail_from: float, q_to: np.ndarray,
+                       rail_to: float) -> tuple[str, np.ndarray, float] | None:
+        """Where the scanner's housing hits the part on the way from joints ``q_from`` (rad) at
+        rail ``rail_from`` (mm) to ``q_to`` at ``rail_to``, both moving linearly (a tick of the
+        robot's or the rail's motion): the reason, and the last joints and rail before it (where
+        a controller's collision detection stops the arm); None if it stays clear. Samples
+        every :data:`SWEEP_STEP_MM` of an optical centre's travel at most, so a sheet cannot
+        slip between two of them."""
+        if not self.cfg.part:
+            return None
+        q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
+        local = np.stack([np.zeros(3), self.rig.T_mcs_from_right[:3, 3],
+                          self.rig.T_mcs_from_projector[:3, 3]])
+        lever = self.robot.reach_mm + float(np.linalg.norm(
+            self.T_flange_from_mcs[:3, 3])) + float(np.linalg.norm(local, axis=1).max())
+        turn_per_mm = max((abs(np.radians(m.turn_deg)) / m.length_mm
+                           for m in self.rail.modules), default=0.0)
+        travel = (np.abs(q1 - q0).sum() * lever
+                  + abs(rail_to - rail_from) * (1.0 + turn_per_mm * lever))
+        f = np.linspace(0.0, 1.0, max(2, int(np.ceil(travel / SWEEP_STEP_MM)) + 1))
+        rail0 = self.cfg.T_world_from_rail0
+        poses = [self.rail.base_at(rail0, rail_from + (rail_to - rail_from) * t)
+                 @ self.robot.fk(q0 + (q1 - q0) * t) @ self.T_flange_from_mcs for t in f]
+        centres = np.concatenate([local @ T[:3, :3].T + T[:3, 3] for T in poses])
+        near = self.surface_distance(centres).reshape(len(f), 3)
+        hit = np.flatnonzero(near.min(axis=1) < HOUSING_REACH_MM)
+        if not len(hit):
+            return None
+        k = int(hit[0])
+        names = ("left camera", "right camera", "projector")
+        i = int(np.argmin(near[k]))
+        safe = max(k - 1, 0)
+        return (f"the scanner's {names[i]} came {near[k, i]:.0f} mm from the part on the way, "
+                f"inside its housing's {HOUSING_REACH_MM:g} mm: a collision",
+                q0 + (q1 - q0) * f[safe], rail_from + (rail_to - rail_from) * f[safe])
 
     def move_rail(self, position_mm: float, duration_s: float = 0.0, arrived: bool = True
                   ) -> None:

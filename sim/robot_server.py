@@ -59,6 +59,8 @@ class KarelRobotServer:
         return self._servers[1].sockets[0].getsockname()[1] if self._servers else self._ports[1]
 
     async def start(self) -> None:
+        if self.cell.cfg.part:  # the part's distance field, built once before a move needs it
+            await asyncio.to_thread(self.cell.surface_distance, np.zeros((1, 3)))
         self._servers = [
             await asyncio.start_server(self._motion_client, self.host, self._ports[0]),
             await asyncio.start_server(self._state_client, self.host, self._ports[1]),
@@ -88,6 +90,24 @@ class KarelRobotServer:
 
     def clear_fault(self) -> None:
         self._fault = 0
+        self.cell.collided = None
+
+    def _collision_seen(self) -> None:
+        """The controller's collision detection feels a hit the rail drove the arm into too."""
+        if self.cell.collided and not self._fault:
+            self.set_fault(COLLISION_DETECTED)
+
+    def _sweep(self, q_next: np.ndarray) -> None:
+        """The arm on from where it stands to ``q_next`` (the rail where it is now): raises
+        CollisionError, the arm stopped short, if the scanner's housing meets the part on the
+        way."""
+        rail = self.cell.rail_mm
+        hit = self.cell.path_collision(self.cell.q, rail, q_next, rail)
+        if hit is not None:
+            self.cell.q = hit[1]
+            self.cell.collided = hit[0]
+            raise CollisionError(hit[0])
+        self.cell.q = q_next
 
     def _stop_motion(self) -> None:
         while not self._queue.empty():
@@ -132,6 +152,7 @@ class KarelRobotServer:
             self._stop_motion()
             return self._reply(header.msg_type, True)
         q = np.asarray(body.joints[:6], float)
+        self._collision_seen()
         velocity = float(body.velocity) if 0 < body.velocity <= 1 else 0.0
         in_order = seq == 0 or (self._last_seq is not None and seq == self._last_seq + 1)
         if self._fault or not in_order or velocity == 0.0 or not np.all(np.isfinite(q)) \
@@ -159,7 +180,7 @@ class KarelRobotServer:
                 while not self._abort.is_set():
                     s = 1.0 if T <= 0 else min(1.0, (time.monotonic() - t0) / T)
                     s_smooth = s * s * (3 - 2 * s)
-                    self.cell.q = q_start + s_smooth * (q_target - q_start)
+                    self._sweep(q_start + s_smooth * (q_target - q_start))
                     if s >= 1.0:
                         self.cell.q = q_start  # joints that did not travel hold their position
                         self.cell.move_joints(q_target, T, velocity)  # arrive with repeatability
@@ -177,6 +198,7 @@ class KarelRobotServer:
 
     # ------------------------------------------------------------ state port
     def status(self) -> sm.Status:
+        self._collision_seen()
         T = sm.TriState
         return sm.Status(
             drives_powered=T.ON, e_stopped=T.OFF, error_code=self._fault,

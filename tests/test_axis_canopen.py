@@ -21,8 +21,8 @@ from scancell.sim.cell import SimCell, SimCellConfig
 
 
 @contextlib.asynccontextmanager
-async def drive_and_server(node_id: int = 5):
-    cell = SimCell(SimCellConfig(camera_scale=16, part=None))
+async def drive_and_server(node_id: int = 5, cell: SimCell | None = None):
+    cell = cell or SimCell(SimCellConfig(camera_scale=16, part=None))
     channel = f"axis-{uuid.uuid4().hex[:8]}"
     drive = SimulatedDrive(cell, node_id=node_id)
     drive.connect("virtual", channel)
@@ -237,3 +237,38 @@ def test_fuzz_socketcand_send_parser_raises_only_value_error(text):
 @given(st.integers(0, 0xFFFF))
 def test_every_statusword_has_a_state(sw):
     assert cia402.state_of(sw) in (*cia402.STATES, "UNKNOWN")
+
+
+@pytest.mark.process
+def test_a_rail_that_carries_the_scanner_into_the_part_stalls_with_a_drive_fault():
+    """The car body's quick demo: the arm stood at s291's pose while the rail still ran round the
+    curved track from s215. Carried along the track, that pose goes through the body: the
+    carriage stalls there (a following error) and the robot's controller feels the hit too."""
+    import numpy as np
+    from scancell.sim.cell import HOUSING_REACH_MM
+    from scancell.sim.host import sim_cell
+
+    cell = sim_cell({"part": "car_body", "camera_scale": 16})
+    cell.q = np.radians([36.876801, 51.859693, 24.125232, -73.598209, 94.031655, 256.566195])
+    start, end = 14846.1, 16852.4  # s215's rail position, s291's
+    cell.rail_mm = start
+    assert cell.collision(cell.q) is None  # clear where the rail starts, and where it ends
+    cell.rail_mm = end
+    assert cell.collision(cell.q) is None
+    cell.rail_mm = start
+
+    async def body():
+        async with drive_and_server(cell=cell) as (_cell, _drive, server, _):
+            axis = socketcand_axis(server, max_velocity=2000.0, limits=[0.0, 18000.0])
+            await axis.connect()
+            try:
+                with pytest.raises(DeviceFault):
+                    await axis.move_to(end, 1.0)
+            finally:
+                await axis.close()
+
+    asyncio.run(body())
+    assert cell.collided and "on the way" in cell.collided
+    assert start < cell.rail_mm < end  # stalled short of where it was going
+    centres = np.stack([cell.T_world_from_camera(c)[:3, 3] for c in ("left", "right", "projector")])
+    assert cell.surface_distance(centres).min() > HOUSING_REACH_MM - 2.0

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -408,3 +409,68 @@ def test_a_moved_trackers_smrs_keep_room_for_where_its_tripod_lands():
                 in_band += 1
                 assert name not in seen
     assert in_band >= 3  # the test saw the band it is about
+
+
+def _sim_hits_on_the_way(cell: SimCell, g: CellGeometry, speed: float, a, b) -> str | None:
+    """The simulator's own collision check (its true robot, rail and part) along a move the way
+    the job makes it: the arm and the rail start together, each at its own speed."""
+    from scancell.model.move_path import move_times
+
+    (q0, r0), (q1, r1) = a, b
+    r0, r1 = r0 or 0.0, r1 or 0.0
+    arm_s, rail_s = move_times(g, q0, r0, q1, r1, speed)
+    t = np.linspace(0.0, max(arm_s, rail_s, 1e-9), 200)
+    fa = np.clip(t / arm_s, 0, 1) if arm_s > 0 else np.ones_like(t)
+    fr = np.clip(t / rail_s, 0, 1) if rail_s > 0 else np.ones_like(t)
+    poses = [(q0 + (q1 - q0) * x, r0 + (r1 - r0) * y) for x, y in zip(fa, fr, strict=True)]
+    for (qa, ra), (qb, rb) in pairwise(poses):
+        hit = cell.path_collision(qa, ra, qb, rb)
+        if hit:
+            return hit[0]
+    return None
+
+
+@pytest.mark.unit
+def test_every_move_of_a_plan_keeps_the_scanner_clear_of_the_part(planned):
+    """Not only the stations: the moves between them, through the poses the planner routed
+    them by, as the simulator judges them (its true robot and part, not the planner's)."""
+    cell, g, _, plan, report = planned
+    between = {k: v for k, v in report.moves.items() if not k.startswith("park_")}
+    assert sum(between.values()) == report.stations - 1 and not report.moves_tight
+    # and each station's way to the park pose, where a scanner check goes
+    assert sum(v for k, v in report.moves.items() if k.startswith("park_")) == report.stations
+    assert plan.park_joints_deg == g.park_joints_deg
+    at = None
+    for st in plan.stations:
+        for v in [*st.via, st]:
+            pose = (np.radians(v.joints_deg), v.axis_mm)
+            if at is not None:
+                assert _sim_hits_on_the_way(cell, g, plan.speed, at, pose) is None, st.name
+            at = pose
+        way = [at, *((np.radians(v.joints_deg), v.axis_mm) for v in st.park_via),
+               (np.radians(plan.park_joints_deg), st.axis_mm)]
+        for a, b in pairwise(way):
+            assert _sim_hits_on_the_way(cell, g, plan.speed, a, b) is None, st.name
+
+
+@pytest.mark.unit
+def test_a_move_that_would_sweep_the_scanner_through_the_car_body_is_routed_round_it():
+    """s19 to s20 of the car body's plan of session 39: both stand clear, but the joints'
+    straight line swings the scanner from above the sill to below it through the body. The planner finds
+    a way round; the simulator confirms it and refuses the straight line."""
+    cell = SimCell(SimCellConfig.for_part("car_body", camera_scale=8))
+    g = CellGeometry.from_table(cell.planner_table())
+    planner = Planner(cell.part_mesh_world(), g, samples=500)
+    rail = 2006.2
+    a = (np.radians([-18.659738, 15.566931, -10.664034, -113.890202, -59.14531, 188.341461]), rail)
+    b = (np.radians([-53.306356, 74.245847, 43.998617, -98.462838, -88.333512, 92.060729]), rail)
+    for q, r in (a, b):
+        assert not planner.too_near(g.base_at(r) @ g.robot.fk(q))
+    near, what = planner.move_clearance(a, b, 0.5)
+    assert near < 60.0 and what == "the part"
+    assert _sim_hits_on_the_way(cell, g, 0.5, a, b) is not None
+    how, via, (near, _) = planner.route(a, b, 0.5)
+    assert how in ("backed_off", "parked", "round") and via, how
+    assert near >= g.clearance_mm
+    for x, y in zip([a, *via], [*via, b], strict=True):
+        assert _sim_hits_on_the_way(cell, g, 0.5, x, y) is None

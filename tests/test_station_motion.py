@@ -17,6 +17,7 @@ class Arm:
 
     async def move_joints(self, q, speed):
         self.log.append(("arm", "start"))
+        self.log.append(("q", round(float(np.degrees(q[0])), 3)))
         await asyncio.sleep(0.05)
         self.log.append(("arm", "end"))
         if self.fail:
@@ -29,6 +30,7 @@ class Rail:
 
     async def move_to(self, mm):
         self.log.append(("rail", "start"))
+        self.log.append(("at", mm))
         await asyncio.sleep(0.05)
         self.log.append(("rail", "end"))
 
@@ -65,10 +67,10 @@ def station(robot=None, axis=None, tracker=None, geometry=None) -> Station:
 def test_the_rail_and_the_arm_move_together_and_a_failure_waits_for_the_other():
     log: list = []
     asyncio.run(station(Arm(log), Rail(log)).move_to(np.zeros(6), -400.0))
-    assert [e for _, e in log[:2]] == ["start", "start"], log  # both under way before either ends
+    assert [e for k, e in log[:3] if k != "q"] == ["start", "start"], log  # both under way
     log.clear()
     asyncio.run(station(Arm(log), Rail(log)).move_to(np.zeros(6)))  # no rail position: arm only
-    assert log == [("arm", "start"), ("arm", "end")]
+    assert log == [("arm", "start"), ("q", 0.0), ("arm", "end")]
     log.clear()
     with pytest.raises(ConnectionLost, match="arm lost"):
         asyncio.run(station(Arm(log, ConnectionLost("arm lost")), Rail(log)).move_to(
@@ -89,3 +91,17 @@ def test_the_tracker_is_aimed_at_the_smr_facing_it_best_then_the_next():
     t = Tracker(sees={0})
     asyncio.run(station(tracker=t).aim_at_scanner(np.zeros(6)))  # no geometry: left alone
     assert t.aimed == []
+
+
+@pytest.mark.unit
+def test_a_station_is_reached_through_its_vias_in_order():
+    """The planner's way round the part: each via a move of the arm and the rail together, the
+    station last; a via without a rail position moves the arm alone."""
+    from scancell.protocols.plan import Via
+
+    log: list = []
+    vias = (Via((10.0, 0, 0, 0, 0, 0), 500.0), Via((20.0, 0, 0, 0, 0, 0)))
+    asyncio.run(station(Arm(log), Rail(log)).move_through(vias, np.radians([30.0, 0, 0, 0, 0, 0]),
+                                                          900.0))
+    assert [e for e in log if e[0] in ("q", "at")] == [("q", 10.0), ("at", 500.0), ("q", 20.0),
+                                                        ("q", 30.0), ("at", 900.0)], log

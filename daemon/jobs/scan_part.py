@@ -21,6 +21,7 @@ import asyncio
 import contextlib
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -48,6 +49,7 @@ from scancell.protocols.plan import (
     Plan,
     PlanError,
     PlanStation,
+    Via,
     parse_plan,
 )
 
@@ -88,7 +90,7 @@ def plan_from_request(req: dict[str, Any], geometry: CellGeometry | None = None,
         missing = sorted(set(only) - {s.name for s in plan.stations})
         if missing:
             raise CommandError("invalid", f"stations {missing} are not in plan {plan.name!r}")
-        plan = replace(plan, stations=tuple(s for s in plan.stations if s.name in only))
+        plan = plan.subset(only)
     return plan
 
 
@@ -143,16 +145,24 @@ def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
                 except CommandError:
                     q6[5] -= 2 * np.radians(turn)  # the job may turn the other way
                     robot.check_joints(q6)
+            for k, v in enumerate(s.via):
+                try:
+                    robot.check_joints(np.radians(v.joints_deg))
+                except CommandError as exc:
+                    raise CommandError(exc.code, f"via[{k}]: {exc.message}") from None
         except CommandError as exc:
             raise CommandError("out_of_range", f"plan {plan.name!r}, station {s.name}: "
                                                f"{exc.message}") from None
-        if s.axis_mm is not None:
+        for where, axis_mm in [("", s.axis_mm),
+                               *((f" via[{k}]", v.axis_mm) for k, v in enumerate(s.via))]:
+            if axis_mm is None:
+                continue
             if axis is None:
-                raise CommandError("invalid", f"station {s.name} has axis_mm but the cell has "
-                                              f"no axis")
+                raise CommandError("invalid", f"station {s.name}{where} has axis_mm but the "
+                                              f"cell has no axis")
             lo, hi = axis.limits
-            if not lo <= s.axis_mm <= hi:
-                raise CommandError("out_of_range", f"station {s.name}: axis {s.axis_mm} mm "
+            if not lo <= axis_mm <= hi:
+                raise CommandError("out_of_range", f"station {s.name}{where}: axis {axis_mm} mm "
                                                    f"outside [{lo}, {hi}] mm")
 
 
@@ -162,10 +172,14 @@ def check_clearance(plan: Plan, geometry: CellGeometry | None) -> None:
     if geometry is None or not geometry.obstacles:
         return
     for s in plan.stations:
-        T = geometry.base_at(s.axis_mm) @ geometry.robot.fk(np.radians(s.joints_deg))
-        problem = geometry.clearance_problem(T)
-        if problem:
-            raise CommandError("out_of_range", f"plan {plan.name!r}, station {s.name}: {problem}")
+        for where, q_deg, axis_mm in [("", s.joints_deg, s.axis_mm),
+                                      *((f" via[{k}]", v.joints_deg, v.axis_mm)
+                                        for k, v in enumerate(s.via))]:
+            T = geometry.base_at(axis_mm) @ geometry.robot.fk(np.radians(q_deg))
+            problem = geometry.clearance_problem(T)
+            if problem:
+                raise CommandError("out_of_range",
+                                   f"plan {plan.name!r}, station {s.name}{where}: {problem}")
 
 
 def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
@@ -185,12 +199,14 @@ def precheck(req: dict[str, Any], supervisors: dict[str, DeviceSupervisor],
 
 async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                           st: PlanStation, how: Station, i: int, n: int, eta: float | None,
-                          plan_name: str, relock: bool = False) -> dict[str, Any]:
+                          plan_name: str, relock: bool = False,
+                          vias: Sequence[Via] | None = None) -> dict[str, Any]:
     """One station: move, then the scanner's pose by the station's ECS method and the scan;
     publishes ``scan/<station>/ecs`` (``scancell.StationEcs``) and returns it. A failure is a
     StepFailed naming the station and the step. ``relock``: the tracker may have lost the
     scanner (the station before was skipped); it is found again where the robot model puts the
-    SMR, when the cell's geometry is known.
+    SMR, when the cell's geometry is known. ``vias``: the poses the station is reached by
+    (None: its plan's ``via``, the way from the station before it).
 
     - ``j6`` (the paper's): tracker P1, scan, J6 turns for P2 and P3, J6 back.
     - ``cluster``: the SMRs of the cluster facing the tracker, each found at its predicted
@@ -217,9 +233,11 @@ async def measure_station(ctx: JobContext, supervisors: dict[str, DeviceSupervis
     fallback: str | None = None
     ecs: list[EcsPoint] = []
     try:
-        event("move", f"station {st.name} ({i + 1}/{n}): moving")
+        vias = st.via if vias is None else vias
+        event("move", f"station {st.name} ({i + 1}/{n}): moving"
+                      + (f" by {len(vias)} poses clear of the part" if vias else ""))
         q0 = np.radians(st.joints_deg)
-        await how.move_to(q0, st.axis_mm)
+        await how.move_through(vias, q0, st.axis_mm)
         clock("move")
         meta = {"job_id": ctx.job_id, "station": st.name}
         T_wt = how.drift.T_world_from_tracker if how.drift is not None else None
@@ -473,12 +491,26 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                          repeats, turns, setup, metrology, drift if drift.enabled else None,
                          geometry=geometry)
 
-    async def check_scanner(label: str) -> None:
+    async def check_scanner(label: str, before: PlanStation | None,
+                            after: PlanStation | None) -> tuple[Via, ...] | None:
+        """The scanner check between the station the arm stands at (``before``; None: the job's
+        start) and ``after``. A plan with a park pose is left and rejoined by it: the arm
+        parks, the rail runs to the check, and back to ``after`` the same way round; returns
+        the poses ``after`` is then reached by (None: its own ``via``)."""
+        out: tuple[Via, ...] = ()
+        back = arrive = None
+        if plan.park_joints_deg is not None and after is not None:
+            rail = metrology.scanner_check.axis_mm
+            if before is not None:
+                out = (*before.park_via, Via(plan.park_joints_deg, before.axis_mm),
+                       Via(plan.park_joints_deg, rail))
+            back, arrive = plan.park_between(None, after, rail), ()
         try:
             checks.append(await scanner_check(ctx, supervisors, check_devs, metrology, label,
-                                              len(checks) + 1))
+                                              len(checks) + 1, out, back))
         except CommandError as exc:
             raise StepFailed(label, "scanner_check", exc.message) from exc
+        return arrive
 
     def storage_check(storage: StorageWatch, before: str | None) -> None:
         """Name each new recorder or fuse-worker error in an event and the result; stop
@@ -520,8 +552,9 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             scanner_at = (await tracker.measure()).point_mm if drift.enabled else None
             if drift.enabled:
                 await nest_check("start", scanner_at)
+            arrive = None  # the poses the next station is reached by (None: its own via)
             if due(metrology.scanner_check, 0):
-                await check_scanner("start")
+                arrive = await check_scanner("start", None, plan.stations[0])
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
                           repeats, turns, setup, metrology, drift if drift.enabled else None,
                           bool(result["weather"].get("source")), geometry, ecs_method,
@@ -535,15 +568,17 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 elif drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)
                 if i and due(metrology.scanner_check, i):
-                    await check_scanner(f"before {st.name}")
+                    arrive = await check_scanner(f"before {st.name}", plan.stations[i - 1], st)
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
                 try:
                     record = await measure_station(ctx, supervisors, st, how, i, n, eta,
-                                                   plan.name, relock=beam_lost)
+                                                   plan.name, relock=beam_lost, vias=arrive)
                 except StepFailed as exc:
+                    arrive = None
                     skip_or_raise(ctx, exc, skipped, max_skipped, i, n)
                     beam_lost, scanner_at = True, None  # found again at the next station
                     continue
+                arrive = None
                 beam_lost = False
                 scanner_at = tracker_point(record)
                 done.append({"station": st.name, "scan_id": record["scan_id"],

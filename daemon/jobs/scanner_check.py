@@ -7,6 +7,7 @@ scale) and its spheres' form, and warns when the stereo calibration has drifted.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ from scancell.daemon.supervision.supervisor import DeviceSupervisor
 from scancell.devices.errors import DeviceFault
 from scancell.model.metrology_settings import MetrologySettings, ScannerCheck
 from scancell.protocols import messages
+from scancell.protocols.plan import Via
 
 #: the meta ``job_kind`` of a check's frames and cloud: no station of the part
 JOB_KIND = "scanner_check"
@@ -32,19 +34,20 @@ def due(check: ScannerCheck | None, station_index: int) -> bool:
 
 async def scanner_check(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                         devs: Station, metrology: MetrologySettings, label: str,
-                        index: int) -> dict[str, Any]:
-    """Move to the check pose (the rail too, and back after), settle, scan the ball bar; publish
-    ``scan/<check>/check`` and return the check's record (``station``, ``scan_id``, ``label``,
-    ``settle_s``)."""
+                        index: int, out: Sequence[Via] = (),
+                        back: Sequence[Via] | None = None) -> dict[str, Any]:
+    """Move to the check pose (the rail too) through ``out``, settle, scan the ball bar, then
+    move through ``back`` (None: the rail back where it was); publish ``scan/<check>/check``
+    and return the check's record (``station``, ``scan_id``, ``label``, ``settle_s``)."""
     check = metrology.scanner_check
     assert check is not None
     station = f"check{index:02d}"
     ctx.event("running", "scanner_check", f"scanner check {label}: scanning the ball bar")
     rail_before = None
-    if check.axis_mm is not None and devs.axis is not None:
+    if back is None and check.axis_mm is not None and devs.axis is not None:
         rail_before = await devs.axis.position()
     q = np.radians(check.joints_deg)
-    await devs.move_to(q, check.axis_mm)
+    await devs.move_through(out, q, check.axis_mm)
     settle_s = None
     if metrology.settle:
         try:  # the SMR the tracker followed to the last station may face away here
@@ -64,4 +67,6 @@ async def scanner_check(ctx: JobContext, supervisors: dict[str, DeviceSupervisor
     ctx.bus.publish_json(ctx.bus.keys.scanner_check(station), record, "scancell.ScannerCheck")
     if rail_before is not None:  # the stations that follow expect the rail where it was
         await devs.axis.move_to(rail_before)
+    for v in back or ():
+        await devs.move_to(np.radians(v.joints_deg), v.axis_mm)
     return {k: record[k] for k in ("station", "scan_id", "label", "settle_s")}

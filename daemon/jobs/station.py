@@ -5,6 +5,7 @@ job's stations."""
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +15,7 @@ from scancell.daemon.jobs.scan import ScannerSetup
 from scancell.devices.base import Axis, Robot, Tracker
 from scancell.devices.errors import DeviceFault
 from scancell.model.cell_geometry import REAR_SMR, CellGeometry
+from scancell.protocols.plan import Via
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,14 @@ class Station:
         for r in results:
             if isinstance(r, BaseException):
                 raise r
+
+    async def move_through(self, vias: Sequence[Via], q_rad: np.ndarray,
+                           axis_mm: float | None = None) -> None:
+        """To joints ``q_rad`` (rail at ``axis_mm``) through a plan's ``vias`` in order, each a
+        move of the arm and the rail together: the way the planner found clear of the part."""
+        for v in vias:
+            await self.move_to(np.radians(v.joints_deg), v.axis_mm)
+        await self.move_to(q_rad, axis_mm)
 
     async def aim_at_scanner(self, q_rad: np.ndarray, axis_mm: float | None = None) -> None:
         """Lock the tracker on an SMR of the scanner it can see with the arm at ``q_rad`` (rail
