@@ -600,19 +600,22 @@ class Planner:
         if dropped:
             moves["dropped"] = dropped
         park_vias: list[tuple[Via, ...]] = [()] * len(chosen)
+        park_unclear: set[str] = set()
         if self.g.park_joints_deg is not None:  # a scanner check leaves a station by it
             park = np.radians(self.g.park_joints_deg)
             park_vias = []
-            for name, c in zip(names, chosen, strict=True):
+            for station, c in zip(names, chosen, strict=True):
                 how, via, (near, what) = self.route((c.q, c.rail_mm), (park, c.rail_mm), speed)
                 moves[f"park_{how}"] = moves.get(f"park_{how}", 0) + 1
                 if how == "tight":
-                    tight.append({"from": name, "to": "park", "via": len(via),
+                    tight.append({"from": station, "to": "park", "via": len(via),
                                   "nearest_mm": round(near, 1), "to_what": what})
+                    park_unclear.add(station)
                 park_vias.append(_vias(via))
         stations = tuple(PlanStation(names[i], tuple(float(v) for v in np.degrees(c.q)),
                                      c.rail_mm, None, int(c.j6_sign), tracker=c.tracker,
-                                     via=vias[i], park_via=park_vias[i])
+                                     via=vias[i], park_via=park_vias[i],
+                                     park_clear=names[i] not in park_unclear)
                          for i, c in enumerate(chosen))
         overlaps = []
         if len(chosen) > 1:

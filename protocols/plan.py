@@ -26,6 +26,7 @@ TOML (or the same structure as JSON)::
                                  # routes a move that would sweep the scanner through the part)
     park_via = [{joints_deg = [...]}]  # optional: the poses from the station to the park pose
                                  # (at its rail), in order; the way back is the reverse
+    park_clear = false           # optional: that way does not keep the clearance (default true)
 
     [tracker.t1]                 # a tracker station the job moves the tracker to (roughly:
     position_mm = [2500.0, -3000.0, 0.0]   # the reference nests locate it), world, mm
@@ -100,6 +101,9 @@ class PlanStation:
     #: the poses from the station to the plan's park pose at its rail, in order (and back,
     #: reversed)
     park_via: tuple[Via, ...] = ()
+    #: whether that way keeps the clearance (a scanner check due at a station that cannot
+    #: reach the park pose clear waits for the next one)
+    park_clear: bool = True
 
 
 @dataclass(frozen=True)
@@ -197,6 +201,8 @@ class Plan:
                 d["via"] = [v.to_json() for v in s.via]
             if s.park_via:
                 d["park_via"] = [v.to_json() for v in s.park_via]
+            if not s.park_clear:
+                d["park_clear"] = False
             stations.append(d)
         out: dict[str, Any] = {"plan": head, "station": stations}
         if self.trackers:
@@ -322,7 +328,8 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
                                else _number(axis, f"{at} ({name}) axis_mm"), pose6, sign,
                                station_ecs, str(tracker),
                                _vias(s.get("via", []), f"{at} ({name}) via"),
-                               _vias(s.get("park_via", []), f"{at} ({name}) park_via")))
+                               _vias(s.get("park_via", []), f"{at} ({name}) park_via"),
+                               _flag(s.get("park_clear", True), f"{at} ({name}) park_clear")))
     park = head.get("park_joints_deg")
     if park is not None and (not isinstance(park, list) or len(park) != 6):
         raise PlanError(f"{where}: [plan] park_joints_deg must be 6 angles in degrees")
@@ -331,6 +338,12 @@ def parse_plan(obj: Any, where: str = "plan") -> Plan:
                 nominal, ecs, trackers,
                 None if park is None else tuple(_number(x, f"{where}: [plan] park_joints_deg")
                                                  for x in park))
+
+
+def _flag(v: Any, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise PlanError(f"{where}: must be true or false, got {v!r}")
+    return v
 
 
 def _vias(table: Any, where: str) -> tuple[Via, ...]:

@@ -532,8 +532,7 @@ class SimCell:
         """What the scanner's housing would hit at joints ``q_rad`` on the rail where it is, or
         where it is going while it moves (the part, within :data:`HOUSING_REACH_MM` of an
         optical centre), or None. As a controller's collision detection stops the arm on
-        contact, the move does not happen. Only the pose a move ends at is tested, not its
-        path."""
+        contact, the move does not happen. The way there: :meth:`path_collision`."""
         if not self.cfg.part:
             return None
         T = self.T_world_from_mcs(q_rad)
@@ -552,12 +551,12 @@ class SimCell:
 
     def path_collision(self, q_from: np.ndarray, rail_from: float, q_to: np.ndarray,
                        rail_to: float) -> tuple[str, np.ndarray, float] | None:
-        """Where the scanner's housing hits the part on the way from joints ``q_from`` (rad) at
-        rail ``rail_from`` (mm) to ``q_to`` at ``rail_to``, both moving linearly (a tick of the
-        robot's or the rail's motion): the reason, and the last joints and rail before it (where
-        a controller's collision detection stops the arm); None if it stays clear. Samples
-        every :data:`SWEEP_STEP_MM` of an optical centre's travel at most, so a sheet cannot
-        slip between two of them."""
+        """Where the scanner's housing hits the part or the floor on the way from joints
+        ``q_from`` (rad) at rail ``rail_from`` (mm) to ``q_to`` at ``rail_to``, both moving
+        linearly (a tick of the robot's or the rail's motion): the reason, and the last joints
+        and rail before it (where a controller's collision detection stops the arm); None if it
+        stays clear. Samples every :data:`SWEEP_STEP_MM` of an optical centre's travel at most,
+        so a sheet cannot slip between two of them."""
         if not self.cfg.part:
             return None
         q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
@@ -574,15 +573,18 @@ class SimCell:
         poses = [self.rail.base_at(rail0, rail_from + (rail_to - rail_from) * t)
                  @ self.robot.fk(q0 + (q1 - q0) * t) @ self.T_flange_from_mcs for t in f]
         centres = np.concatenate([local @ T[:3, :3].T + T[:3, 3] for T in poses])
-        near = self.surface_distance(centres).reshape(len(f), 3)
+        part = self.surface_distance(centres).reshape(len(f), 3)
+        floor = (centres[:, 2] - FLOOR_Z_MM).reshape(len(f), 3)
+        near = np.minimum(part, floor)
         hit = np.flatnonzero(near.min(axis=1) < HOUSING_REACH_MM)
         if not len(hit):
             return None
         k = int(hit[0])
         names = ("left camera", "right camera", "projector")
         i = int(np.argmin(near[k]))
+        what = "the part" if part[k, i] <= floor[k, i] else "the floor"
         safe = max(k - 1, 0)
-        return (f"the scanner's {names[i]} came {near[k, i]:.0f} mm from the part on the way, "
+        return (f"the scanner's {names[i]} came {near[k, i]:.0f} mm from {what} on the way, "
                 f"inside its housing's {HOUSING_REACH_MM:g} mm: a collision",
                 q0 + (q1 - q0) * f[safe], rail_from + (rail_to - rail_from) * f[safe])
 

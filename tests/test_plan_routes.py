@@ -31,6 +31,11 @@ def test_the_ways_round_the_part_are_written_and_read_back():
     assert plan.stations[1].via == (Via((11.0,) * 6, 150.0),)
     assert plan.stations[2].park_via[1] == Via((14.0,) * 6)
     assert plan.park_joints_deg == tuple(PARK)
+    assert plan.stations[0].park_clear
+    plan = parse_plan({**_plan(), "station": [{**_plan()["station"][0], "park_clear": False}]})
+    assert not plan.stations[0].park_clear and "park_clear = false" in plan.to_toml()
+    assert parse_plan(tomllib.loads(plan.to_toml())) == plan
+    plan = parse_plan(_plan())
     text = plan.to_toml()
     assert "via = [{joints_deg = [11.0," in text and "park_joints_deg = [0.0," in text
     assert parse_plan(tomllib.loads(text)) == plan
@@ -50,6 +55,10 @@ def test_a_malformed_way_is_named_by_station_and_index(station, way, message):
     obj = _plan()
     obj["plan"]["park_joints_deg"] = [0.0] * 5
     with pytest.raises(PlanError, match="park_joints_deg must be 6 angles"):
+        parse_plan(obj)
+    obj = _plan()
+    obj["station"][0]["park_clear"] = "no"
+    with pytest.raises(PlanError, match=r"station 1 \(a\) park_clear: must be true or false"):
         parse_plan(obj)
 
 

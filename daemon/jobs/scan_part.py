@@ -553,6 +553,8 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
             if drift.enabled:
                 await nest_check("start", scanner_at)
             arrive = None  # the poses the next station is reached by (None: its own via)
+            # a check due where the arm cannot reach the park pose clear waits a station
+            check_waits = False
             if due(metrology.scanner_check, 0):
                 arrive = await check_scanner("start", None, plan.stations[0])
             how = Station(robot, tracker, axis, proj_s.name, [c.name for c in cam_s], speed,
@@ -567,7 +569,10 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     scanner_at = None
                 elif drift.enabled and i and i % metrology.nest_check_every == 0:
                     await nest_check(f"before {st.name}", scanner_at)
-                if i and due(metrology.scanner_check, i):
+                check_waits = check_waits or bool(i and due(metrology.scanner_check, i))
+                if check_waits and (plan.park_joints_deg is None
+                                    or plan.stations[i - 1].park_clear):
+                    check_waits = False
                     arrive = await check_scanner(f"before {st.name}", plan.stations[i - 1], st)
                 eta = None if not done else (time.monotonic() - t_start) / len(done) * (n - i)
                 try:
