@@ -360,12 +360,12 @@ class Planner:
     def seen(self, T_world_from_flange: np.ndarray) -> np.ndarray:
         """Which surface samples the scanner measures at this flange pose: inside the field and
         depth about the rig's bisector, facing the rig's midpoint within ``max_incidence_deg``,
-        and in sight of both cameras and the projector (the midpoint), past the part and the
-        cell's objects. One camera that sees none of the lit surface decodes nothing."""
+        and in sight of both cameras and the projector, past the part and the cell's
+        objects. One camera that sees none of the lit surface decodes nothing."""
         g = self.g
         centres = g.optical_centres(T_world_from_flange)  # left camera, projector, right camera
-        origin = centres[1]
         R = T_world_from_flange[:3, :3]
+        origin = R @ g.rig_mid_in_flange + T_world_from_flange[:3, 3]
         rel = (self.points - origin) @ R  # flange axes: x baseline, z view
         z = rel[:, 2]
         ok = (z > g.standoff_mm + g.depth_mm[0]) & (z < g.standoff_mm + g.depth_mm[1])
@@ -465,12 +465,14 @@ class Planner:
             for pair in [*pairs, (None, None)]:
                 parked = [pair[0], (park, start[1]), (park, end[1]), pair[1]]
                 ways.append(("parked", [p for p in parked if p is not None]))
-        swept: dict[tuple[int, int], tuple[float, str]] = {}  # legs the ways share: once
+        # legs the ways share are swept once; the poses are kept with their result, or a
+        # pose made later could take a freed one's id and its answer
+        swept: dict[tuple[int, int], tuple[Pose, Pose, tuple[float, str]]] = {}
 
         def leg(a: Pose, b: Pose) -> tuple[float, str]:
             if (id(a), id(b)) not in swept:
-                swept[id(a), id(b)] = self.move_clearance(a, b, speed)
-            return swept[id(a), id(b)]
+                swept[id(a), id(b)] = (a, b, self.move_clearance(a, b, speed))
+            return swept[id(a), id(b)][2]
 
         best: tuple[str, list[Pose], tuple[float, str]] = ("tight", [], direct)
         for how, via in ways:

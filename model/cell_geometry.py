@@ -80,6 +80,10 @@ PLANNER_KEYS: dict[str, KeySpec] = {
                          "radius}}", "cell objects the scanner keeps clear of (world)", [], "mm"),
     "clearance_mm": KeySpec("number", "how far the scanner's optical centres keep from an "
                                       "obstacle", DEFAULT_CLEARANCE_MM, "mm"),
+    "projector_in_mcs_mm": KeySpec("3 numbers", "the projector's optical centre in MCS (its "
+                                   "calibration): the planner keeps it clear of the part and "
+                                   "needs it in sight of what a view measures; absent: the "
+                                   "rig's midpoint", None, "mm"),
     "park_joints_deg": KeySpec("6 numbers", "the arm folded clear of the part: a move between "
                                "stations that would sweep the scanner too near the part goes "
                                "through it when backing off along the views is not enough; "
@@ -162,13 +166,19 @@ class CellGeometry:
     view_tilts_deg: tuple[float, ...] = DEFAULT_VIEW_TILTS_DEG
     #: the arm folded clear of the part (deg): a move's last way round (None: not stated)
     park_joints_deg: tuple[float, ...] | None = None
+    #: the projector's optical centre in MCS (mm), None: at the rig's midpoint
+    projector_in_mcs_mm: tuple[float, float, float] | None = None
 
     def optical_centres_in_flange(self) -> np.ndarray:
-        """(3, 3) the left camera (MCS origin), the rig midpoint (the projector sits near it)
-        and the right camera (mirrored about the midpoint), in the flange frame (mm)."""
-        left = np.asarray(self.T_flange_from_mcs, float)[:3, 3]
+        """(3, 3) the left camera (MCS origin), the projector (``projector_in_mcs_mm``, or the
+        rig midpoint when not stated) and the right camera (mirrored about the midpoint), in
+        the flange frame (mm)."""
+        T = np.asarray(self.T_flange_from_mcs, float)
+        left = T[:3, 3]
         mid = np.asarray(self.rig_mid_in_flange, float)
-        return np.stack([left, mid, 2 * mid - left])
+        projector = (mid if self.projector_in_mcs_mm is None
+                     else T[:3, :3] @ np.asarray(self.projector_in_mcs_mm, float) + left)
+        return np.stack([left, projector, 2 * mid - left])
 
     def optical_centres(self, T_world_from_flange: np.ndarray) -> np.ndarray:
         """(3, 3) :meth:`optical_centres_in_flange` with the flange at ``T_world_from_flange``
@@ -305,7 +315,10 @@ class CellGeometry:
                     view_tilts_deg=tuple(float(v) for v in t.get("view_tilts_deg",
                                                                        DEFAULT_VIEW_TILTS_DEG)),
                     park_joints_deg=(tuple(float(v) for v in t["park_joints_deg"])
-                                     if t.get("park_joints_deg") is not None else None))
+                                     if t.get("park_joints_deg") is not None else None),
+                    projector_in_mcs_mm=(tuple(float(v) for v in np.reshape(
+                        t["projector_in_mcs_mm"], 3)) if t.get("projector_in_mcs_mm")
+                        is not None else None))
         except (TypeError, ValueError) as exc:
             raise GeometryError(str(exc)) from None
         except KeyError as exc:

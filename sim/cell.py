@@ -475,7 +475,9 @@ class SimCell:
                 "clearance_mm": 100.0,
                 "obstacles": self._obstacles_table(),
                 # the controller's home: the arm up, the scanner looking down at the base
-                "park_joints_deg": list(self.cfg.home_deg)}
+                "park_joints_deg": list(self.cfg.home_deg),
+                # the projector's calibration (the scanner's maker states it)
+                "projector_in_mcs_mm": self.rig.T_mcs_from_projector[:3, 3].tolist()}
 
     def _obstacles_table(self) -> list[dict]:
         out = []
