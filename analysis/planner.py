@@ -15,8 +15,10 @@ three J6 positions.
    the time the moves between them take (the arm at the plan's speed and the rail moving
    together): a nearest-neighbour tour from the first, shortened by 2-opt and or-opt.
    Each move of the tour is swept (``model.move_path``): one that would carry the scanner
-   within ``clearance_mm`` of the part, a cell object or the floor on the way goes through
-   both stations' views backed off, and failing that through the park pose as well.
+   within ``clearance_mm`` of the part, a cell object or the floor on the way is routed
+   (:meth:`Planner.route`: stations backed off along their views, the park pose, a pose about
+   the joints' midpoint), and a station no way reaches clear is left out; each station's way
+   to the park pose is routed the same.
 6. With ``tracker_moves`` and the cell's reference nests, views where the tracker at home cannot
    see the scanner's SMR(s) may be measured from another tracker station: candidate stations on
    a ring around the part (at home's distance and height) that see >= 4 nests past the part.
@@ -483,13 +485,13 @@ class Planner:
                 best = ("tight", via, nearest)
         # a way round: one pose between the widest back-offs, the joints their midpoint
         # shaken at random (seeded: a plan is made again the same)
-        a, b = (outs[0] if outs else start), (backs[0] if backs else end)
+        out, back = _at(outs, 0), _at(backs, 0)
+        a, b = out or start, back or end
         rng = np.random.default_rng(0)
         lo, hi = self.g.robot.limits_rad[:, 0], self.g.robot.limits_rad[:, 1]
         for _ in range(ROUND_TRIES):
             mid = np.clip((a[0] + b[0]) / 2 + rng.normal(0.0, ROUND_SPREAD_RAD, 6), lo, hi)
-            way = [p for p in (outs[0] if outs else None, (mid, a[1]), (mid, b[1]),
-                               backs[0] if backs else None) if p is not None]
+            way = [p for p in (out, (mid, a[1]), (mid, b[1]), back) if p is not None]
             nearest = min(leg(x, y) for x, y in pairwise([start, *way, end]))
             if nearest[0] >= self.g.clearance_mm:
                 return "round", way, nearest

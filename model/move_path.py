@@ -30,14 +30,6 @@ def lever_mm(g: CellGeometry) -> float:
                  + np.linalg.norm(centres, axis=1).max())
 
 
-def _rail_curvature(g: CellGeometry) -> float:
-    """The track's largest turn per mm (rad/mm): 0 on a straight rail."""
-    if g.rail_path is None:
-        return 0.0
-    return max((abs(np.radians(m.turn_deg)) / m.length_mm for m in g.rail_path.modules),
-               default=0.0)
-
-
 def move_times(g: CellGeometry, q_from: np.ndarray, rail_from: float | None,
                q_to: np.ndarray, rail_to: float | None, speed: float) -> tuple[float, float]:
     """(arm, rail) seconds of a move: the joint move at ``speed`` x the joints' maximum speeds,
@@ -58,7 +50,8 @@ def move_flange_poses(g: CellGeometry, q_from: np.ndarray, rail_from: float | No
     arm_s, rail_s = move_times(g, q0, rail_from, q1, rail_to, speed)
     lever = lever_mm(g)
     arm_mm = float(np.abs(q1 - q0).sum() * lever)
-    rail_mm = abs(r1 - r0) * (1.0 + _rail_curvature(g) * lever)
+    turn = g.rail_path.max_turn_per_mm if g.rail_path is not None else 0.0
+    rail_mm = abs(r1 - r0) * (1.0 + turn * lever)
     # each motion's own grid, at half the step: between two samples each moves <= step / 2
     t = np.union1d(*(np.linspace(0.0, span, max(2, int(np.ceil(2 * mm / step_mm)) + 1))
                      for span, mm in ((arm_s, arm_mm), (rail_s, rail_mm))))

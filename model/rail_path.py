@@ -41,6 +41,13 @@ class RailPath:
     def length_mm(self) -> float:
         return float(sum(m.length_mm for m in self.modules))
 
+    @property
+    def max_turn_per_mm(self) -> float:
+        """The track's sharpest turn (rad per mm of travel): 0 on a straight rail. A base that
+        travels ``d`` mm turns at most ``d`` times this."""
+        return max((abs(np.radians(m.turn_deg)) / m.length_mm for m in self.modules),
+                   default=0.0)
+
     def offset(self, s_mm: float) -> tuple[np.ndarray, float]:
         """Where the base stands at rail position ``s_mm`` relative to its start: the
         displacement (world, mm) and the turn about world z (rad) since the start."""

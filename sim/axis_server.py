@@ -88,10 +88,13 @@ class SimulatedDrive:
         """Drive fault (e.g. a following error): motion stops, state FAULT until reset."""
         with self._lock:
             self._update()
-            self._error = code
-            self._state = "FAULT"
-            self._stop_target()
-            self._homing = False
+            self._fault(code)
+
+    def _fault(self, code: int) -> None:
+        self._error = code
+        self._state = "FAULT"
+        self._stop_target()
+        self._homing = False
 
     # ---------------------------------------------------------------- kinematics
     def _tick_loop(self, tick_s: float) -> None:
@@ -114,9 +117,7 @@ class SimulatedDrive:
             log.error("axis simulator: the rail carried the scanner into the part: %s", hit[0])
             self.cell.move_rail(hit[2], dt, arrived=False)
             self.cell.collided = hit[0]
-            self._error, self._state = p.ERROR_FOLLOWING, "FAULT"
-            self._stop_target()
-            self._homing = False
+            self._fault(p.ERROR_FOLLOWING)
             return
         # the simulated clock advances by the distance travelled at the speed, not the ticks
         if abs(delta) <= step:

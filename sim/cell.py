@@ -566,10 +566,8 @@ class SimCell:
                           self.rig.T_mcs_from_projector[:3, 3]])
         lever = self.robot.reach_mm + float(np.linalg.norm(
             self.T_flange_from_mcs[:3, 3])) + float(np.linalg.norm(local, axis=1).max())
-        turn_per_mm = max((abs(np.radians(m.turn_deg)) / m.length_mm
-                           for m in self.rail.modules), default=0.0)
         travel = (np.abs(q1 - q0).sum() * lever
-                  + abs(rail_to - rail_from) * (1.0 + turn_per_mm * lever))
+                  + abs(rail_to - rail_from) * (1.0 + self.rail.max_turn_per_mm * lever))
         f = np.linspace(0.0, 1.0, max(2, int(np.ceil(travel / SWEEP_STEP_MM)) + 1))
         rail0 = self.cfg.T_world_from_rail0
         poses = [self.rail.base_at(rail0, rail_from + (rail_to - rail_from) * t)
