@@ -9,7 +9,8 @@ an underbody view, or an arm that reaches its next pose while the rail is still 
 a curved track.
 
 Samples are spaced so that no optical centre moves more than ``step_mm`` between two of them
-(a bound from the joints' and the rail's travel and the arm's lever, :func:`lever_mm`). A path
+(a bound from each joint's turn times its lever, ``RobotModel.joint_levers_mm``, and the rail's
+travel and curvature times the arm's lever, :func:`lever_mm`). A path
 whose samples all stand ``c`` clear of an obstacle cannot come nearer than ``c - step_mm / 2``
 between them: the planner samples every ``clearance_mm / 2`` so the path keeps ``3/4`` of the
 clearance.
@@ -48,10 +49,10 @@ def move_flange_poses(g: CellGeometry, q_from: np.ndarray, rail_from: float | No
     q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
     r0, r1 = rail_from or 0.0, rail_to or 0.0
     arm_s, rail_s = move_times(g, q0, rail_from, q1, rail_to, speed)
-    lever = lever_mm(g)
-    arm_mm = float(np.abs(q1 - q0).sum() * lever)
+    tool = float(np.linalg.norm(g.optical_centres_in_flange(), axis=1).max())
+    arm_mm = float(np.abs(q1 - q0) @ g.robot.joint_levers_mm(tool))
     turn = g.rail_path.max_turn_per_mm if g.rail_path is not None else 0.0
-    rail_mm = abs(r1 - r0) * (1.0 + turn * lever)
+    rail_mm = abs(r1 - r0) * (1.0 + turn * lever_mm(g))
     # each motion's own grid, at half the step: between two samples each moves <= step / 2
     t = np.union1d(*(np.linspace(0.0, span, max(2, int(np.ceil(2 * mm / step_mm)) + 1))
                      for span, mm in ((arm_s, arm_mm), (rail_s, rail_mm))))

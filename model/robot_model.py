@@ -137,6 +137,19 @@ class RobotModel:
                       f"{np.linalg.norm(err[:3]):.2f} mm, "
                       f"{np.degrees(np.linalg.norm(err[3:]) / 1000):.3f} deg")
 
+    def joint_levers_mm(self, tool_mm: float) -> np.ndarray:
+        """(6,) bounds (mm) on how far a point within ``tool_mm`` of the flange's origin stands
+        from each joint's axis, in any pose: a turn of ``dq[i]`` rad moves it at most
+        ``dq[i] * lever[i]``. Joint i turns about its DH z axis: its row's ``d`` runs along that
+        axis, its ``a`` and every later row's ``a`` and ``d`` away from it. The first three are
+        also bounded by the reach (the wrist centre within ``reach_mm`` of the J2 height on the
+        J1 axis, plus the shoulder offset and the wrist-to-flange)."""
+        rows = self.dh
+        chain = np.array([abs(r.a) + sum(abs(n.a) + abs(n.d) for n in rows[i + 1:])
+                          for i, r in enumerate(rows)]) + tool_mm
+        reach = self.reach_mm + abs(rows[0].a) + abs(rows[5].d) + tool_mm
+        return np.minimum(chain, np.where(np.arange(6) < 3, reach, np.inf))
+
     def travel_time(self, q_from: np.ndarray, q_to: np.ndarray, speed: float) -> float:
         """Time (s) of a synchronised joint move at ``speed`` x max joint speed."""
         dq = np.abs(np.asarray(q_to, float) - np.asarray(q_from, float))

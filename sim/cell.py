@@ -564,10 +564,11 @@ class SimCell:
         q0, q1 = np.asarray(q_from, float), np.asarray(q_to, float)
         local = np.stack([np.zeros(3), self.rig.T_mcs_from_right[:3, 3],
                           self.rig.T_mcs_from_projector[:3, 3]])
-        lever = self.robot.reach_mm + float(np.linalg.norm(
-            self.T_flange_from_mcs[:3, 3])) + float(np.linalg.norm(local, axis=1).max())
-        travel = (np.abs(q1 - q0).sum() * lever
-                  + abs(rail_to - rail_from) * (1.0 + self.rail.max_turn_per_mm * lever))
+        tool = float(np.linalg.norm(self.T_flange_from_mcs[:3, 3])
+                     + np.linalg.norm(local, axis=1).max())
+        levers = self.robot.joint_levers_mm(tool)
+        travel = (np.abs(q1 - q0) @ levers
+                  + abs(rail_to - rail_from) * (1.0 + self.rail.max_turn_per_mm * levers.max()))
         f = np.linspace(0.0, 1.0, max(2, int(np.ceil(travel / SWEEP_STEP_MM)) + 1))
         rail0 = self.cfg.T_world_from_rail0
         poses = [self.rail.base_at(rail0, rail_from + (rail_to - rail_from) * t)

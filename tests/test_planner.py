@@ -9,6 +9,7 @@ import sys
 from itertools import pairwise
 
 import numpy as np
+import open3d as o3d
 import pytest
 from scancell.analysis.planner import CellGeometry, Planner, PlanningError
 from scancell.protocols.plan import plan_from_text
@@ -474,3 +475,38 @@ def test_a_move_that_would_sweep_the_scanner_through_the_car_body_is_routed_roun
     assert near >= g.clearance_mm
     for x, y in zip([a, *via], [*via, b], strict=True):
         assert _sim_hits_on_the_way(cell, g, 0.5, x, y) is None
+
+
+@pytest.mark.unit
+def test_the_part_is_queried_along_a_move_only_where_it_could_be_near(planned):
+    """Sphere tracing (``Planner._part_nearest_along``) against every sample queried: the same
+    nearest distance wherever a path comes within the clearance, at or above it elsewhere. The
+    paths: the plan's moves and moves between stations far apart (clear), and straight runs
+    from 700 mm off the surface down to 20-160 mm of it or through it (near)."""
+    from scancell.model.move_path import move_flange_poses
+
+    _, g, planner, plan, _ = planned
+    local = g.optical_centres_in_flange()
+    poses = [(np.radians(s.joints_deg), s.axis_mm) for s in plan.stations]
+    rng = np.random.default_rng(5)
+    tracks = []
+    for (q0, r0), (q1, r1) in [*pairwise(poses), *(
+            tuple(poses[i] for i in rng.choice(len(poses), 2, replace=False)) for _ in range(8))]:
+        Ts = move_flange_poses(g, q0, r0, q1, r1, plan.speed, g.clearance_mm / 2)
+        tracks.append(np.einsum("nij,kj->nki", Ts[:, :3, :3], local) + Ts[:, None, :3, 3])
+    for k in rng.choice(len(planner.points), 16, replace=False):
+        p, n = planner.points[k], planner.normals[k]
+        ends = (p + 700 * n + 200 * rng.normal(size=3), p + rng.uniform(-60, 160) * n)
+        line = ends[0] + np.linspace(0, 1, 40)[:, None] * (ends[1] - ends[0])
+        tracks.append(line[:, None] + local[None] - local.mean(axis=0))
+    near = 0
+    for track in tracks:
+        every = float(planner.scene.compute_distance(
+            o3d.core.Tensor(track.reshape(-1, 3).astype(np.float32))).numpy().min())
+        traced = planner._part_nearest_along(track)
+        if every < g.clearance_mm:
+            near += 1
+            assert traced == pytest.approx(every, abs=1e-3)
+        else:
+            assert g.clearance_mm <= traced and every <= traced + 1e-3
+    assert 4 <= near < len(tracks)  # the test met paths of both kinds
