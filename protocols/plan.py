@@ -159,16 +159,24 @@ class Plan:
             out.append(s)
         return replace(self, stations=tuple(out))
 
+    def to_park(self, a: PlanStation, axis_mm: float | None) -> tuple[Via, ...]:
+        """The way from station ``a`` to the park pose at rail ``axis_mm``: ``a``'s
+        ``park_via``, the park pose at ``a``'s rail, then at ``axis_mm``. Needs
+        :attr:`park_joints_deg`."""
+        assert self.park_joints_deg is not None
+        park = self.park_joints_deg
+        return (*a.park_via, Via(park, a.axis_mm), Via(park, axis_mm))
+
     def park_between(self, a: PlanStation | None, b: PlanStation,
                      axis_mm: float | None = None) -> tuple[Via, ...]:
         """The way from station ``a`` (None: the park pose at rail ``axis_mm``) to station
-        ``b`` through the park pose: ``a``'s ``park_via``, the park pose at ``a``'s rail and at
-        ``b``'s, then ``b``'s ``park_via`` reversed. Needs :attr:`park_joints_deg`."""
+        ``b`` through the park pose: :meth:`to_park` at ``b``'s rail, then ``b``'s
+        ``park_via`` reversed."""
         assert self.park_joints_deg is not None
         park = self.park_joints_deg
-        head = () if a is None else a.park_via
-        return (*head, Via(park, axis_mm if a is None else a.axis_mm), Via(park, b.axis_mm),
-                *reversed(b.park_via))
+        head = ((Via(park, axis_mm), Via(park, b.axis_mm)) if a is None
+                else self.to_park(a, b.axis_mm))
+        return (*head, *reversed(b.park_via))
 
     def to_json(self) -> dict[str, Any]:
         head: dict[str, Any] = {"name": self.name, "speed": self.speed,

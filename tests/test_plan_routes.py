@@ -77,3 +77,17 @@ def test_a_subset_goes_through_the_park_pose_between_stations_that_were_not_neig
     del obj["plan"]["park_joints_deg"]
     unparked = parse_plan(obj)
     assert unparked.subset(["a", "c"]).stations[1].via == unparked.stations[2].via
+
+
+def test_a_scanner_check_leaves_by_the_park_pose_and_rejoins_the_same_way():
+    """Out from a station to the park pose at the check's rail, and from there into the next."""
+    plan = parse_plan(_plan())
+    a, c = plan.stations[0], plan.stations[2]
+    assert plan.to_park(a, -50.0) == (Via((10.0,) * 6), Via(tuple(PARK), 100.0),
+                                      Via(tuple(PARK), -50.0))
+    assert plan.park_between(None, c, -50.0) == (Via(tuple(PARK), -50.0),
+                                                 Via(tuple(PARK), 300.0), Via((14.0,) * 6),
+                                                 Via((13.0,) * 6))
+    # the two halves meet at the park pose: out and in make the way between stations
+    assert plan.park_between(a, c) == (*plan.to_park(a, 300.0), Via((14.0,) * 6),
+                                       Via((13.0,) * 6))

@@ -502,8 +502,7 @@ async def scan_part(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
         if plan.park_joints_deg is not None and after is not None:
             rail = metrology.scanner_check.axis_mm
             if before is not None:
-                out = (*before.park_via, Via(plan.park_joints_deg, before.axis_mm),
-                       Via(plan.park_joints_deg, rail))
+                out = plan.to_park(before, rail)
             back, arrive = plan.park_between(None, after, rail), ()
         try:
             checks.append(await scanner_check(ctx, supervisors, check_devs, metrology, label,
