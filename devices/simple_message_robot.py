@@ -199,7 +199,8 @@ class SimpleMessageRobot(Robot):
         raise Timeout(f"{self.name}: no reply on {self.motion_url} within {self.reply_timeout} s")
 
     async def _send_point(self, seq: int, q: np.ndarray, velocity: float) -> None:
-        body = sm.JointTrajPt(seq, q.tolist(), velocity, 0.0)
+        body = sm.JointTrajPt(seq, sm.reals_within(q.tolist(), self.joint_limits_rad.tolist()),
+                              velocity, 0.0)
         header = sm.Header(sm.MsgType.JOINT_TRAJ_PT, sm.CommType.SERVICE_REQUEST)
         packet = sm.encode(header, body, self.byteorder)
         stopping = seq == sm.SpecialSeq.STOP_TRAJECTORY

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import enum
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 N_JOINTS = 10
 #: Longest body of the standard set (JOINT_TRAJ_PT_FULL request) plus header, with margin.
@@ -63,6 +66,24 @@ class ValidFields(enum.IntFlag):
 
 class ProtocolError(ValueError):
     """Bytes that are not a valid simple_message packet (the stream cannot be trusted after)."""
+
+
+def reals_within(values: Sequence[float], limits: Sequence[Sequence[float]]
+                 ) -> tuple[float, ...]:
+    """``values`` as ``shared_real`` (float32) carries them, each kept inside its ``(lo, hi)``
+    of ``limits``: where rounding to float32 would cross the limit, the float32 next to it on
+    the inside. A joint commanded onto its limit (-125 deg is -2.18166156 rad) would otherwise
+    reach the controller up to half a float32 step (1.2e-7 rad at 2 rad) outside it, and be
+    refused. Values already outside stay as they round."""
+    out = []
+    for x, (lo, hi) in zip(values, limits, strict=True):
+        r = float(np.float32(x))
+        if lo <= x and r < lo:
+            r = float(np.nextafter(np.float32(r), np.float32(np.inf)))
+        elif x <= hi and r > hi:
+            r = float(np.nextafter(np.float32(r), np.float32(-np.inf)))
+        out.append(r)
+    return tuple(out)
 
 
 def _joints(values) -> tuple[float, ...]:

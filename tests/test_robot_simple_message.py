@@ -67,6 +67,27 @@ def test_move_follows_at_realistic_speed_and_reports_state(byteorder):
 
 
 @pytest.mark.process
+def test_a_point_on_a_joints_limit_is_taken_by_the_controller():
+    """J5 planned onto its -125 deg limit (a planner's way round clips there): the driver sends
+    it inside the limit as float32 carries it, and the controller takes it (it refused it
+    before: point 0, reply_code 2)."""
+    async def main():
+        cell, server, robot = await _pair()
+        try:
+            target = cell.start_joints().copy()
+            target[4] = cell.robot.limits_rad[4, 0]
+            assert cell.collision(target) is None
+            await robot.move_joints(target, speed=1.0)
+            np.testing.assert_allclose(await robot.joints(), target, atol=3e-4)
+            assert cell.robot.within_limits(cell.q)
+        finally:
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+@pytest.mark.process
 def test_stop_mid_motion_halts_the_robot():
     async def main():
         _, server, robot = await _pair()

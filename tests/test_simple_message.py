@@ -130,3 +130,24 @@ def test_fuzz_round_trip_joint_traj_pt(joints, seq, vel):
     h = sm.Header(sm.MsgType.JOINT_TRAJ_PT, sm.CommType.SERVICE_REQUEST)
     (_, back), = sm.FrameDecoder("little").feed(sm.encode(h, msg, "little"))
     assert back == msg
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("limit_deg", [-360.0, -180.0, -125.0, -90.0, 125.0, 135.0, 360.0])
+def test_a_joint_on_its_limit_goes_on_the_wire_inside_it(limit_deg):
+    """float32 rounds -125 deg (in rad) a hair below -125 deg: a point planned onto the limit
+    must not reach the controller outside it (the car body's run stopped at s79 on this)."""
+    import math
+    import struct
+
+    lim = math.radians(limit_deg)
+    limits = [(min(lim, -lim), max(lim, -lim))]
+    (sent,) = sm.reals_within([lim], limits)
+    assert struct.unpack(">f", struct.pack(">f", sent))[0] == sent  # a float32
+    assert limits[0][0] <= sent <= limits[0][1]
+    assert abs(sent - lim) < 5e-7
+    # a joint inside its limits is only rounded; one outside is not moved in
+    inside = 0.123456789
+    assert sm.reals_within([inside], [(-1.0, 1.0)]) == (
+        struct.unpack(">f", struct.pack(">f", inside))[0],)
+    assert sm.reals_within([1.5], [(-1.0, 1.0)])[0] > 1.0
