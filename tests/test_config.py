@@ -19,6 +19,18 @@ def test_packaged_configs_load():
     assert mock.bus.listen == ("tcp/127.0.0.1:7447",) and not mock.bus.multicast_scouting
 
 
+
+@pytest.mark.unit
+@pytest.mark.parametrize("name", ["sim", "sim-car-body"])
+def test_the_simulated_cells_robot_driver_knows_the_simulated_arms_limits(name):
+    """The driver checks a plan's every pose at its start against its limits; with the
+    controller's wider than its own a plan could pass and be refused mid-run."""
+    import numpy as np
+    from scancell.model.robot_model import M710IC_LIMITS_DEG
+
+    robot = load_cell_config(cell_config_path(name)).devices["robot"]
+    np.testing.assert_array_equal(robot.options["joint_limits_deg"], M710IC_LIMITS_DEG)
+
 def _write(tmp_path: Path, text: str) -> Path:
     p = tmp_path / "cell.toml"
     p.write_text(text)
