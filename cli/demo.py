@@ -24,7 +24,8 @@ The simulated cell runs the profile its config names (``realistic`` in the packa
 docs/explanation/simulation.md) and the scans take the exposures its ``[scanner]`` table names.
 
 ``--quick`` runs the same path at 1/4 camera resolution, with 5 balls, the plan's first 3
-stations and the first of each other tracker station.
+stations and the first of each other tracker station; with ``--all-stations`` every station
+(a rehearsal of a plan's motion before a full-size run).
 
 ``--part car_body`` runs it on the whole car body's cell (``deploy/cells/sim-car-body.toml``):
 the robot on a track round the body, the tracker moved round it, and the coverage reported
@@ -163,6 +164,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the simulated part: car_rear (default; deploy/cells/sim.toml) or "
                         "car_body (a whole body on a track round it; sim-car-body.toml)")
     p.add_argument("--quick", action="store_true", help="reduced size, for tests")
+    p.add_argument("--all-stations", action="store_true",
+                   help="with --quick: every station of the plan, not a few: a rehearsal of "
+                        "the plan's every move, way round the part and scanner check at the "
+                        "reduced size, before a full-size run")
     p.add_argument("--frames", choices=("all", "first_exposure", "none"), default=None,
                    help="which camera frames the recorder keeps (default: all; none for the "
                         "car body: its ~320 full-size stations' frames would be ~67 GB, its "
@@ -225,6 +230,9 @@ def main(args: argparse.Namespace) -> int:
     if args.compare_ecs and args.ecs == "cluster":
         return fail("demo", "--compare-ecs measures both ways on the J6 plan's stations (the "
                             "J6 turns need the rear SMR in sight); leave out --ecs cluster")
+    if args.all_stations and not args.quick:
+        return fail("demo", "--all-stations is for --quick: a full-size run measures every "
+                            "station already")
     ecs = args.ecs or ("j6" if args.compare_ecs else "cluster")
     quick = args.quick
     scale = 4 if quick else 1
@@ -385,7 +393,7 @@ def main(args: argparse.Namespace) -> int:
         if args.compare_ecs:
             plan["plan"]["ecs"] = "cluster"
             request["compare_ecs"] = True
-        if quick:
+        if quick and not args.all_stations:
             request["stations"] = quick_stations(plan)
         reports: list[dict] = []
         client.bus.subscribe(client.bus.keys.fusion_report, lambda s: reports.append(s.decode()))

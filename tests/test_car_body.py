@@ -111,6 +111,10 @@ def test_the_demo_names_a_part_its_config_does_not_simulate(tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "--part car_body" in err and "car_rear" in err
     assert not (tmp_path / "runs").exists()  # nothing started, nothing half-written
+    # every station is the full size's anyway: --all-stations is the quick run's rehearsal
+    assert scancell(["demo", "--part", "car_body", "--all-stations"]) != 0
+    assert "--all-stations is for --quick" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
 
 
 def test_the_demo_reuses_a_plan_made_before_and_names_a_bad_one(tmp_path, capsys, monkeypatch):
