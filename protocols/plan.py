@@ -105,6 +105,13 @@ class PlanStation:
     #: reach the park pose clear waits for the next one)
     park_clear: bool = True
 
+    def poses(self) -> list[tuple[str, Via]]:
+        """Every pose the job may command for this station, named as an error names it: the
+        station (""), its way in (" via[k]") and its way to the park pose (" park_via[k]")."""
+        return [("", Via(self.joints_deg, self.axis_mm)),
+                *((f" via[{k}]", v) for k, v in enumerate(self.via)),
+                *((f" park_via[{k}]", v) for k, v in enumerate(self.park_via))]
+
 
 @dataclass(frozen=True)
 class TrackerStation:

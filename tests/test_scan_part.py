@@ -379,8 +379,18 @@ def test_plans_outside_the_limits_are_refused_before_any_motion(sim, client):
     with world.lock:
         plan = plan_for(world.cell)
     q0 = client.call("device/robot/joints")["joints_deg"]
-    plan["station"][1]["joints_deg"][1] = 175.0  # J2 beyond +160
+    plan["station"][1]["joints_deg"][1] = 175.0  # J2 beyond the arm's +135
     with pytest.raises(CommandError, match=r"out_of_range.*station s02.*J2"):
+        client.call("job/scan_part", {"plan": plan})
+    # a way to the park pose, the park pose itself: a scanner check would have met them mid-run
+    plan["station"][1]["joints_deg"][1] = 10.0
+    plan["plan"]["park_joints_deg"] = [0.0, 0.0, 0.0, 0.0, -90.0, 0.0]
+    plan["station"][2]["park_via"] = [{"joints_deg": [0.0, 0.0, 0.0, 0.0, -126.0, 0.0]}]
+    with pytest.raises(CommandError, match=r"out_of_range.*station s03 park_via\[0\].*J5"):
+        client.call("job/scan_part", {"plan": plan})
+    plan["station"][2]["park_via"] = []
+    plan["plan"]["park_joints_deg"][1] = 140.0
+    with pytest.raises(CommandError, match=r"out_of_range.*park_joints_deg.*J2"):
         client.call("job/scan_part", {"plan": plan})
     assert client.call("job/status")["running"] is None
     assert np.allclose(client.call("device/robot/joints")["joints_deg"], q0, atol=0.01)

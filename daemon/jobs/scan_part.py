@@ -132,11 +132,32 @@ def solve_poses(plan: Plan, geometry: CellGeometry | None, seed_rad: np.ndarray 
 
 
 def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
-    """Refuse the whole plan before any motion if one station is outside a limit."""
+    """Refuse the whole plan before any motion if one pose of it is outside a limit: a
+    station (at each J6 turn), its way in, its way to the park pose and the park pose."""
+    if plan.park_joints_deg is not None:
+        try:
+            robot.check_joints(np.radians(plan.park_joints_deg))
+        except CommandError as exc:
+            raise CommandError("out_of_range", f"plan {plan.name!r}, park_joints_deg: "
+                                               f"{exc.message}") from None
     for s in plan.stations:
+        for where, v in s.poses():
+            try:
+                robot.check_joints(np.radians(v.joints_deg))
+            except CommandError as exc:
+                raise CommandError("out_of_range", f"plan {plan.name!r}, station "
+                                                   f"{s.name}{where}: {exc.message}") from None
+            if v.axis_mm is None:
+                continue
+            if axis is None:
+                raise CommandError("invalid", f"station {s.name}{where} has axis_mm but the "
+                                              f"cell has no axis")
+            lo, hi = axis.limits
+            if not lo <= v.axis_mm <= hi:
+                raise CommandError("out_of_range", f"station {s.name}{where}: axis {v.axis_mm} "
+                                                   f"mm outside [{lo}, {hi}] mm")
         q = np.radians(s.joints_deg)
         try:
-            robot.check_joints(q)
             for turn in plan.j6_angles_deg:
                 q6 = q.copy()
                 q6[5] += np.radians(turn)
@@ -145,37 +166,21 @@ def check_plan(plan: Plan, robot: Robot, axis: Axis | None) -> None:
                 except CommandError:
                     q6[5] -= 2 * np.radians(turn)  # the job may turn the other way
                     robot.check_joints(q6)
-            for k, v in enumerate(s.via):
-                try:
-                    robot.check_joints(np.radians(v.joints_deg))
-                except CommandError as exc:
-                    raise CommandError(exc.code, f"via[{k}]: {exc.message}") from None
         except CommandError as exc:
             raise CommandError("out_of_range", f"plan {plan.name!r}, station {s.name}: "
                                                f"{exc.message}") from None
-        for where, axis_mm in [("", s.axis_mm),
-                               *((f" via[{k}]", v.axis_mm) for k, v in enumerate(s.via))]:
-            if axis_mm is None:
-                continue
-            if axis is None:
-                raise CommandError("invalid", f"station {s.name}{where} has axis_mm but the "
-                                              f"cell has no axis")
-            lo, hi = axis.limits
-            if not lo <= axis_mm <= hi:
-                raise CommandError("out_of_range", f"station {s.name}{where}: axis {axis_mm} mm "
-                                                   f"outside [{lo}, {hi}] mm")
 
 
 def check_clearance(plan: Plan, geometry: CellGeometry | None) -> None:
-    """Refuse the plan if a station brings the scanner nearer a cell object than the cell's
-    clearance (``[planner] obstacles``, by the robot model), naming the station."""
+    """Refuse the plan if a pose of a station (:meth:`PlanStation.poses`) brings the scanner
+    nearer a cell object than the cell's clearance (``[planner] obstacles``, by the robot
+    model), naming the station."""
     if geometry is None or not geometry.obstacles:
         return
     for s in plan.stations:
-        for where, q_deg, axis_mm in [("", s.joints_deg, s.axis_mm),
-                                      *((f" via[{k}]", v.joints_deg, v.axis_mm)
-                                        for k, v in enumerate(s.via))]:
-            T = geometry.base_at(axis_mm) @ geometry.robot.fk(np.radians(q_deg))
+        for where, v in s.poses():
+            axis_mm = s.axis_mm if v.axis_mm is None else v.axis_mm
+            T = geometry.base_at(axis_mm) @ geometry.robot.fk(np.radians(v.joints_deg))
             problem = geometry.clearance_problem(T)
             if problem:
                 raise CommandError("out_of_range",
