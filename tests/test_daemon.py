@@ -346,3 +346,45 @@ def test_an_abort_waits_for_the_clean_up_a_bounded_time_and_says_what_was_left()
     assert "park_the_robot" in first["left_undone"] and "slow" in first["left_undone"]
     assert last["state"] == "aborted" and released == [True]
     assert second["cleaned_up"] is True and second["aborted"].startswith("quick-")
+
+
+class LateOnce(MockRobot):
+    """Its health answers late ``late`` times in a row (a loaded host), then on time."""
+
+    late = 1
+
+    async def health(self) -> Health:
+        if LateOnce.late > 0:
+            LateOnce.late -= 1
+            await asyncio.sleep(2.5)
+        return await super().health()
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("late,lost", [(1, False), (5, True)])
+def test_one_late_health_answer_is_not_a_lost_link_but_two_are(late, lost):
+    """The daemon's event loop starved for a few seconds (the suite beside a long job on 2
+    cores) once took tracker, axis and projector down together mid-job; a dead link still
+    counts as lost, after the second unanswered poll."""
+    from scancell.config import DaemonConfig, DeviceConfig
+    from scancell.daemon.supervision.supervisor import RECONNECTING, DeviceSupervisor
+
+    async def main() -> list[dict]:
+        seen: list[dict] = []
+        LateOnce.late = late
+        sup = DeviceSupervisor(LateOnce("robot"), DeviceConfig("robot", "late", {}),
+                               DaemonConfig(status_period_s=0.1), seen.append,
+                               lambda name, alive: None)
+        task = asyncio.create_task(sup.run())
+        await asyncio.sleep(6.5)
+        sup.stop()
+        await asyncio.wait_for(task, 10)
+        return seen
+
+    states = [(s["state"], s["message"]) for s in asyncio.run(main())]
+    dropped = [m for st, m in states if st == RECONNECTING]
+    if lost:
+        assert dropped and "2 health polls in a row unanswered within 2 s" in dropped[0]
+    else:
+        assert not dropped, states
+        assert states[-2][0] == "connected"
