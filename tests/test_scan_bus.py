@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -127,3 +128,28 @@ def test_scan_with_broken_trigger_coupling_is_refused_and_the_next_one_works(sim
         client.call("scan", {"station": "bad station/../"})
     with pytest.raises(Exception, match="unknown_device"):
         client.call("scan", {"cameras": ["cam_left", "robot"]})
+
+
+@pytest.mark.process
+def test_an_hdr_scan_publishes_each_exposure_before_acquiring_the_next(sim_daemon, client):
+    # the daemon holds one exposure's frames at a time, not a whole HDR scan's
+    arrived: list[tuple[int, int, int]] = []  # (arrival ns, exposure index, rendered ns)
+    lock = threading.Lock()
+
+    def keep(s):
+        a = s.attachment
+        if a.meta.get("station") == "hdr":
+            with lock:
+                arrived.append((time.time_ns(), a.meta["exposure_index"], a.stamp_ns))
+
+    sub = client.bus.subscribe(client.bus.keys.dev("*", "image"), keep)
+    try:
+        reply = client.call("scan", {"station": "hdr", "exposures_us": [8000.0, 16000.0]})
+        assert reply["exposures_us"] == [8000.0, 16000.0]
+        wait_until(lambda: len(arrived) == 36, 30, what="both exposures' 36 frames")
+    finally:
+        sub.undeclare()
+    with lock:
+        first_out = max(t for t, e, _ in arrived if e == 0)
+        second_rendered = min(stamp for _, e, stamp in arrived if e == 1)
+    assert first_out < second_rendered, "exposure 0 went out only after exposure 1 was taken"
