@@ -5,6 +5,14 @@ in again: rendering a full-size station spent 5.9 s in the kernel, 1.8 s with th
 below, and 19.9 s against 16.6 s in all (measured in-process, 3 poses x 2 cameras x 2
 exposures x 9 patterns). Linux with glibc only; elsewhere nothing changes.
 
+One malloc arena per core the process may run on, not glibc's eight per core: a frame is freed
+into the arena of the thread that allocated it, and memory freed in one arena is no use to a
+thread of another, so a service of a dozen threads (its event loop's executor, the simulator's,
+the noise and decode threads, zenoh's) kept up to ~1 GB of freed blocks beside its live heap
+(the daemon in the demo: heap 1.7 GB at 2.98 GB resident, memray). With two arenas on this
+2-core machine the daemon alone over six full-size auto-HDR stations peaked at 2 192 MB, not
+2 388, its scans as fast within 2 % (benchmarks/RESULTS.md, session 43).
+
 What is kept is given back once the process is idle (:func:`give_back_when_idle`): a service
 between jobs, or a worker waiting for the next station, holds its live data only."""
 
@@ -13,13 +21,14 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import os
 import sys
 import threading
 import time
 from collections.abc import Callable
 
 #: mallopt parameters (malloc.h)
-M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
+M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -2, -3, -8
 MMAP_THRESHOLD_BYTES = 256 << 20  # blocks below it come from the heap, and go back to it
 TRIM_THRESHOLD_BYTES = 1 << 30  # free memory at the heap's top kept up to this much
 TOP_PAD_BYTES = 256 << 20  # the heap grows in steps of this much
@@ -41,8 +50,17 @@ def _libc():
         return None
 
 
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def keep_freed_memory() -> bool:
-    """Set the allocator's thresholds for this process; whether it could."""
+    """Set the allocator's thresholds and its arenas (one per core) for this process; whether
+    it could."""
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -52,7 +70,8 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return all(mallopt(p, v) == 1 for p, v in ((M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES),
                                                 (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES),
-                                                (M_TOP_PAD, TOP_PAD_BYTES)))
+                                                (M_TOP_PAD, TOP_PAD_BYTES),
+                                                (M_ARENA_MAX, cores())))
 
 
 def trim_heap() -> bool:

@@ -68,3 +68,51 @@ print(busy, kept, rss_mb())
     busy, kept, idle = map(float, out.stdout.split())
     assert kept > busy - 100, (busy, kept)  # freed, but kept: the heap keeps up to 1 GB
     assert idle < kept - 200, (busy, kept, idle)  # given back once idle
+
+
+@pytest.mark.process
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc arenas")
+def test_threads_share_one_arena_per_core():
+    import subprocess
+
+    # glibc's malloc_info lists each arena as a <heap nr=...>; without the limit each new thread
+    # that allocates gets its own (up to 8 per core)
+    code = """
+import ctypes, ctypes.util, os, re, sys, tempfile, threading
+import numpy as np
+from scancell.cli._allocator import cores, keep_freed_memory
+
+if sys.argv[1] == "limited":
+    assert keep_freed_memory()
+barrier = threading.Barrier(8)
+
+def work():
+    barrier.wait()
+    for _ in range(20):
+        np.ones(1 << 20).sum()  # 8 MB from the heap
+
+threads = [threading.Thread(target=work) for _ in range(8)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+path = tempfile.mktemp()
+fp = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, fp)
+libc.fclose(fp)
+print(len(re.findall(r'<heap nr="', open(path).read())), cores())
+os.unlink(path)
+"""
+    counts = {}
+    for mode in ("limited", "default"):
+        out = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 0, out.stderr
+        counts[mode], n_cores = map(int, out.stdout.split())
+    assert counts["limited"] <= n_cores, counts
+    assert counts["default"] > n_cores, counts  # the test can see the difference
