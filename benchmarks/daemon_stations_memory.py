@@ -1,7 +1,7 @@
 """The daemon alone on the simulated cell: its peak resident memory over a few full-size stations.
 
     .venv/bin/python benchmarks/daemon_stations_memory.py --plan runs/<demo>/plan.toml \
-        [--stations 6] [--pause 0] [--env MALLOC_ARENA_MAX=2 ...]
+        [--stations 6] [--pause 0] [--env NAME=VALUE ...]
 
 Starts ``scancell daemon`` on ``deploy/cells/sim.toml`` (full size, auto HDR), then for each of
 the plan's first ``--stations`` stations that need no way round (``park_via``): the arm to its
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -25,13 +24,10 @@ import time
 import tomllib
 from pathlib import Path
 
+from proc_memory import rss_mb
+from scancell.bus.ports import free_port
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class PeakRss:
@@ -43,12 +39,7 @@ class PeakRss:
 
     def _run(self) -> None:
         while not self._stop:
-            try:
-                for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-                    if line.startswith("VmRSS"):
-                        self.peak_mb = max(self.peak_mb, int(line.split()[1]) / 1024)
-            except OSError:
-                pass
+            self.peak_mb = max(self.peak_mb, rss_mb(self.pid))  # 0 once the process is gone
             time.sleep(self.every_s)
 
     def stop(self) -> None:
