@@ -465,6 +465,45 @@ def test_fast_kernels_agree_with_the_numpy_reference(station):
 
 
 @pytest.mark.unit
+def test_the_kernels_atan2_errs_by_less_than_6e_9_rad():
+    import math
+
+    from scancell.analysis.kernels import _atan2_0_2pi
+
+    def off(a: float) -> float:
+        got = _atan2_0_2pi(3.0 * math.sin(a), 3.0 * math.cos(a))
+        return abs((got - math.atan2(math.sin(a), math.cos(a)) + math.pi) % (2 * math.pi) - math.pi)
+
+    assert max(off(a) for a in np.linspace(0, 2 * np.pi, 20001)) < 6e-9
+
+
+@pytest.mark.unit
+def test_both_engines_measure_the_same_phases_and_response_histogram():
+    """Two equal intensities of three put the phase at a multiple of π/3, on an edge of the
+    response histogram's bins; both engines compute in float64 and round such phases alike
+    (the kernel's atan has to err by less than their 3e-8 rad from a float32 rounding
+    boundary), so their histograms and the response estimated from them match. Any other
+    phase differs by float32 rounding at most. (Near 0 the phase is sin(2π/3) + sin(4π/3),
+    1e-16 in floating point, times the intensity: both engines keep it below 1e-12 rad.)"""
+    from scancell.analysis.phase import measure_phases
+
+    a, b = (v.astype(np.uint8) for v in np.meshgrid(np.arange(255), np.arange(255)))
+    noise = np.random.default_rng(3).integers(0, 255, (3, *a.shape), dtype=np.uint8)
+    images = [a, a, b, b, a, a, *noise]  # frequency 1: (a, a, b), 2: (b, a, a), 3: random
+    seq = FringeSequence()
+    fast, ref = (measure_phases(images, seq, DecodeSettings(engine=e)) for e in ("fast", "numpy"))
+    equal = a == b  # no fringe: no phase
+    assert np.array_equal(fast.phases[0, ~equal], ref.phases[0, ~equal])  # π/3 and 4π/3
+    assert np.abs(fast.phases[1] - ref.phases[1])[~equal].max() < 1e-12  # 0 and π
+    assert np.array_equal(fast.histograms[:2], ref.histograms[:2])
+    assert np.array_equal(fast.background, ref.background)
+    assert np.array_equal(fast.modulation, ref.modulation)
+    strong = fast.modulation > 1
+    assert np.all(np.abs(fast.phases[2] - ref.phases[2])[strong]
+                  <= np.spacing(np.float32(2 * np.pi)))
+
+
+@pytest.mark.unit
 def test_16_bit_tiff_images_decode_like_8_bit(station, tmp_path):
     root = station["root"]
     for side in ("left", "right"):
