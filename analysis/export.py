@@ -130,7 +130,11 @@ def poisson_mesh(points_mm: np.ndarray,
         away = np.einsum("ij,ij->i", normals, viewpoint_of(pts) - pts) < 0
         normals[away] *= -1.0
         pcd.normals = o3d.utility.Vector3dVector(normals)
-    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    # one thread: Open3D's multi-threaded Poisson crashes the process at random
+    # (isl-org/Open3D#6828, open; it killed a quick demo's fuse worker with SIGSEGV here) and
+    # one thread measured no slower on 2 cores (3.5-4.0 s against 3.8-4.5 s for 300 k points)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        pcd, depth=depth, n_threads=1)
     density = np.asarray(density)
     mesh.remove_vertices_by_mask(density < np.quantile(density, trim_quantile))
     mesh.compute_vertex_normals()
