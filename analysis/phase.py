@@ -321,13 +321,10 @@ def measure_phases(images: Sequence[np.ndarray], sequence: FringeSequence,
 
 
 def _exact_sum_type(images: Sequence[np.ndarray]) -> type:
-    """The narrowest type that sums the images exactly (uint16 for up to 257 8-bit images)."""
+    """A type that sums the images exactly: uint32 for 8- and 16-bit ones (65 537 images of
+    65 535 fit), else float64."""
     dtype = images[0].dtype
-    if dtype == np.uint8 and len(images) <= 257:
-        return np.uint16
-    if np.issubdtype(dtype, np.integer) and dtype.itemsize <= 2 and len(images) <= 65537:
-        return np.uint32
-    return np.float64
+    return np.uint32 if np.issubdtype(dtype, np.integer) and dtype.itemsize <= 2 else np.float64
 
 
 def _finest(sequence: FringeSequence) -> int:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -466,8 +467,6 @@ def test_fast_kernels_agree_with_the_numpy_reference(station):
 
 @pytest.mark.unit
 def test_the_kernels_atan2_errs_by_less_than_6e_9_rad():
-    import math
-
     from scancell.analysis.kernels import _atan2_0_2pi
 
     def off(a: float) -> float:
