@@ -161,6 +161,14 @@ INSPECTION_KEYS: dict[str, KeySpec] = {
     "tolerances": KeySpec("path", "per-region tolerances (TOML: faces, boxes, spheres)"),
     "max_distance_mm": KeySpec("number", "points farther from the nominal are not part of it",
                                5.0, "mm"),
+    "decision_rule": KeySpec("\"iso14253-1\" or \"simple\"",
+                             "how a verdict accounts for the uncertainty: ISO 14253-1's guard "
+                             "bands (pass proven inside the tolerance less U, fail beyond it plus "
+                             "U, else not provable), or the tolerance's edge alone",
+                             "iso14253-1"),
+    "point_sigma_mm": KeySpec("number", "each point's 1-sigma where a model carries none "
+                                        "(absent: the model's own scatter about local planes)",
+                              None, "mm"),
 }
 #: every table of a cell config
 _TOP_KEYS = {"cell", "bus", "daemon", "devices", "scanner", "simulator", "recorder", "planner",
@@ -407,6 +415,12 @@ def _inspection(t: dict[str, Any], path: Path | None, err) -> dict[str, Any]:
                 out[key] = str(path.parent / out[key])
     if "align" in out and out["align"] not in ("asmeasured", "bestfit"):
         raise err("[inspection] align", f"must be asmeasured or bestfit, got {out['align']!r}")
+    if "decision_rule" in out and out["decision_rule"] not in ("iso14253-1", "simple"):
+        raise err("[inspection] decision_rule",
+                  f"must be iso14253-1 or simple, got {out['decision_rule']!r}")
+    sigma = out.get("point_sigma_mm")
+    if sigma is not None and not (isinstance(sigma, int | float) and sigma >= 0):
+        raise err("[inspection] point_sigma_mm", f"must be a number >= 0 (mm), got {sigma!r}")
     T = out.get("T_world_from_part")
     if T is not None:
         import numpy as np

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis import alignment as al
+from scancell.analysis import decision
 from scancell.analysis.deviation import (
     CHUNK,
     ClosestPoints,
@@ -66,6 +67,11 @@ class InspectionSettings:
     sections: list[tuple[str, float]] | None = None
     section_half_width_mm: float = 1.0
     trim_sigma: float = 3.0
+    #: how conformance is decided (:mod:`scancell.analysis.decision`)
+    decision_rule: str = decision.DEFAULT_RULE
+    #: each point's 1-sigma (mm) where the cloud carries none; None: estimated from the
+    #: cloud's own scatter (:func:`scancell.analysis.uncertainty.scatter_sigma`)
+    default_sigma_mm: float | None = None
 
 
 @dataclass
@@ -80,6 +86,8 @@ class Inspection:
     sections: list[Section]
     tolerances: dict[str, Any]
     seconds: dict[str, float]
+    #: where the points' uncertainty came from (:func:`point_sigma`)
+    uncertainty: dict[str, Any] = field(default_factory=dict)
 
     @property
     def deviation(self) -> np.ndarray:
@@ -128,7 +136,7 @@ class Inspection:
                              "unmeasured_area_mm2": float(c.uncovered.mean()
                                                           * self.nominal.area_mm2)},
                 "sections": [s.to_json(self.deviation) for s in self.sections],
-                "seconds": self.seconds}
+                "uncertainty": self.uncertainty, "seconds": self.seconds}
 
 
 def _align(nominal: Nominal, points: np.ndarray, s: InspectionSettings) -> al.Alignment:
@@ -198,12 +206,13 @@ def cut(nominal: Nominal, axis: str, offset: float, points: np.ndarray, half_wid
 def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
                   settings: InspectionSettings | None = None,
                   progress: Callable[[str], None] | None = None,
-                  run_tiles: TileRunner = tiles_here, overwrite_input: bool = False
-                  ) -> Inspection:
+                  run_tiles: TileRunner = tiles_here, overwrite_input: bool = False,
+                  sigma: np.ndarray | None = None) -> Inspection:
     """The whole inspection of ``points_measured`` (N, 3, measuring frame, mm); the deviation
     of every point tile by tile by ``run_tiles`` (here, or a cluster's). ``overwrite_input``:
     the caller is done with a float32 cloud, whose rows then become the part-frame points
-    (a 50 M-point cloud: 0.6 GB less)."""
+    (a 50 M-point cloud: 0.6 GB less). ``sigma``: each point's 1-sigma uncertainty along the
+    surface normal (mm; the fused model's ``uncertainty``), None where the cloud has none."""
     s = settings or InspectionSettings()
     say = progress or (lambda _msg: None)
     # the cloud as given (float32 from a PLY or the fusion): whole-cloud work goes CHUNK
@@ -219,6 +228,7 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
         raise InspectionError(f"{len(pts) - finite} measured points are not finite numbers")
     seconds: dict[str, float] = {}
     t = time.perf_counter()
+    sigma, uncertainty = point_sigma(pts, sigma, s.default_sigma_mm)
     check_scale(nominal, pts if s.transform is None
                 else al.apply(np.asarray(s.transform, float), thinned(pts)))
     say(f"aligning ({s.align}) {len(pts)} points to {len(nominal.triangles)} triangles")
@@ -238,7 +248,7 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     seconds["deviation"] = time.perf_counter() - t
     t = time.perf_counter()
     say("tolerances, sections and unmeasured surface")
-    tolerances = judge_all(nominal, part, cp, in_range, s.tolerance)
+    tolerances = judge_all(nominal, part, cp, in_range, s.tolerance, sigma, s.decision_rule)
     # every k-th point, at most 1 M: their spacing stays far below the gap threshold
     cov = coverage(nominal, thinned(part) if in_range.all()
                    else part[thinned(np.flatnonzero(in_range))], s.coverage_gap_mm)
@@ -246,28 +256,61 @@ def inspect_cloud(points_measured: np.ndarray, nominal: Nominal,
     sections = [cut(nominal, a, o, part, s.section_half_width_mm) for a, o in planes]
     seconds["analysis"] = time.perf_counter() - t
     return Inspection(nominal, s, alignment, part, cp, in_range, cov, sections, tolerances,
-                      {k: round(v, 3) for k, v in seconds.items()})
+                      {k: round(v, 3) for k, v in seconds.items()}, uncertainty)
+
+
+def point_sigma(points: np.ndarray, sigma: np.ndarray | None, default_mm: float | None
+                ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Each point's 1-sigma (mm, float32) and where it came from: the cloud's own (checked:
+    no NaN, no negative), the stated default, or, with neither, the cloud's scatter about
+    local planes (noise only). The verdicts are only as honest as these."""
+    from scancell.analysis.uncertainty import check_point_sigma, scatter_sigma
+
+    if sigma is not None:
+        s = check_point_sigma(sigma, len(points), "the measured cloud's uncertainty")
+        return s, {"source": "points", "median_sigma_mm": round(float(np.median(s)), 5)}
+    if default_mm is not None:
+        if not (np.isfinite(default_mm) and default_mm >= 0):
+            raise InspectionError(f"the stated point uncertainty {default_mm!r} mm must be a "
+                                  f"finite number >= 0")
+        value, how = float(default_mm), "stated"
+        note = (f"the cloud carries no per-point uncertainty: every point is taken at the "
+                f"stated 1-sigma of {value:.4f} mm")
+    else:
+        value, how = scatter_sigma(points), "scatter"
+        note = (f"the cloud carries no per-point uncertainty: every point is taken at "
+                f"1-sigma {value:.4f} mm, its own scatter about local planes; that is noise "
+                f"only (a station's pose and the calibration are not in it), so the verdicts "
+                f"may claim too much")
+    return (np.full(len(points), value, np.float32),
+            {"source": how, "median_sigma_mm": round(value, 5), "note": note})
 
 
 def judge_all(nominal: Nominal, part: np.ndarray, cp: ClosestPoints, in_range: np.ndarray,
-              spec: ToleranceSpec) -> dict[str, Any]:
+              spec: ToleranceSpec, sigma: np.ndarray | None = None,
+              rule: str = decision.DEFAULT_RULE) -> dict[str, Any]:
+    """Every tolerance of ``spec`` judged on the points in range by ``rule``, with each
+    point's 1-sigma ``sigma`` (mm, input order; None: no uncertainty known)."""
     out: dict[str, Any] = {"allowed_out_share": spec.allowed_out_share,
                            "defect_area_mm2": spec.defect_area_mm2, "overall": None,
-                           "regions": []}
+                           "regions": [], "decision": decision.describe(rule)}
     d = cp.deviation
     used = None if in_range.all() else np.flatnonzero(in_range)  # None: every point, no copy
     spacing = point_spacing_mm(part, index=used) if (spec.overall or spec.regions) else 0.0
     out["point_spacing_mm"] = round(spacing, 4)
     if spec.overall is not None:
         out["overall"] = judge(d if used is None else d[used], spec.overall,
-                               spec.allowed_out_share, part, spacing, spec.defect_area_mm2, used)
+                               spec.allowed_out_share, part, spacing, spec.defect_area_mm2, used,
+                               sigma if sigma is None or used is None else sigma[used], rule)
     faces = nominal.face_of_triangle[cp.triangle] if spec.regions else None  # 4 B a point
     for region in spec.regions:
         inside = np.flatnonzero(region.contains(part, faces, nominal) & in_range)
         out["regions"].append({"name": region.name, "kind": region.kind,
                                "where": region.describe(),
                                **judge(d[inside], region.tolerance, spec.allowed_out_share,
-                                       part, spacing, spec.defect_area_mm2, inside)})
-    verdicts = [r["pass"] for r in [out["overall"], *out["regions"]] if r and r["pass"] is not None]
-    out["pass"] = all(verdicts) if verdicts else None
+                                       part, spacing, spec.defect_area_mm2, inside,
+                                       None if sigma is None else sigma[inside], rule)})
+    judged = [r for r in [out["overall"], *out["regions"]] if r]
+    out["verdict"] = decision.combine([r["verdict"] for r in judged]) if judged else None
+    out["pass"] = decision.as_pass(out["verdict"]) if judged else None
     return out

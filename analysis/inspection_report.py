@@ -354,9 +354,11 @@ def coverage_figure(inspection: Inspection) -> bytes:
 
 # ----------------------------------------------------------------------------- tables
 REGION_COLUMNS = ["name", "kind", "where", "points", "lower_mm", "upper_mm", "mean_mm", "std_mm",
-                  "min_mm", "max_mm", "below_share", "above_share", "out_share", "defect_count",
+                  "min_mm", "max_mm", "below_share", "above_share", "out_share", "U_mm",
+                  "proven_inside_share", "proven_outside_share", "defect_count", "verdict",
                   "pass"]
-DEFECT_COLUMNS = ["region", "side", "centre_mm", "size_mm", "area_mm2", "points", "extreme_mm"]
+DEFECT_COLUMNS = ["region", "side", "centre_mm", "size_mm", "area_mm2", "points", "extreme_mm",
+                  "height_mm", "U_mm", "verdict"]
 
 
 def defect_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
@@ -389,17 +391,45 @@ table{border-collapse:collapse;margin:.5em 0 1.5em;display:block;max-width:100%;
 td,th{border:1px solid #bbb;padding:.25em .6em;
 text-align:right}th{background:#eee}td:first-child,th:first-child{text-align:left}
 .pass{color:#fff;background:#2a2;padding:.1em .5em}.fail{color:#fff;background:#c22;padding:.1em .5em}
-.none{background:#999;color:#fff;padding:.1em .5em}img{max-width:100%}code{font-size:90%}"""
+.none{background:#999;color:#fff;padding:.1em .5em}.unproven{background:#d80;color:#fff;
+padding:.1em .5em}img{max-width:100%}code{font-size:90%}"""
+
+#: a verdict (analysis/decision.py) as the report shows it: its CSS class and its words
+VERDICT_STYLES = {True: ("pass", "PASS"), False: ("fail", "FAIL"), None: ("none", "no tolerance"),
+                  "pass": ("pass", "PASS"), "fail": ("fail", "FAIL"),
+                  "not provable": ("unproven", "NOT PROVABLE"),
+                  "not measured": ("none", "NOT MEASURED")}
 
 
-def _verdict(v: bool | None) -> str:
-    return {True: '<span class="pass">PASS</span>', False: '<span class="fail">FAIL</span>',
-            None: '<span class="none">no tolerance</span>'}[v]
+def _verdict(v: bool | str | None) -> str:
+    css, words = VERDICT_STYLES[v]
+    return f'<span class="{css}">{words}</span>'
+
+
+def _decision_text(report: dict[str, Any]) -> str:
+    """The rule, the points' uncertainty and the share of the CAD the verdict covers."""
+    t, u, cov = report["tolerances"], report.get("uncertainty") or {}, report["coverage"]
+    rule = (t.get("decision") or {}).get("text")
+    parts = [f"Judged on what was measured: {cov['nominal_covered_share']:.1%} of the CAD "
+             f"surface has a point within {cov['gap_threshold_mm']} mm; a region without points "
+             f"is not measured, never passed or failed."]
+    if rule:
+        parts.append(f"Decision rule: {rule} (U = {t['decision']['k']:g} &#963;).")
+    if u.get("note"):
+        parts.append(html.escape(u["note"]) + ".")
+    elif u.get("source") == "points":
+        parts.append(f"Each point's U is its own stated uncertainty (median 1-sigma "
+                     f"{u['median_sigma_mm']:.4f} mm).")
+    notes = {r.get("note") for r in region_rows(report) if r.get("note") and r.get("points")}
+    parts += [html.escape(n) + "." for n in sorted(notes)]
+    return "<p>" + "<br>".join(parts) + "</p>"
 
 
 def _fmt(v: Any) -> str:
     if isinstance(v, bool) or v is None:
         return _verdict(v) if isinstance(v, bool) else "–"
+    if isinstance(v, str) and v in VERDICT_STYLES:
+        return _verdict(v)
     if isinstance(v, float):
         return f"{v:.4f}" if abs(v) < 1e4 else f"{v:.4g}"
     return html.escape(str(v))
@@ -463,6 +493,7 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
     nominal = report["nominal"]
     T = np.asarray(a["T_part_from_measured"])
     regions, found = region_rows(report), defect_rows(report)
+    verdict = report["tolerances"].get("verdict", report["tolerances"].get("pass"))
     align_rows = [{"": "method", "value": a["method"]}, {"": "residual RMS (mm)", "value": a["rms_mm"]},
                   {"": "points used", "value": f"{a['used_fraction']:.1%}"},
                   {"": "iterations", "value": a["iterations"]},
@@ -475,7 +506,8 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
              f"unit {html.escape(nominal['unit'])}"
              + (f", tessellated to {nominal['chordal_tolerance_mm']} mm chordal tolerance"
                 if nominal.get("chordal_tolerance_mm") else "") + ")</p>",
-             f"<h2>Verdict: {_verdict(report['tolerances'].get('pass'))}</h2>",
+             f"<h2>Verdict: {_verdict(verdict)}</h2>",
+             _decision_text(report),
              "<h2>Deviation</h2><p>Signed, along the nominal's outward normal: + where material "
              "lies outside the nominal. Points farther than "
              f"{d.get('max_distance_mm', '?')} mm from it are left out "
@@ -486,8 +518,11 @@ def render_html(inspection: Inspection, report: dict[str, Any]) -> str:
              + (_table(regions, REGION_COLUMNS) if regions
                 else "<p>No tolerance given.</p>")
              + f"<p>A region passes while at most {report['tolerances']['allowed_out_share']:.1%} "
-               "of its points lie outside its tolerance and no connected patch of them covers more "
-               f"than {report['tolerances'].get('defect_area_mm2', 0):g} mm² (a defect).</p>"
+               "of its points are not proven inside its tolerance and no defect is proven; it "
+               "fails when more are proven outside, or a defect's height is. A defect is a "
+               "connected patch of points outside the tolerance covering more than "
+               f"{report['tolerances'].get('defect_area_mm2', 0):g} mm²; its height is the "
+               "median deviation around its extreme (a local fit), with its U.</p>"
              + ("<h3>Defects</h3>" + _table(found, DEFECT_COLUMNS) if found else ""),
              "<h2>Colour maps</h2>",
              *(_img(png, f"{name} view") for name, png in view_maps(inspection)),

@@ -74,6 +74,17 @@ class Region:
     max_mm: float
     mean_mm: float
     passed: bool
+    #: the decision rule's verdict (analysis/decision.py); "" where only ``passed`` is known
+    verdict: str = ""
+    #: the typical point's expanded uncertainty (mm, k = 2), where known
+    u_mm: float | None = None
+
+
+#: a verdict as QIF's CharacteristicStatusEnum and InspectionStatusEnum say it
+CHARACTERISTIC_STATUS = {"pass": "PASS", "fail": "FAIL", "not provable": "INDETERMINATE",
+                         "not measured": "NOT_ANALYZED"}
+INSPECTION_STATUS = {"pass": "PASS", "fail": "FAIL", "not provable": "UNKNOWN",
+                     "not measured": "NOT_MEASURED"}
 
 
 @dataclass(frozen=True)
@@ -252,13 +263,17 @@ def inspection_document(regions: Sequence[Region], *, part_name: str, unit: str 
                         T_part_from_measured: Sequence[Sequence[float]] | None = None,
                         alignment: str = "bestfit", overall_pass: bool | None = None,
                         traceability: Traceability | None = None,
-                        device: str = "scancell fringe scanner on a laser tracker"
+                        device: str = "scancell fringe scanner on a laser tracker",
+                        decision_rule: str | None = None, overall_verdict: str | None = None
                         ) -> etree._ElementTree:
     """The inspection as a QIF results document: each region an ``OtherSurfaceFeature`` with a
     ``SurfaceProfileCharacteristic`` (its tolerance zone ``lower..upper`` as a profile
     tolerance of width ``upper - lower``, unequally disposed by ``upper``), and its measurement:
-    the status, the worst deviations each way and the profile value ``2 max |dev|``. The
-    alignment is the results' actual transform (part from measured)."""
+    the status (the decision rule's verdict: PASS, FAIL, INDETERMINATE where it is not
+    provable), the worst deviations each way and the profile value ``2 max |dev|`` with its
+    combined standard uncertainty (U / 2). The rule, the verdict and U stand in the
+    measurement's Attributes. The alignment is the results' actual transform (part from
+    measured)."""
     regions = list(regions)
     if not regions:
         raise QIFError("no region to write: an inspection with no toleranced region has no "
@@ -332,17 +347,32 @@ def inspection_document(regions: Sequence[Region], *, part_name: str, unit: str 
     cm = _el(_el(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=len(regions))
     for (r, _, citem), fm in zip(per_region, meas_ids, strict=True):
         m = _el(cm, "SurfaceProfileCharacteristicMeasurement", id=ids())
-        _el(_el(m, "Status"), "CharacteristicStatusEnum", "PASS" if r.passed else "FAIL")
+        verdict = r.verdict or ("pass" if r.passed else "fail")
+        attrs = [("AttributeStr", "verdict", verdict)]
+        if decision_rule:
+            attrs.append(("AttributeStr", "decision rule", decision_rule))
+        if r.u_mm is not None:
+            attrs.append(("AttributeD1", "expanded uncertainty U (k = 2), mm", r.u_mm))
+        a = _el(m, "Attributes", n=len(attrs))
+        for tag, name, value in attrs:
+            _el(a, tag, name=name, value=_text(value))
+        _el(_el(m, "Status"), "CharacteristicStatusEnum", CHARACTERISTIC_STATUS[verdict])
         _el(m, "CharacteristicItemId", citem)
         _ids_list(m, "FeatureMeasurementIds", [fm])
-        _el(m, "Value", 2.0 * max(abs(r.min_mm), abs(r.max_mm)))
+        value = 2.0 * max(abs(r.min_mm), abs(r.max_mm))
+        if r.u_mm is None:
+            _el(m, "Value", value)
+        else:
+            _el(m, "Value", value, combinedUncertainty=_text(r.u_mm / 2), meanError=_text(0.0))
         _el(m, "WorstPositiveDeviation", max(r.max_mm, 0.0))
         _el(m, "WorstNegativeDeviation", min(r.min_mm, 0.0))
     if T_part_from_measured is not None:
         _transform(_el(mr, "ActualTransforms", n=1), ids, T_part_from_measured,
                    f"{alignment} alignment: part from measured")
-    verdict = all(r.passed for r in regions) if overall_pass is None else overall_pass
-    _el(_el(mr, "InspectionStatus"), "InspectionStatusEnum", "PASS" if verdict else "FAIL")
+    if overall_verdict is None:
+        passed = all(r.passed for r in regions) if overall_pass is None else overall_pass
+        overall_verdict = "pass" if passed else "fail"
+    _el(_el(mr, "InspectionStatus"), "InspectionStatusEnum", INSPECTION_STATUS[overall_verdict])
     return _finish(root, ids)
 
 
@@ -506,7 +536,7 @@ def regions_of(tolerances: dict[str, Any]) -> list[Region]:
             continue
         out.append(Region(name, int(r["points"]), r.get("lower_mm"), r.get("upper_mm"),
                           float(r["min_mm"]), float(r["max_mm"]), float(r["mean_mm"]),
-                          bool(r.get("pass"))))
+                          bool(r.get("pass")), str(r.get("verdict") or ""), r.get("U_mm")))
     return out
 
 
@@ -527,7 +557,8 @@ def inspection_from_json(body: dict[str, Any], traceability: Traceability | None
         nominal_format=nominal_format(source) if source else None,
         T_part_from_measured=align.get("T_part_from_measured"),
         alignment=str(align.get("method", "bestfit")), overall_pass=tol.get("pass"),
-        traceability=traceability)
+        traceability=traceability, decision_rule=(tol.get("decision") or {}).get("text"),
+        overall_verdict=tol.get("verdict"))
 
 
 def acceptance_from_json(body: dict[str, Any]) -> etree._ElementTree:

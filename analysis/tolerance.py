@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis import decision
 from scancell.analysis.json_file import read_toml
 from scancell.analysis.nominal import Nominal
 
@@ -176,39 +177,69 @@ def load_spec(path: str | Path, overall: Tolerance | None = None) -> ToleranceSp
 
 def judge(deviation: np.ndarray, tolerance: Tolerance, allowed_out_share: float,
           points: np.ndarray | None = None, spacing_mm: float | None = None,
-          defect_area_mm2: float = DEFAULT_DEFECT_AREA_MM2, index: np.ndarray | None = None
+          defect_area_mm2: float = DEFAULT_DEFECT_AREA_MM2, index: np.ndarray | None = None,
+          sigma: np.ndarray | None = None, rule: str = decision.DEFAULT_RULE
           ) -> dict[str, Any]:
-    """Statistics of ``deviation`` (mm) against ``tolerance``: share below, above, the defects
-    (with the points, part frame, mm, and their spacing: :func:`defects`; ``index``: the row
-    of ``points`` of each deviation, None: row for row), pass. Sums in float64, whatever the
-    deviations' type, without a float64 copy of them."""
+    """Statistics of ``deviation`` (mm) against ``tolerance`` and the verdict of ``rule``
+    (:mod:`scancell.analysis.decision`): share below, above, proven inside and outside, the
+    defects (with the points, part frame, mm, and their spacing: :func:`defects`; ``index``:
+    the row of ``points`` of each deviation, None: row for row), ``verdict`` and ``pass``
+    (true only when conformance is proven). ``sigma``: each deviation's 1-sigma uncertainty
+    (mm; None: 0, nothing known). Sums in float64, whatever the deviations' type, without a
+    float64 copy of them."""
     d = np.asarray(deviation)
     if d.size == 0:
-        return {"points": 0, **tolerance.to_json(), "pass": None,
-                "note": "no measured point in this region"}
+        return {"points": 0, **tolerance.to_json(), "verdict": decision.NOT_MEASURED,
+                "pass": None, "note": "no measured point in this region: not measured"}
+    zone = decision.Zone(tolerance.lower_mm, tolerance.upper_mm)
+    U = np.float32(0.0) if sigma is None else (decision.K * np.asarray(sigma)).astype(np.float32)
+    inside, outside = decision.classify(d, U, zone, rule)
     below = float(np.mean(d < tolerance.lower_mm))
     above = float(np.mean(d > tolerance.upper_mm))
-    found = (defects(points, d, tolerance, spacing_mm, defect_area_mm2, index)
+    found = (defects(points, d, tolerance, spacing_mm, defect_area_mm2, index, sigma, rule)
              if points is not None and spacing_mm else [])
-    return {"points": int(d.size), **tolerance.to_json(),
-            "mean_mm": float(np.mean(d, dtype=np.float64)),
-            "std_mm": float(np.std(d, dtype=np.float64)), "min_mm": float(d.min()),
-            "max_mm": float(d.max()),
-            "below_share": below, "above_share": above, "out_share": below + above,
-            "defects": found[:MAX_DEFECTS_LISTED], "defect_count": len(found),
-            "pass": bool(below + above <= allowed_out_share and not found)}
+    not_inside, proven_out = 1.0 - float(np.mean(inside)), float(np.mean(outside))
+    verdict = decision.share_verdict(not_inside, proven_out, allowed_out_share,
+                                     [f["verdict"] for f in found])
+    u_typical = float(np.median(U)) if np.ndim(U) else float(U)
+    u_mean = float(np.sqrt(np.mean(np.square(U, dtype=np.float64)))) if np.ndim(U) else float(U)
+    out = {"points": int(d.size), **tolerance.to_json(),
+           "mean_mm": float(np.mean(d, dtype=np.float64)),
+           "std_mm": float(np.std(d, dtype=np.float64)), "min_mm": float(d.min()),
+           "max_mm": float(d.max()),
+           "below_share": below, "above_share": above, "out_share": below + above,
+           "U_mm": round(u_typical, 5), "mean_U_mm": round(u_mean, 5),
+           "proven_inside_share": 1.0 - not_inside, "proven_outside_share": proven_out,
+           "defects": found[:MAX_DEFECTS_LISTED], "defect_count": len(found),
+           "verdict": verdict, "pass": decision.as_pass(verdict)}
+    why = decision.no_acceptance_zone(zone, u_typical, rule)
+    if why:
+        out["note"] = why
+    return out
+
+
+#: a defect's height is the median deviation of the points within this radius of its
+#: extreme, in point spacings: about π · 3.1² ≈ 30 points, whose median has 1.25 / √30 ≈ 0.23
+#: of one point's noise
+DEFECT_FIT_SPACINGS = 3.1
+#: patch points whose neighbourhood is fitted, at most (spread evenly over the patch)
+DEFECT_FIT_PROBES = 2000
 
 
 def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spacing_mm: float,
-            min_area_mm2: float, index: np.ndarray | None = None) -> list[dict[str, Any]]:
+            min_area_mm2: float, index: np.ndarray | None = None,
+            sigma: np.ndarray | None = None, rule: str = decision.DEFAULT_RULE
+            ) -> list[dict[str, Any]]:
     """The connected patches of out-of-tolerance points (each side apart) larger than
     ``min_area_mm2``, largest first: where (centroid, mm), how large (area ≈ points x
-    spacing², mm²), how deep (the extreme deviation, mm). Patches are Open3D's DBSCAN of the
-    out-of-tolerance points, linked within DEFECT_LINK_SPACINGS spacings."""
+    spacing², mm²), the extreme deviation (mm), and the robust height from a local fit
+    (:func:`defect_height`) with its U and the rule's verdict on it. Patches are Open3D's
+    DBSCAN of the out-of-tolerance points, linked within DEFECT_LINK_SPACINGS spacings."""
     import open3d as o3d
 
     out = []
     per_point = spacing_mm ** 2
+    zone = decision.Zone(tolerance.lower_mm, tolerance.upper_mm)
     for side, mask in (("above", deviation > tolerance.upper_mm),
                        ("below", deviation < tolerance.lower_mm)):
         n = int(mask.sum())
@@ -225,11 +256,50 @@ def defects(points: np.ndarray, deviation: np.ndarray, tolerance: Tolerance, spa
                 continue
             extreme = dev[member][np.argmax(np.abs(dev[member]))]
             lo, hi = pts[member].min(axis=0), pts[member].max(axis=0)
+            height, u = defect_height(points, deviation, index, sigma, pts[member], side,
+                                      spacing_mm)
             out.append({"side": side, "centre_mm": [round(float(v), 3) for v in pts[member].mean(axis=0)],
                         "size_mm": [round(float(v), 3) for v in hi - lo],
                         "area_mm2": round(area, 1), "points": int(member.sum()),
-                        "extreme_mm": round(float(extreme), 4)})
+                        "extreme_mm": round(float(extreme), 4),
+                        "height_mm": round(height, 4), "U_mm": round(u, 4),
+                        "verdict": decision.decide(height, u, zone, rule)})
     return sorted(out, key=lambda x: -x["area_mm2"])
+
+
+def defect_height(points: np.ndarray, deviation: np.ndarray, index: np.ndarray | None,
+                  sigma: np.ndarray | None, patch: np.ndarray, side: str, spacing_mm: float
+                  ) -> tuple[float, float]:
+    """A defect's robust height (mm) and its expanded uncertainty U (mm, k = 2).
+
+    The height is a local fit of order zero: at each of up to DEFECT_FIT_PROBES points of the
+    patch (part frame, mm), the median deviation of every judged point within
+    DEFECT_FIT_SPACINGS spacings; the most extreme of these on the patch's side. One noisy
+    point moves a median of ~30 by nothing. Its U: the median's noise, 1.253 s / √n with s
+    the neighbours' robust scatter (1.4826 MAD), and the share of the points' stated
+    variance the scatter does not show (mean σ² − s², the error common to the neighbours: the
+    stations' poses), which no average removes."""
+    from scipy.spatial import cKDTree
+
+    radius = DEFECT_FIT_SPACINGS * spacing_mm
+    lo, hi = patch.min(axis=0) - radius, patch.max(axis=0) + radius
+    rows = np.arange(len(deviation)) if index is None else np.asarray(index)
+    near = np.ones(len(rows), bool)
+    for a in range(3):  # the judged points around the patch, axis by axis (no big copies)
+        near &= (points[rows, a] >= lo[a]) & (points[rows, a] <= hi[a])
+    local = np.flatnonzero(near)
+    tree = cKDTree(np.asarray(points[rows[local]], float))
+    probes = patch[:: max(1, len(patch) // DEFECT_FIT_PROBES)]
+    hoods = [h for h in tree.query_ball_point(probes, radius) if h]
+    medians = np.array([np.median(np.asarray(deviation[local[h]], float)) for h in hoods])
+    k = int(np.argmax(medians) if side == "above" else np.argmin(medians))
+    dev = np.asarray(deviation[local[hoods[k]]], float)
+    s = 1.4826 * float(np.median(np.abs(dev - medians[k])))
+    common = 0.0
+    if sigma is not None:
+        common = max(0.0, float(np.mean(np.square(np.asarray(sigma[local[hoods[k]]], float))))
+                     - s * s)
+    return float(medians[k]), decision.K * float(np.sqrt((1.253 * s) ** 2 / len(dev) + common))
 
 
 #: points per k-d tree of :func:`point_spacing_mm` (a tree and its float64 copy: ~60 MB a million)

@@ -65,3 +65,50 @@ def depth_sigma(z_mm: np.ndarray, f_px: float, baseline_mm: float, sigma_left: n
     z = np.asarray(z_mm, np.float32)
     return (z * z / np.float32(f_px * baseline_mm) * disparity).astype(np.float32)
 
+
+
+class PointUncertaintyError(ValueError):
+    """Per-point uncertainties that cannot be used; the message names how many and where."""
+
+
+def check_point_sigma(sigma: np.ndarray, count: int, where: str) -> np.ndarray:
+    """``sigma`` (1-sigma per point, mm) of a cloud of ``count`` points, as float32; refused
+    when its length differs or any value is NaN, infinite or negative (naming how many and
+    the first index)."""
+    s = np.asarray(sigma, np.float32).reshape(-1)
+    if len(s) != count:
+        raise PointUncertaintyError(f"{where}: {len(s)} uncertainties for {count} points")
+    bad = ~np.isfinite(s) | (s < 0)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise PointUncertaintyError(
+            f"{where}: {int(bad.sum())} point uncertainties are NaN, infinite or negative "
+            f"(the first at index {first}: {s[first]!r}); a 1-sigma is a finite number >= 0")
+    return s
+
+
+#: probes of :func:`scatter_sigma`, and the neighbours each plane is fitted to
+SCATTER_PROBES, SCATTER_NEIGHBOURS = 4000, 24
+#: points the neighbours are looked for among, at most (a random subset beyond: its spacing
+#: grows and the planes span more of the curvature)
+SCATTER_TREE_POINTS = 2_000_000
+
+
+def scatter_sigma(points: np.ndarray, seed: int = 0) -> float:
+    """A cloud's noise (1-sigma, mm) from its own scatter: at SCATTER_PROBES points the RMS
+    distance of the SCATTER_NEIGHBOURS nearest to their least-squares plane (corrected for
+    the 3 fitted parameters), the median over the probes. Noise only: an error shared by a
+    neighbourhood (a station's pose, the calibration) does not show in it."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points).reshape(-1, 3)
+    rng = np.random.default_rng(seed)
+    base = pts[rng.choice(len(pts), min(len(pts), SCATTER_TREE_POINTS), replace=False)].astype(float)
+    if len(base) < SCATTER_NEIGHBOURS + 1:
+        raise PointUncertaintyError(f"{len(pts)} points: too few to estimate their scatter")
+    probes = base[: min(SCATTER_PROBES, len(base))]
+    _, nearest = cKDTree(base).query(probes, k=SCATTER_NEIGHBOURS)
+    hood = base[nearest] - base[nearest].mean(axis=1, keepdims=True)
+    smallest = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", hood, hood))[:, 0]
+    rms = np.sqrt(np.maximum(smallest, 0.0) / (SCATTER_NEIGHBOURS - 3))
+    return float(np.median(rms))

@@ -72,6 +72,18 @@ def add_cluster_arguments(p: argparse.ArgumentParser, scheduler_help: str,
                    help="worker processes of the local cluster (default: one per core)")
 
 
+def add_decision_arguments(p: argparse.ArgumentParser) -> None:
+    """``--decision-rule`` and ``--point-sigma``, as every command that gives verdicts takes
+    them (analysis/decision.py)."""
+    p.add_argument("--decision-rule", choices=["iso14253-1", "simple"], default=None,
+                   help="how a verdict accounts for the uncertainty U (k = 2): iso14253-1, "
+                        "pass only inside the tolerance less U, fail beyond it plus U, else "
+                        "'not provable' (the default); simple, the tolerance's edge alone")
+    p.add_argument("--point-sigma", type=float, default=None, metavar="MM",
+                   help="each point's 1-sigma (mm) where the cloud carries no 'uncertainty' "
+                        "(default: the cloud's own scatter about local planes, noise only)")
+
+
 def fail(command: str, message: str, code: int = 2) -> int:
     """Print ``scancell <command>: <message>`` to stderr and return the exit code."""
     print(f"scancell {command}: {message}", file=sys.stderr)

@@ -3,8 +3,9 @@
 MEASURED is a point cloud (PLY, mm) or a ``scan_part`` recording (MCAP: its final fused model,
 or its stations fused again). Writes the signed deviation of every point (``--out-ply``), the
 JSON (``--json``) and a report folder with a self-contained HTML page and CSV tables
-(``--report``). Exit 0 with a result, 1 when a tolerance fails, 2 on bad input, 3 when the
-``--scheduler`` cannot be reached.
+(``--report``). Exit 0 with a result that passes (or has no tolerance), 1 when it fails, 4
+when the decision rule cannot prove either, 2 on bad input, 3 when the ``--scheduler`` cannot
+be reached.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from scancell.cli._common import add_cluster_arguments, fail
+from scancell.cli._common import add_cluster_arguments, add_decision_arguments, fail
 
 ALIGN_HELP = ("asmeasured: the part is fixtured where --transform says; bestfit: robust trimmed "
               "point-to-plane fit (from --transform if given); rps: reference point system "
@@ -46,6 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="tolerance of the whole part (mm): 0.5, or -0.3,0.5")
     p.add_argument("--tolerances", default=None, metavar="TOL.toml",
                    help="tolerances per region (faces, box, sphere); see docs/how-to/inspection.md")
+    add_decision_arguments(p)
     p.add_argument("--max-distance", type=float, default=5.0, metavar="MM",
                    help="points farther from the nominal are not part of it (default 5 mm)")
     p.add_argument("--sections", default=None,
@@ -116,18 +118,19 @@ def parse_sections(text: str) -> list[tuple[str, float]]:
 
 
 def load_measured(source: str):
-    """(points (N, 3) mm, description) of a PLY cloud (float32, as stored) or a recording."""
+    """(points (N, 3) mm, each point's 1-sigma (mm) or None, description) of a PLY cloud
+    (float32, as stored; its ``uncertainty`` property, if any) or a recording."""
     import numpy as np
     from scancell.analysis.cloud_io import read_ply
 
     p = Path(source)
     if p.suffix.lower() != ".mcap":
-        pts, _ = read_ply(p, np.float32)
-        return pts, str(p)
+        pts, fields = read_ply(p, np.float32)
+        return pts, fields.get("uncertainty"), str(p)
     from scancell.workers.recorded_stations import recorded_model
 
     pts, how = recorded_model(p)
-    return pts, f"{p} ({how})"
+    return pts, None, f"{p} ({how})"
 
 
 def main(args: argparse.Namespace) -> int:
@@ -155,16 +158,18 @@ def main(args: argparse.Namespace) -> int:
             raise ValueError("--align asmeasured needs --transform (the fixture's pose)")
         if args.align == "rps" and not rps:
             raise ValueError("--align rps needs --rps RPS.toml")
-        measured, source = load_measured(args.measured)
+        measured, sigma, source = load_measured(args.measured)
         nominal = load_nominal(args.nominal, args.unit, args.chordal, measured)
         print(f"nominal {args.nominal}: {len(nominal.triangles)} triangles; measured {source}: "
               f"{len(measured)} points", file=sys.stderr)
         settings = InspectionSettings(args.align, transform, rps, spec, args.max_distance,
-                                      sections=sections)
+                                      sections=sections,
+                                      decision_rule=args.decision_rule or "iso14253-1",
+                                      default_sigma_mm=args.point_sigma)
         with deviation_tiles(args.scheduler, args.workers) as run_tiles:
             result = inspect_cloud(measured, nominal, settings,
                                    progress=lambda m: print(f"  {m}", file=sys.stderr),
-                                   run_tiles=run_tiles, overwrite_input=True)
+                                   run_tiles=run_tiles, overwrite_input=True, sigma=sigma)
         files = {}
         if args.out_ply:
             result.write_ply(args.out_ply)
@@ -194,7 +199,7 @@ def main(args: argparse.Namespace) -> int:
             CloudFileError, FusionError, RecordingError, OSError, ClusterInspectionError) as exc:
         return fail("inspect", str(exc))
     summarise(body, time.perf_counter() - t0)
-    return 1 if body["tolerances"].get("pass") is False else 0
+    return {"fail": 1, "not provable": 4}.get(body["tolerances"].get("verdict"), 0)
 
 
 @contextlib.contextmanager
@@ -231,11 +236,23 @@ def summarise(body: dict, seconds: float) -> None:
           f"{d['std_mm']:.4f} mm, min {d['min_mm']:+.4f}, max {d['max_mm']:+.4f} mm")
     rows = ([("whole part", t["overall"])] if t.get("overall") else []) + \
         [(r["name"], r) for r in t.get("regions", [])]
+    u = body.get("uncertainty") or {}
+    if u.get("note"):
+        print(f"uncertainty: {u['note']}")
+    if t.get("decision"):
+        print(f"decision rule: {t['decision']['text']}")
     for name, r in rows:
-        verdict = {True: "PASS", False: "FAIL", None: "-"}[r["pass"]]
-        share = f"{r['out_share']:.2%} out" if r.get("points") else "no points"
-        print(f"  {verdict:4}  {name}: {r['lower_mm']:+g} / {r['upper_mm']:+g} mm, {share}")
-    print(f"nominal surface measured: {body['coverage']['nominal_covered_share']:.1%}")
+        verdict = r.get("verdict", "-").upper()
+        share = (f"{r['out_share']:.2%} out, U {r['U_mm']:.3f} mm" if r.get("points")
+                 else "no points")
+        print(f"  {verdict:12}  {name}: {r['lower_mm']:+g} / {r['upper_mm']:+g} mm, {share}")
+        if r.get("note") and r.get("points"):
+            print(f"                {r['note']}")
+    if t.get("verdict"):
+        print(f"verdict: {t['verdict'].upper()} on "
+              f"{body['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
+    else:
+        print(f"nominal surface measured: {body['coverage']['nominal_covered_share']:.1%}")
     for k, v in body.get("files", {}).items():
         print(f"  {k}: {v}")
     print(f"({seconds:.1f} s)")

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scancell.cli._common import add_bus_arguments, fail, serve
+from scancell.cli._common import add_bus_arguments, add_decision_arguments, fail, serve
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,6 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="T_part_from_measured, as for scancell inspect (the fixture's pose)")
     ins.add_argument("--tolerance", default=None, metavar="T|LO,HI", help="whole part (mm)")
     ins.add_argument("--tolerances", default=None, metavar="TOL.toml", help="per region")
+    add_decision_arguments(ins)
     ins.add_argument("--out", default=None, help="folder for <job>/inspection/")
 
 
@@ -104,8 +105,11 @@ def inspect_settings(args: argparse.Namespace):
     if align == "asmeasured" and transform is None:
         raise ValueError("asmeasured alignment needs --transform or [inspection] "
                          "T_world_from_part")
-    inspection = InspectionSettings(align, transform, None, spec,
-                                    float(table.get("max_distance_mm", 5.0)))
+    inspection = InspectionSettings(
+        align, transform, None, spec, float(table.get("max_distance_mm", 5.0)),
+        decision_rule=args.decision_rule or table.get("decision_rule", "iso14253-1"),
+        default_sigma_mm=(args.point_sigma if args.point_sigma is not None
+                          else table.get("point_sigma_mm")))
     return InspectSettings(args.nominal or table.get("nominal"), args.unit or table.get("unit"),
                            float(table.get("chordal_mm", 0.01)), inspection,
                            Path(args.out) if args.out else None)

@@ -65,6 +65,25 @@ def test_an_inspection_is_valid_qif_with_each_region_judged(tmp_path):
 
 
 @needs_schemas
+def test_the_decision_rule_verdict_and_uncertainty_are_valid_qif(tmp_path):
+    body = inspection_body(verdict="not provable", U_mm=0.062)
+    body["tolerances"].update(verdict="not provable", decision={
+        "rule": "iso14253-1", "k": 2.0, "text": "ISO 14253-1: conformance proven inside the "
+                                                "tolerance less U"})
+    body["tolerances"]["regions"][0].update(verdict="pass", U_mm=0.05)
+    qif.write_checked(qif.inspection_from_json(body), tmp_path / "i.qif", QIF_SCHEMAS)
+    back = etree.parse(str(tmp_path / "i.qif"))
+    qif.validate(back, QIF_SCHEMAS)
+    assert statuses(back) == ["INDETERMINATE", "PASS"]
+    text = (tmp_path / "i.qif").read_text()
+    for needle in ('name="decision rule" value="ISO 14253-1', 'name="verdict" value="not provable"',
+                   'name="expanded uncertainty U (k = 2), mm" value="0.062"',
+                   'combinedUncertainty="0.031" meanError="0.0"',
+                   "<InspectionStatusEnum>UNKNOWN</InspectionStatusEnum>"):
+        assert needle in text, needle
+
+
+@needs_schemas
 def test_an_acceptance_test_is_valid_qif_with_each_value_against_its_mpe(tmp_path):
     doc = qif.acceptance_document(ACCEPTANCE, job_id="acceptance-1", overall_pass=False)
     qif.write_checked(doc, tmp_path / "a.qif", QIF_SCHEMAS)

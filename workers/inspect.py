@@ -67,15 +67,18 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         if not meta.get("final"):
             return  # the growing display cloud
         try:
+            pts, fields = fg.cloud_arrays(sample.decode(), ["uncertainty"])
+            sigma = fields.get("uncertainty")
+            rows = np.empty((len(pts), 4), np.float32)  # x, y, z and the 1-sigma (NaN: none)
+            rows[:, :3] = pts
+            rows[:, 3] = np.nan if sigma is None else sigma
             with self._lock:
-                pts = self._parts.add(meta, fg.cloud_points(sample.decode()))
+                model = self._parts.add(meta, rows)
         except (EncodingError, ModelPartsError) as exc:
             log.warning("%s: %s", sample.key, exc)
             return
-        if pts is not None:
-            # as carried (float32): the inspection moves it into the part frame in place
-            self.submit((str(meta.get("job_id", "?")), pts.astype(np.float32, copy=False),
-                         meta.get("nominal")))
+        if model is not None:
+            self.submit((str(meta.get("job_id", "?")), model, meta.get("nominal")))
 
     def _nominal(self, path: str, measured: np.ndarray | None = None):
         """The nominal at ``path`` (loaded once); the first cloud checks its size before the
@@ -90,23 +93,28 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
     def handle(self, item: tuple[str, np.ndarray | None, str | None]) -> None:
         from scancell.analysis.nominal import NominalError
 
-        job_id, points, nominal = item
-        if points is not None:
-            self.inspect(job_id, points, nominal)
+        job_id, model, nominal = item
+        if model is not None:
+            sigma = None if np.isnan(model[:, 3]).all() else model[:, 3].copy()
+            points = np.ascontiguousarray(model[:, :3])
+            del model, item
+            self.inspect(job_id, points, nominal, sigma)
             return
         try:
             self._nominal(nominal or "")
         except NominalError as exc:
             log.error("default nominal: %s", exc)
 
-    def inspect(self, job_id: str, points: np.ndarray, plan_nominal: str | None = None
-                ) -> dict[str, Any] | None:
+    def inspect(self, job_id: str, points: np.ndarray, plan_nominal: str | None = None,
+                sigma: np.ndarray | None = None) -> dict[str, Any] | None:
         """Inspect the job's model ``points`` (N, 3, world frame, mm; a float32 array becomes
-        the part-frame points: the caller is done with it) and publish the report."""
+        the part-frame points: the caller is done with it) with each point's 1-sigma
+        ``sigma`` (mm, None: the model has none) and publish the report."""
         from scancell.analysis.alignment import AlignmentError
         from scancell.analysis.inspection import InspectionError, inspect_cloud
         from scancell.analysis.nominal import NominalError
         from scancell.analysis.tolerance import ToleranceError
+        from scancell.analysis.uncertainty import PointUncertaintyError
 
         path = plan_nominal or self.settings.nominal
         if not path:
@@ -116,12 +124,13 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         try:
             result = inspect_cloud(points, self._nominal(path, points), self.settings.inspection,
                                    progress=lambda m: log.info("job %s: %s", job_id, m),
-                                   overwrite_input=True)
+                                   overwrite_input=True, sigma=sigma)
             body: dict[str, Any] = {"job_id": job_id, "measured": f"fusion/cloud of {job_id}",
                                     **result.to_json()}
             if self.settings.out_dir is not None:
                 body["files"] = self._write(result, job_id)
-        except (NominalError, AlignmentError, InspectionError, ToleranceError, OSError) as exc:
+        except (NominalError, AlignmentError, InspectionError, ToleranceError,
+                PointUncertaintyError, OSError) as exc:
             log.error("job %s: inspection against %s failed: %s", job_id, path, exc)
             body = {"job_id": job_id, "nominal": path, "error": str(exc)}
             self.bus.publish_json(self.bus.keys.inspect_report, body, "scancell.InspectionReport")
@@ -130,10 +139,10 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         self._publish_cloud(result, job_id)
         self.bus.publish_json(self.bus.keys.inspect_report, body, "scancell.InspectionReport")
         self.reports.append(body)
-        verdict = body["tolerances"].get("pass")
+        verdict = body["tolerances"].get("verdict")
         log.info("job %s: deviation mean %+.4f mm, std %.4f mm; %s", job_id,
                  body["deviation"]["mean_mm"], body["deviation"]["std_mm"],
-                 {True: "PASS", False: "FAIL", None: "no tolerance"}[verdict])
+                 verdict.upper() if verdict else "no tolerance")
         return body
 
     def _write(self, result: Any, job_id: str) -> dict[str, str]:

@@ -43,7 +43,7 @@ class _Job:
             raise ModelPartsError(f"job {self.job}: part {part} of {self.parts} ({n} points) "
                                   f"does not fit a model of {self.total}")
         if self.whole is None:
-            self.whole = np.empty((self.total, 3), points.dtype)
+            self.whole = np.empty((self.total, *points.shape[1:]), points.dtype)
         self.whole[start:start + n] = points
         self.got[part] = slice(start, start + n)
 
@@ -67,8 +67,8 @@ class ModelParts:
         self._jobs: dict[str, _Job] = {}
 
     def add(self, meta: dict[str, Any], points: np.ndarray) -> np.ndarray | None:
-        """Take one final message's ``points`` (M, 3); the job's whole model (N, 3) once its
-        every part is in, else None."""
+        """Take one final message's ``points`` (M, 3), or (M, C) with more columns per point;
+        the job's whole model (N, 3 or C) once its every part is in, else None."""
         job = str(meta.get("job_id", "?"))
         parts, part = int(meta.get("parts", 1)), int(meta.get("part", 0))
         if not 0 <= part < parts:
