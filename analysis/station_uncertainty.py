@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis.metrics import mean_spacing, normals
 from scancell.analysis.station_pose import StationPose
+from scancell.analysis.uncertainty import along_normal
 
 ARCSEC = np.pi / 180 / 3600
 
@@ -100,6 +101,9 @@ class StationUncertainty:
     point_sigma_mm: np.ndarray = field(repr=False)
     #: the stated sources drawn
     stated: StatedSources = field(default_factory=StatedSources, repr=False)
+    #: the station's move over the draws of every source but the points' noise (None: not
+    #: drawn)
+    pose: PoseCovariance | None = field(default=None, repr=False)
 
     def to_json(self) -> dict[str, Any]:
         return {"share_mm": {k: round(v, 5) for k, v in self.share_mm.items()},
@@ -141,11 +145,11 @@ def _cluster_error(rng: np.random.Generator, pose: StationPose) -> np.ndarray:
     return draws[rng.integers(len(draws))] + rng.standard_normal(sigma.shape) * rest
 
 
-def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud: np.ndarray,
-          noise: np.ndarray, normal: np.ndarray, s: StatedSources, X0: np.ndarray) -> np.ndarray:
-    """One draw of the given sources: each point's displacement along its surface normal
-    (``normal``, world; mm). ``noise``: each point's depth noise already carried onto the
-    normal (mm)."""
+def _draw_move(sources: set[str], rng: np.random.Generator, pose: StationPose,
+               s: StatedSources) -> tuple[np.ndarray, np.ndarray]:
+    """One draw of the given sources' move of the station's points in world: ``X → M X + t``
+    (M 3 x 3, t mm). Every source but the points' own noise moves the station rigidly
+    (with the scanner's scale, a similarity)."""
     pts, sig, T_em = pose.points_mm, pose.sigma_mm, pose.T_ecs_from_mcs
     p = pts.copy()
     origin = np.asarray(s.tracker_origin_mm, float)
@@ -164,14 +168,61 @@ def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud:
     if "cluster_calibration" in sources and cluster is not None:
         cluster = cluster + _cluster_error(rng, pose)
     T = pose.T_world_from_mcs(p, T_em2, cluster)
-    X = (cloud * scale) @ T[:3, :3].T + T[:3, 3]
+    T0 = pose.T_world_from_mcs()
+    if scale == 1.0 and np.array_equal(T, T0):  # nothing drawn moves it: exactly no move
+        M, t = np.eye(3), np.zeros(3)
+    else:
+        M = scale * T[:3, :3] @ T0[:3, :3].T
+        t = T[:3, 3] - M @ T0[:3, 3]
     if "settling" in sources:
-        X = X + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
-    d = np.einsum("ij,ij->i", X - X0, normal)
+        t = t + rng.normal(0.0, s.settle_mm / np.sqrt(3), 3)
+    return M, t
+
+
+def _draw(sources: set[str], rng: np.random.Generator, pose: StationPose, cloud: np.ndarray,
+          noise: np.ndarray, normal: np.ndarray, s: StatedSources, X0: np.ndarray,
+          moves: list[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+    """One draw of the given sources: each point's displacement along its surface normal
+    (``normal``, world; mm). ``noise``: each point's depth noise already carried onto the
+    normal (mm). ``moves``: where the draw's move of the station (:func:`_draw_move`) is
+    appended."""
+    M, t = _draw_move(sources, rng, pose, s)
+    if moves is not None:
+        moves.append((M, t))
+    d = np.einsum("ij,ij->i", X0 @ (M - np.eye(3)).T + t, normal)
     if "scanner_noise" in sources:
         k = max(0.0, 1.0 + rng.normal(0.0, s.scanner_noise_rel))
         d = d + rng.standard_normal(len(d)) * noise * k
     return d
+
+
+@dataclass(frozen=True)
+class PoseCovariance:
+    """The spread of a station's move over the Monte Carlo draws, as a point's displacement
+    ``D(X) = B (X - centre) + c`` (world, mm) is linear in its 12 numbers ``θ = (B, c)``: their
+    covariance. A point's 1-sigma along a unit normal n is ``sqrt(J Σ Jᵀ)``, J = (n ⊗ (X -
+    centre), n): exact for the drawn moves (all similarities), with no sampling of points."""
+
+    centre: np.ndarray  # (3,) world, mm
+    cov: np.ndarray  # (12, 12)
+
+    @classmethod
+    def of_moves(cls, moves: list[tuple[np.ndarray, np.ndarray]], centre: np.ndarray
+                 ) -> PoseCovariance:
+        theta = np.array([np.r_[(M - np.eye(3)).ravel(), (M - np.eye(3)) @ centre + t]
+                          for M, t in moves])
+        return cls(np.asarray(centre, float), np.cov(theta, rowvar=False))
+
+    def sigma_along(self, points: np.ndarray, normals: np.ndarray, chunk: int = 500_000
+                    ) -> np.ndarray:
+        """Each point's 1-sigma (mm, float32) along its unit normal (world, N x 3 each)."""
+        out = np.empty(len(points), np.float32)
+        for a in range(0, len(points), chunk):
+            y = np.asarray(points[a:a + chunk], float) - self.centre
+            n = np.asarray(normals[a:a + chunk], float)
+            J = np.concatenate([(n[:, :, None] * y[:, None, :]).reshape(len(y), 9), n], axis=1)
+            out[a:a + chunk] = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", J, self.cov, J), 0))
+        return out
 
 
 #: the points a sample's normals are fitted in: enough for a neighbourhood of ~28 at 6 x their
@@ -191,6 +242,38 @@ def sample_normals(cloud: np.ndarray, sample: int) -> tuple[np.ndarray, int]:
         return np.tile([0.0, 0.0, 1.0], (len(cloud[::step]), 1)), step
     n = normals(dense, 6.0 * mean_spacing(dense))
     return n[:: step // dense_step], step
+
+
+def every_point_normals(cloud: np.ndarray) -> np.ndarray:
+    """A unit normal (MCS, either sign) for every point of ``cloud`` (MCS, mm): that of
+    the nearest point of the :data:`NORMAL_POINTS` subsample :func:`sample_normals` fits (a
+    full-size station's 3.5 M neighbourhoods would take most of a fuse worker's time)."""
+    from scipy.spatial import cKDTree
+
+    dense_step = max(1, len(cloud) // NORMAL_POINTS)
+    dense = np.asarray(cloud[::dense_step], float)
+    if len(dense) < 3:
+        return np.tile([0.0, 0.0, -1.0], (len(cloud), 1))
+    n = normals(dense, 6.0 * mean_spacing(dense))
+    _, nearest = cKDTree(dense).query(np.asarray(cloud, np.float32), workers=-1)
+    return n[nearest]
+
+
+def point_sigmas(u: StationUncertainty, cloud_mcs: np.ndarray, T_world_from_mcs: np.ndarray,
+                 depth_sigma_mm: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """Every point's 1-sigma along its surface normal (mm, float32 each): its own noise (the
+    depth noise carried onto the normal, scaled by the noise model's stated accuracy) and its
+    station pose's share (:class:`PoseCovariance`, every other source). Independent: the total
+    is their root sum of squares."""
+    n_mcs = every_point_normals(cloud_mcs)
+    noise = (np.broadcast_to(np.asarray(depth_sigma_mm, float), (len(cloud_mcs),))
+             * along_normal(cloud_mcs, n_mcs)
+             * np.sqrt(1.0 + u.stated.scanner_noise_rel ** 2)).astype(np.float32)
+    if u.pose is None:
+        return noise, np.zeros(len(cloud_mcs), np.float32)
+    R, t = T_world_from_mcs[:3, :3], T_world_from_mcs[:3, 3]
+    world = np.asarray(cloud_mcs, float) @ R.T + t
+    return noise, u.pose.sigma_along(world, n_mcs @ R.T)
 
 
 def sampled(pose: StationPose, cloud: np.ndarray, point_noise_mm: np.ndarray | float,
@@ -223,10 +306,12 @@ def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
         share[src] = float(np.mean([np.abs(_draw({src}, rng, *args)).mean()
                                     for _ in range(trials)]))
     rng = np.random.default_rng([seed, 99])
-    draws = np.array([_draw(set(SCOPES), rng, *args) for _ in range(trials)])
+    moves: list[tuple[np.ndarray, np.ndarray]] = []
+    draws = np.array([_draw(set(SCOPES), rng, *args, moves=moves) for _ in range(trials)])
     station = np.abs(draws).mean(axis=1)
     lo, hi = np.percentile(station, [2.5, 97.5])
-    return StationUncertainty(share, (float(lo), float(hi)), draws.std(axis=0), stated)
+    return StationUncertainty(share, (float(lo), float(hi)), draws.std(axis=0), stated,
+                              PoseCovariance.of_moves(moves, X0.mean(axis=0)))
 
 
 def scanner_fixed_overlap(clouds_world: dict[str, np.ndarray],

@@ -66,6 +66,14 @@ def depth_sigma(z_mm: np.ndarray, f_px: float, baseline_mm: float, sigma_left: n
     return (z * z / np.float32(f_px * baseline_mm) * disparity).astype(np.float32)
 
 
+def along_normal(cloud: np.ndarray, normals_mcs: np.ndarray) -> np.ndarray:
+    """What a depth error (along the left camera's optical axis) moves each point (MCS, mm)
+    along its unit normal, per mm: |c·n| / c_z for the point c (it moves along its ray)."""
+    c = np.asarray(cloud, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.abs(np.einsum("ij,ij->i", c, normals_mcs) / c[:, 2])
+    return np.nan_to_num(f, nan=1.0, posinf=1.0)
+
 
 class PointUncertaintyError(ValueError):
     """Per-point uncertainties that cannot be used; the message names how many and where."""

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.fit import FitError, detect_sphere, fit_plane, fit_sphere
+from scancell.analysis.uncertainty import along_normal
 
 OUTLIER_SHARE = 0.003
 PARAMETERS = ("PF", "PS", "SD", "F")
@@ -124,8 +125,10 @@ def _near(points: np.ndarray, approx: np.ndarray | None, reach: float) -> np.nda
 
 def probing(points: np.ndarray, diameter_mm: float, approx_centre: np.ndarray | None = None,
             sigma_mm: np.ndarray | None = None) -> dict[str, Any]:
-    """PF and PS of one sphere scan (mm). With the points' stated 1-sigma noise ``sigma_mm``
-    also ``PF_noise``: the PF that noise alone gives those points (:func:`noise_form`)."""
+    """PF and PS of one sphere scan (mm). With the points' stated 1-sigma depth noise
+    ``sigma_mm`` (along the left camera's optical axis; the points then in its frame, MCS) also
+    ``PF_noise``: the PF that noise alone gives those points (:func:`noise_form`), each
+    point's noise carried onto the sphere's radius."""
     r = diameter_mm / 2
     near = (np.ones(len(points), bool) if approx_centre is None
             else np.linalg.norm(points - approx_centre, axis=1) < 3 * r)
@@ -142,7 +145,10 @@ def probing(points: np.ndarray, diameter_mm: float, approx_centre: np.ndarray | 
            "points": len(band), "centre_mm": fit.center.round(4).tolist(),
            "diameter_mm": 2 * fit.radius}
     if sigma_mm is not None:
-        out["PF_noise"] = noise_form(np.asarray(sigma_mm, float)[near][in_band])
+        # a point's depth noise moves it along its camera ray; the form sees its radial part
+        radial = along_normal(band, (band - fit.center) / np.linalg.norm(band - fit.center, axis=1,
+                                                                         keepdims=True))
+        out["PF_noise"] = noise_form(np.asarray(sigma_mm, float)[near][in_band] * radial)
     return out
 
 

@@ -1,9 +1,12 @@
 """The fused model's voxel means, accumulated station by station on disk.
 
 The model is resampled on a grid of ``voxel_mm`` voxels aligned to the world origin: each
-occupied voxel's point is the inverse-variance weighted mean of the points in it, with that
-mean's 1-sigma (as :func:`scancell.analysis.fusion.weighted_voxel_mean`). Each station adds its
-partial sums per voxel (Σw, Σw·x, Σw·y, Σw·z) to the file of the tile of ``tile_voxels``³ voxels
+occupied voxel's point is the inverse-variance weighted mean of the points in it (weighted by
+their own noise), with that mean's 1-sigma: the noise of the mean, ``1 / √Σw``, and the error
+its points share (a station's pose), which no mean removes: the weighted mean of their common
+1-sigma, as if the stations' pose errors were one (they share the tracker's location, the
+hand-eye and the scanner's scale), added in quadrature. Each station adds its partial sums per
+voxel (Σw, Σw·x, Σw·y, Σw·z, Σw·σc) to the file of the tile of ``tile_voxels``³ voxels
 they fall in; at the end each tile is summed and averaged alone. Memory holds one station's
 points while it is added and one tile while it is read: not the model, not the job.
 """
@@ -21,7 +24,8 @@ import numpy as np
 ADD_CHUNK = 1_000_000
 
 #: one voxel's partial sums from one station: its index inside the tile and the sums
-RECORD = np.dtype([("k", np.uint16, 3), ("w", np.float64), ("wp", np.float64, 3)])
+RECORD = np.dtype([("k", np.uint16, 3), ("w", np.float64), ("wp", np.float64, 3),
+                   ("wc", np.float64)])
 
 
 class VoxelTiles:
@@ -34,10 +38,13 @@ class VoxelTiles:
         self.tile_voxels = int(tile_voxels)
         self.points_added = 0
 
-    def add(self, points: np.ndarray, sigma: np.ndarray | None = None) -> None:
-        """Add (N, 3) world points (mm) with their 1-sigma (mm; None, non-finite or ≤ 0: the
-        median weight of the others, or 1), :data:`ADD_CHUNK` at a time (a voxel's sums may
-        then come in more than one record; :meth:`means` adds them all)."""
+    def add(self, points: np.ndarray, sigma: np.ndarray | None = None,
+            common: np.ndarray | None = None) -> None:
+        """Add (N, 3) world points (mm) with their own noise's 1-sigma (mm; None, non-finite
+        or ≤ 0: the median weight of the others, or 1) and the 1-sigma of the error they share
+        with the rest of their station (mm, their pose's; None: 0), :data:`ADD_CHUNK` at a
+        time (a voxel's sums may then come in more than one record; :meth:`means` adds them
+        all)."""
         p = np.asarray(points).reshape(-1, 3)
         if not len(p):
             return
@@ -48,10 +55,12 @@ class VoxelTiles:
             fallback = 1.0 / float(np.median(s[ok])) ** 2 if ok.any() else 1.0
         for a in range(0, len(p), ADD_CHUNK):
             self._add(np.asarray(p[a:a + ADD_CHUNK], float),
-                      None if sigma is None else np.asarray(s[a:a + ADD_CHUNK], float), fallback)
+                      None if sigma is None else np.asarray(s[a:a + ADD_CHUNK], float), fallback,
+                      None if common is None else np.asarray(common[a:a + ADD_CHUNK], float))
         self.points_added += len(p)
 
-    def _add(self, p: np.ndarray, s: np.ndarray | None, fallback: float) -> None:
+    def _add(self, p: np.ndarray, s: np.ndarray | None, fallback: float,
+             common: np.ndarray | None) -> None:
         w = np.ones(len(p))
         if s is not None:
             ok = np.isfinite(s) & (s > 0)
@@ -74,6 +83,8 @@ class VoxelTiles:
         sums["w"] = np.bincount(inverse, weights=w, minlength=len(voxels))
         for i in range(3):
             sums["wp"][:, i] = np.bincount(inverse, weights=w * p[:, i], minlength=len(voxels))
+        sums["wc"] = 0.0 if common is None else np.bincount(
+            inverse, weights=w * np.nan_to_num(common), minlength=len(voxels))
         tile = np.floor_divide(voxels, self.tile_voxels)
         sums["k"] = voxels - tile * self.tile_voxels
         # the tile as one int64 over the station's few tiles, as the voxel key above:
@@ -121,4 +132,5 @@ def tile_means(folders: list[Path], tile_voxels: int = 512
         wsum = np.bincount(inverse, weights=rec["w"], minlength=n)
         mean = np.column_stack([np.bincount(inverse, weights=rec["wp"][:, i], minlength=n)
                                 for i in range(3)]) / wsum[:, None]
-        yield mean, 1.0 / np.sqrt(wsum)
+        common = np.bincount(inverse, weights=rec["wc"], minlength=n) / wsum
+        yield mean, np.sqrt(1.0 / wsum + common * common)

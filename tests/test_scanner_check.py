@@ -20,7 +20,8 @@ from scancell.sim.optics_profile import optics_profile
 
 def bar_scan(length: float, radius: float, scale: float = 1.0, noise: float = 0.005,
              seed: int = 0) -> np.ndarray:
-    """The front caps of a ball bar's two spheres seen from -z, scaled by ``scale``."""
+    """The front caps of a ball bar's two spheres seen by a camera at the origin looking along
+    +z, scaled by ``scale``; each point's depth off by ``noise`` (1-sigma), along its ray."""
     rng = np.random.default_rng(seed)
     out = []
     for end in (-0.5, 0.5):
@@ -28,7 +29,8 @@ def bar_scan(length: float, radius: float, scale: float = 1.0, noise: float = 0.
         d /= np.linalg.norm(d, axis=1)[:, None]
         d = d[d[:, 2] < -0.2]
         c = np.array([end * length, 10.0, 600.0])
-        out.append(scale * (c + radius * d) + rng.normal(0, noise, d.shape))
+        p = scale * (c + radius * d)
+        out.append(p + p / p[:, 2:] * rng.normal(0, noise, (len(p), 1)))
     return np.concatenate(out)
 
 

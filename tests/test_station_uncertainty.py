@@ -14,6 +14,7 @@ from scancell.analysis.station_uncertainty import (
     _draw,
     budget_by_source,
     coverage,
+    point_sigmas,
     sampled,
     scanner_fixed_overlap,
     station_uncertainty,
@@ -214,3 +215,23 @@ def test_the_cluster_calibration_is_drawn_jointly_not_smr_by_smr():
     joint, independent = share(shifts), share(None)
     assert joint == pytest.approx(0.05 * np.sqrt(2 / np.pi), rel=0.15)
     assert independent > 1.5 * joint, (joint, independent)
+
+
+@pytest.mark.unit
+def test_every_points_sigma_is_its_noise_and_its_poses_share_as_the_draws_give_them():
+    pts, sig, j6, T_em, cloud = station(7)
+    pose = j6_pose(pts, sig, j6, T_em)
+    u = station_uncertainty(pose, cloud, 0.02, STATED, trials=400, seed=2)
+    T = pose.T_world_from_mcs()
+    noise, common = point_sigmas(u, cloud, T, 0.02)
+    assert noise.shape == common.shape == (len(cloud),)
+    # the cloud faces its camera: the depth noise lies (nearly) along the normal
+    assert np.median(noise) == pytest.approx(0.02, rel=0.05)
+    # the pose's share against fresh draws of every source but the noise, point by point
+    c, n, normal, X0, step = sampled(pose, cloud, 0.0, 500)
+    rng = np.random.default_rng(99)
+    sources = set(SCOPES) - {"scanner_noise"}
+    d = np.array([_draw(sources, rng, pose, c, n, normal, STATED, X0) for _ in range(400)])
+    ratio = common[::step][: len(c)] / d.std(axis=0)
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.1)
+    assert ratio.min() > 0.75 and ratio.max() < 1.3

@@ -54,6 +54,7 @@ from scancell.analysis.station_uncertainty import (
     StationUncertainty,
     budget_by_source,
     coverage,
+    point_sigmas,
     scanner_fixed_overlap,
     station_uncertainty,
 )
@@ -428,6 +429,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         T_world_from_ecs = pose.T_world_from_mcs(weighted=True) @ np.linalg.inv(T_ecs_from_mcs)
         cloud, _, unc = job.mcs.load(station)
         noise = None
+        T_world_from_mcs = T_world_from_ecs @ T_ecs_from_mcs
+        sigmas = None
         stated_sigma = ecs.get("sigma_mm") is not None or ecs.get("smr_sigma_mm") is not None
         if stated_sigma and len(cloud):
             noise = ecs_noise_effect(pose, cloud)
@@ -437,11 +440,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 seed=zlib.crc32(station.encode()))
             with self._lock:
                 job.station_uncertainty[station] = su
-        T_world_from_mcs = T_world_from_ecs @ T_ecs_from_mcs
+            if unc is not None:
+                sigmas = point_sigmas(su, cloud, T_world_from_mcs, unc)
         world = move_points(cloud, T_world_from_mcs)
         del cloud
         thinned = thin(world, self.settings.display_voxel_mm)
-        self._compare(job, station, world, unc, T_ecs_from_mcs, T_world_from_mcs)
+        self._compare(job, station, world, unc, T_ecs_from_mcs, T_world_from_mcs, sigmas)
         st = Station(station, sample, T_world_from_ecs, noise, job.uncertainty.get(station))
         with self._lock:
             job.fused[station] = st
@@ -464,7 +468,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         return st
 
     def _compare(self, job: JobStations, name: str, world: np.ndarray, unc: np.ndarray | None,
-                 T_ecs_from_mcs: np.ndarray, T_world_from_mcs: np.ndarray) -> None:
+                 T_ecs_from_mcs: np.ndarray, T_world_from_mcs: np.ndarray,
+                 sigmas: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """The overlap metrics of station ``name`` (its world points) against every station
         fused before it, its voxel sums, its world sample and (simulation) its true error, now:
         at the job's end only the model is left to read back (a full-size job's 19 stations
@@ -484,7 +489,9 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             job.comparer.add(name, world, unc)
         except MetricsError:  # an empty cloud: the report says so
             pass
-        job.tiles.add(world, unc)
+        # the model's points: each weighted by its own noise along the normal, and carrying its
+        # pose's share (station_uncertainty.point_sigmas); the depth noise alone without them
+        job.tiles.add(world, *(sigmas if sigmas is not None else (unc, None)))
         job.world_samples[name] = even_sample(world)
         if self.settings.truth is not None and len(world):
             job.true_error[name] = station_true_error(self.settings.truth, world)
@@ -500,8 +507,11 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         for name, st in job.fused.items():
             cloud, _, unc = job.mcs.load(name)
             T_world_from_mcs = st.T_world_from_ecs @ T_em
+            su = job.station_uncertainty.get(name)
+            sigmas = (point_sigmas(su, cloud, T_world_from_mcs, unc)
+                      if su is not None and unc is not None else None)
             self._compare(job, name, move_points(cloud, T_world_from_mcs), unc, T_em,
-                          T_world_from_mcs)
+                          T_world_from_mcs, sigmas)
 
     def evaluate_check(self, job_id: str, station: str) -> dict[str, Any] | None:
         """A scanner check's figures once its record and cloud are both in (kept for the
