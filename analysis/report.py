@@ -46,20 +46,42 @@ class TrueErrorMap:
 
     VIEWS = ((0, 1, "top view (x-y)"), (0, 2, "side view (x-z)"))
 
+    #: a point this far from the true surface (mm) is an outlier: ten times the scanner's
+    #: point noise, and beyond what an inspection's ±0.3 mm tolerance could absorb
+    OUTLIER_MM = 0.5
+
     def __init__(self, lo: np.ndarray, hi: np.ndarray, pixels: int = 900) -> None:
-        self.distribution = Distribution(5.0, 5000)
+        self.distribution = Distribution(5.0, 5000, (self.OUTLIER_MM,))
+        #: |true error| / the point's stated 1-sigma, where it has one (0.005 bins)
+        self.normalised = Distribution(20.0, 4000, (2.0,))
         self.rasters = [WorstRaster(lo[i], hi[i], lo[j], hi[j], pixels) for i, j, _ in self.VIEWS]
 
-    def add(self, points: np.ndarray, error_mm: np.ndarray) -> None:
+    def add(self, points: np.ndarray, error_mm: np.ndarray, sigma_mm: np.ndarray | None = None
+            ) -> None:
         e = np.abs(np.asarray(error_mm, float))
         self.distribution.add(e)
+        if sigma_mm is not None:
+            s = np.asarray(sigma_mm, float)
+            ok = np.isfinite(s) & (s > 0)
+            self.normalised.add(e[ok] / s[ok])
         for raster, (i, j, _) in zip(self.rasters, self.VIEWS, strict=True):
             raster.add(points[:, i], points[:, j], e)
 
-    def figures(self) -> dict[str, float]:
-        """mean, std, max and the 95th percentile (within 0.5 µm), mm."""
+    def figures(self) -> dict[str, Any]:
+        """mean, std, max and the 95th percentile (within 0.5 µm), mm; the share of points
+        beyond OUTLIER_MM; and, where the points state their 1-sigma, how it holds: the median
+        of |true error| / σ (0.674 for a normal error) and the share beyond 2 σ (0.046)."""
         d = self.distribution
-        return {"mean": d.mean, "std": d.std, "max": d.hi, "p95": d.quantile(0.95)}
+        out: dict[str, Any] = {"mean": d.mean, "std": d.std, "max": d.hi,
+                               "p95": d.quantile(0.95),
+                               "beyond_0_5mm_share": 1.0 - d.share_below(self.OUTLIER_MM),
+                               "beyond_0_5mm_points": int(d.n - d.below[0])}
+        if self.normalised.n:
+            n = self.normalised
+            out["per_point"] = {"median_ratio": n.median(),
+                                "beyond_2_sigma_share": 1.0 - n.share_below(2.0),
+                                "points": n.n}
+        return out
 
     def save(self, path: Path) -> Path:
         """The two views, each cell coloured by its worst error, and the distribution."""
@@ -135,14 +157,29 @@ def write_report(folder: str | Path, fused: FusedCloud, metrics: MetricsReport,
                   "Every fused point's distance to the simulated part's surface: what the "
                   "overlap metric cannot see (an error common to all stations).", "",
                   f"mean {d['mean']:.4f} mm, std {d['std']:.4f} mm, max {d['max']:.4f} mm, "
-                  f"95 % below {d['p95']:.4f} mm", "",
-                  "![true error map](true_error_map.png)"]
+                  f"95 % below {d['p95']:.4f} mm; {d['beyond_0_5mm_share']:.1e} of the points "
+                  f"({d['beyond_0_5mm_points']}) beyond {TrueErrorMap.OUTLIER_MM} mm", ""]
+        if "per_point" in d:
+            pp = d["per_point"]
+            lines += [f"Each point's stated 1-sigma against its true error: the median of "
+                      f"|true error| / sigma is {pp['median_ratio']:.2f} (0.67 for a normal "
+                      f"error) and {pp['beyond_2_sigma_share']:.1%} of the points lie beyond 2 "
+                      f"sigma (4.6 %).", ""]
+        lines += ["![true error map](true_error_map.png)"]
+    if (extra or {}).get("free_space"):
+        fs = extra["free_space"]
+        lines += ["", "## Points seen through by another station", "",
+                  f"{fs['removed']} of {fs['tested']} model points left out "
+                  f"({fs['share']:.1e}): another station measured the surface behind them, "
+                  f"more than {fs['k_sigma']:g} combined sigmas farther along its ray "
+                  f"(analysis/free_space.py). By the station that saw through them: "
+                  + (", ".join(f"{k} {v}" for k, v in fs["by_station"].items()) or "none")]
     if error_budget and error_budget.get("ecs_noise_mm"):
         lines += budget_lines(error_budget)
     if scanner_checks:
         lines += check_lines(scanner_checks)
     for key, value in (extra or {}).items():
-        if value is not None:
+        if value is not None and key != "free_space":
             lines += ["", f"## {key}", "", str(value)]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
@@ -190,8 +227,10 @@ def uncertainty_lines(fused: FusedCloud, translation: dict[str, Any], out: Path)
     fig.savefig(out / "uncertainty.png")
     plt.close(fig)
     lines = ["", "## Per-point uncertainty", "",
-             "Each point's 1-sigma depth noise from its fringe modulation and the cameras' noise "
-             "model (random error only: calibration errors are not in it).", "",
+             "Each station point's 1-sigma depth noise from its fringe modulation and the "
+             "cameras' noise model (its random error). The fused model's points state more: "
+             "this noise carried onto the surface normal and averaged in each voxel, and their "
+             "station pose's share, which no average removes (`uncertainty` in fused.ply).", "",
              "| station | median (mm) | 95 % below (mm) |", "|---|---|---|"]
     for name, u in per.items():
         ok = u[np.isfinite(u)]

@@ -435,7 +435,8 @@ def main(args: argparse.Namespace) -> int:
         summary["inspection"] = inspection_summary(inspection, time.monotonic() - t_inspect)
         print(f"   deviation mean {inspection['deviation']['mean_mm']:+.4f} mm, std "
               f"{inspection['deviation']['std_mm']:.4f} mm; +-{INSPECTION_TOLERANCE_MM} mm: "
-              f"{'PASS' if inspection['tolerances']['pass'] else 'FAIL'}; "
+              f"{str(summary['inspection']['verdict']).upper()} "
+              f"({summary['inspection']['decision_rule']}); "
               f"{inspection['coverage']['nominal_covered_share']:.1%} of the CAD surface measured")
 
         if accepted is not None:
@@ -580,7 +581,9 @@ def inspection_summary(r: dict[str, Any], waited_s: float) -> dict[str, Any]:
             "deviation_mm": {k: d.get(f"{k}_mm") for k in ("mean", "std", "min", "max", "p5",
                                                            "p95")},
             "points": d.get("points"), "tolerance_mm": INSPECTION_TOLERANCE_MM,
-            "pass": r["tolerances"].get("pass"),
+            "pass": r["tolerances"].get("pass"), "verdict": r["tolerances"].get("verdict"),
+            "decision_rule": (r["tolerances"].get("decision") or {}).get("rule"),
+            "U_mm": (r["tolerances"].get("overall") or {}).get("U_mm"),
             "out_share": (r["tolerances"].get("overall") or {}).get("out_share"),
             "nominal_covered_share": r["coverage"]["nominal_covered_share"],
             "seconds": r["seconds"], "waited_after_fusion_s": round(waited_s, 1),
@@ -681,7 +684,9 @@ def summarise(report: dict[str, Any], seconds: float) -> dict[str, Any]:
     return {"translation_mm": {k: t.get(k) for k in ("mean", "std", "max", "p_lt_0_6")},
             "rotation_deg": {k: r.get(k) for k in ("mean", "std", "max")},
             "true_error_mm": {k: report.get("true_error_mm", {}).get(k)
-                              for k in ("mean", "std", "max")},
+                              for k in ("mean", "std", "max", "beyond_0_5mm_share",
+                                        "beyond_0_5mm_points", "per_point")},
+            "free_space": report.get("free_space"),
             "stations": report["stations"], "points": report["points"],
             "error_budget": report.get("error_budget"),
             "uncertainty_coverage": (report.get("uncertainty") or {}).get("coverage"),
@@ -794,6 +799,17 @@ def table(s: dict[str, Any]) -> str:
     if sc:
         rows.append(("lit camera pixels decoded, mean / worst", f"{sc['decoded_of_lit_mean']:.1%}"
                      f" / {sc['decoded_of_lit_min']:.1%}", "-"))
+    if e.get("beyond_0_5mm_share") is not None:
+        rows.append(("fused points beyond 0.5 mm of the truth",
+                     f"{e['beyond_0_5mm_share']:.1e} ({e['beyond_0_5mm_points']})", "-"))
+    fs = s.get("free_space") or {}
+    if fs:
+        rows.append(("  left out, seen through by another station", f"{fs['removed']}", "-"))
+    pp = e.get("per_point") or {}
+    if pp:
+        rows.append(("per point |true error| / stated sigma: median; beyond 2 sigma",
+                     f"{pp['median_ratio']:.2f}; {pp['beyond_2_sigma_share']:.1%}",
+                     "0.67; 4.6 %"))
     ins = s.get("inspection") or {}
     if ins:
         d = ins["deviation_mm"]
@@ -802,6 +818,9 @@ def table(s: dict[str, Any]) -> str:
         rows.append((f"  within +-{ins['tolerance_mm']} mm; CAD surface measured",
                      f"{1 - (ins['out_share'] or 0):.2%}; {ins['nominal_covered_share']:.1%}",
                      "-"))
+        if ins.get("verdict"):
+            rows.append((f"  verdict ({ins['decision_rule']}, U = {f(ins.get('U_mm'), '.3f')} mm)",
+                         str(ins["verdict"]).upper(), "-"))
     for part in ("part2", "part3"):
         acc = (s.get("acceptance") or {}).get(part)
         if acc:
@@ -838,8 +857,9 @@ def table(s: dict[str, Any]) -> str:
         else:
             lines += [f"scanner check {c['label']}: ball bar {c['length_error_mm']:+.4f} mm "
                       f"({c['scale_ppm']:+.0f} ppm), sphere form {c['form_mm']:.4f} mm"
-                      + (f" (noise alone {c['form_noise_mm']:.4f} mm)" if "form_noise_mm" in c
-                         else "")
+                      + (f" (noise alone {c['form_noise_mm']:.4f} mm: predicted / measured "
+                         f"{c['form_noise_mm'] / c['form_mm']:.2f})"
+                         if "form_noise_mm" in c and c["form_mm"] else "")
                       + "".join(f"; WARNING {w}" for w in c["warnings"])]
     return "\n".join(lines)
 

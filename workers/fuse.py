@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 from scancell.analysis.ecs_comparison import ecs_comparison
 from scancell.analysis.error_budget import budget, ecs_noise_effect
+from scancell.analysis.free_space import DepthView, FreeSpace
 from scancell.analysis.fusion import FusedCloud, Station, check_rigid, thin
 from scancell.analysis.metrics import MetricsError, MetricsReport, OverlapComparer
 from scancell.analysis.model_file import ModelFile
@@ -106,6 +107,8 @@ class JobStations:
     nominal: str | None = None
     #: station -> its Monte Carlo uncertainty over every modelled source
     station_uncertainty: dict[str, StationUncertainty] = field(default_factory=dict)
+    #: every station's depth view: what the model loses to what the stations saw through
+    free_space: FreeSpace = field(default_factory=FreeSpace)
     #: scanner checks: check station -> its ScannerCheck, and its cloud (MCS points)
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: (float32, MCS mm; an empty array once evaluated: only its figures are kept)
@@ -139,6 +142,7 @@ class JobStations:
             for folder in ("mcs", "world", "tiles"):
                 shutil.rmtree(self.spool / folder, ignore_errors=True)
         self.mcs = self.tiles = None
+        self.free_space.views = []
 
     def close_spool(self) -> None:
         """Delete the job's clouds on disk (its samples and figures stay)."""
@@ -442,6 +446,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 job.station_uncertainty[station] = su
             if unc is not None:
                 sigmas = point_sigmas(su, cloud, T_world_from_mcs, unc)
+        self._view(job, station, cloud, T_world_from_mcs, unc, sigmas)
         world = move_points(cloud, T_world_from_mcs)
         del cloud
         thinned = thin(world, self.settings.display_voxel_mm)
@@ -496,6 +501,16 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         if self.settings.truth is not None and len(world):
             job.true_error[name] = station_true_error(self.settings.truth, world)
 
+    def _view(self, job: JobStations, name: str, cloud: np.ndarray, T_world_from_mcs: np.ndarray,
+              unc: np.ndarray | None, sigmas: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """The station's depth view (analysis/free_space.py), with its points' depth noise
+        and its pose's 1-sigma (the RMS of its points')."""
+        pose = float(np.sqrt(np.mean(np.square(sigmas[1], dtype=np.float64)))) \
+            if sigmas is not None and len(sigmas[1]) else 0.0
+        view = DepthView.of(name, cloud, T_world_from_mcs, 0.0 if unc is None else unc, pose)
+        with self._lock:
+            job.free_space.add(view)
+
     def fuse_again(self, job: JobStations, he: dict[str, Any]) -> None:
         """A hand-eye that changed mid-job: the overlaps and the voxel sums again, station by
         station from the clouds on disk, through the one now in force."""
@@ -510,6 +525,7 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             su = job.station_uncertainty.get(name)
             sigmas = (point_sigmas(su, cloud, T_world_from_mcs, unc)
                       if su is not None and unc is not None else None)
+            self._view(job, name, cloud, T_world_from_mcs, unc, sigmas)
             self._compare(job, name, move_points(cloud, T_world_from_mcs), unc, T_em,
                           T_world_from_mcs, sigmas)
 
@@ -593,7 +609,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
                 metrics = exc
         body = build_report(job_id, fused, stations, he, self.settings, job.ended,
                             dict(job.station_uncertainty), scanner_checks(job),
-                            self.scan_workers(job), metrics, dict(job.true_error), not_fused)
+                            self.scan_workers(job), metrics, dict(job.true_error), not_fused,
+                            job.free_space.to_json())
         with self._lock:
             records, clouds = dict(job.ecs), dict(job.clouds)
         comparison = ecs_comparison(records, clouds, he, self.settings.truth)
@@ -615,8 +632,12 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
             self.fuse_again(job, he)
         names = list(job.fused)
         weighted = all(n in job.uncertainty for n in names)
+        # the voxel means less those a station saw through (analysis/free_space.py)
         model = ModelFile.write(job.spool / "model.bin",
-                                ((p, s if weighted else None) for p, s in job.tiles.means()))
+                                ((p, s if weighted else None)
+                                 for p, s in job.free_space.keep(job.tiles.means())))
+        log.info("job %s: %d model points left out, seen through by another station",
+                 job.job_id, sum(job.free_space.removed.values()))
         T_em = np.asarray(he["T_ecs_from_mcs"], float)
         return FusedCloud(None, {n: job.world_samples[n] for n in names},
                           sum(job.counts[n] for n in names), None,
@@ -691,7 +712,8 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
                  scan_workers: dict[str, Any] | None = None,
                  metrics: MetricsReport | MetricsError | None = None,
                  true_errors: dict[str, float] | None = None,
-                 not_fused: dict[str, Any] | None = None) -> dict[str, Any]:
+                 not_fused: dict[str, Any] | None = None,
+                 free_space: dict[str, Any] | None = None) -> dict[str, Any]:
     """Overlap metrics of the fused model and, in simulation, its true error; files if
     out_dir. ``scan_workers``: who decoded each station (FuseWorker.scan_workers).
     ``metrics``: the stations' MetricsReport, compared as they came, or the MetricsError;
@@ -718,10 +740,12 @@ def build_report(job_id: str, fused: Any, stations: list[Station], hand_eye: dic
     if fused.model.has_truth:
         truth = TrueErrorMap(fused.model.lo, fused.model.hi)
         for rec in fused.model.chunks():
-            truth.add(rec["p"], rec["true_error"])
+            truth.add(rec["p"], rec["true_error"], rec["sigma"] if fused.model.weighted else None)
         body["true_error_mm"] = truth.figures()
     if checks:
         body["scanner_checks"] = checks
+    if free_space is not None:
+        body["free_space"] = free_space
     uncertainty = uncertainty or {}
     if uncertainty:
         per = {n: u.to_json() for n, u in uncertainty.items()}
@@ -824,6 +848,7 @@ def write_outputs(folder: Path, fused: FusedCloud, metrics: Any, truth: TrueErro
         files["report"] = str(write_report(folder / "report", fused, metrics,
                                            f"scancell fusion report: {body['job_id']}",
                                            extra={"true_error_mm": body.get("true_error_mm"),
+                                                  "free_space": body.get("free_space"),
                                                   "scan workers that failed":
                                                       failed_workers_text(body),
                                                   **not_fused_text(body)},
