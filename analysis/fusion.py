@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from scancell.analysis.cloud_io import CloudFileError, read_ply
+from scancell.analysis.free_space import DepthView, FreeSpace
 from scancell.analysis.json_file import read_json
 from scancell.analysis.model_file import ModelFile
 from scancell.analysis.station_store import move_points
@@ -157,7 +158,8 @@ def thin(points: np.ndarray, voxel_mm: float) -> np.ndarray:
 def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 0.5) -> FusedCloud:
     """All stations in ``world``, merged and voxel-resampled (``voxel_mm`` <= 0: no resampling)
     as the fuse worker does it (:class:`VoxelTiles`: each voxel the mean of its points, weighted
-    by their inverse variance when every station carries per-point uncertainty)."""
+    by their inverse variance when every station carries per-point uncertainty), less the
+    voxels another station saw through (:mod:`scancell.analysis.free_space`)."""
     check_rigid(T_ecs_from_mcs, "T_ecs_from_mcs")
     world = {s.name: s.world(T_ecs_from_mcs) for s in stations}
     count = sum(len(c) for c in world.values())
@@ -166,11 +168,17 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
     per_unc = {s.name: np.asarray(s.uncertainty, float) for s in stations} if weighted else None
     sigma = None
     if voxel_mm > 0:
+        free = FreeSpace()
+        for st in stations:
+            free.add(DepthView.of(st.name, st.points_mcs, st.T_world_from_ecs @ T_ecs_from_mcs,
+                                  per_unc[st.name] if per_unc else 0.0, 0.0))
         with tempfile.TemporaryDirectory(prefix="scancell-fuse-") as tmp:
             tiles = VoxelTiles(tmp, voxel_mm)
             for name, pts in world.items():
                 tiles.add(pts, per_unc[name] if per_unc else None)
-            pts, sig = tiles.model()
+            kept = list(free.keep(tiles.means()))
+            pts = np.concatenate([p for p, _ in kept]) if kept else np.zeros((0, 3))
+            sig = np.concatenate([s for _, s in kept]) if kept else np.zeros(0)
         sigma = sig if weighted else None
     else:
         pts = np.concatenate(list(world.values()))

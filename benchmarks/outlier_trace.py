@@ -29,21 +29,11 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.fusion import FusionError
-from scancell.analysis.stereo_calibration import StereoCalibration
 from scancell.model.transforms import apply_T
-from scancell.sim.calibration_truth import calibrated_frame_offset
-from scancell.sim.host import sim_cell
 from scancell.workers.recorded_stations import recorded_poses, station_cloud
-from scancell.workers.reprocess import recorded_simulator
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from station_error_split import (
-    calibrated_at_s,
-    read_log,
-    scan_recording,
-    station_records,
-    true_pose,
-)
+from station_error_split import simulated_run, station_records, true_pose
 
 MECHANISMS = ("depth_edge", "right_occluded", "shadow", "grazing", "other")
 
@@ -102,14 +92,7 @@ def main() -> int:
     ap.add_argument("--grazing-deg", type=float, default=75.0)
     ap.add_argument("--json", type=Path, help="write every outlier's record here")
     a = ap.parse_args()
-    recording = scan_recording(a.run)
-    log = read_log(a.run / "truth" / "true_poses.jsonl")
-    simulator = recorded_simulator(recording)
-    if simulator is None:
-        raise SystemExit(f"{recording}: not a simulated cell's recording: no truth")
-    cell = sim_cell(simulator)
-    rig = cell.rig_at(calibrated_at_s(a.run))
-    offset = calibrated_frame_offset(rig, StereoCalibration.read(a.run / "calibration" / "stereo.yaml"))
+    recording, log, _, cell, offset = simulated_run(a.run)
     T_true_from_cal = np.linalg.inv(offset.T_cal_from_true)
     T_part_from_world = np.linalg.inv(cell.cfg.T_world_from_part)
     poses, _ = recorded_poses(recording)

@@ -115,21 +115,29 @@ def calibrated_at_s(run: Path) -> float:
     return 60.0 * float(json.loads(path.read_text())["powered_min"]) if path.exists() else 0.0
 
 
+def simulated_run(run: Path) -> tuple[Path, list[dict[str, Any]], dict[str, Any], Any, Any]:
+    """A demo run's scan recording, its true-pose log, the recorded simulator table, the
+    simulated cell (for its truth and rig: it renders nothing, so logs nothing) and the
+    calibration's offset from the true left camera."""
+    recording = scan_recording(run)
+    log = read_log(run / "truth" / "true_poses.jsonl")
+    simulator = recorded_simulator(recording)
+    if simulator is None:
+        raise SystemExit(f"{recording}: not a simulated cell's recording: no truth")
+    cell = sim_cell(simulator)
+    offset = calibrated_frame_offset(cell.rig_at(calibrated_at_s(run)),
+                                     StereoCalibration.read(run / "calibration" / "stereo.yaml"))
+    return recording, log, simulator, cell, offset
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a `scancell demo` run directory (runs/<stamp>)")
     ap.add_argument("--every", type=int, default=20, help="use every k-th point of a station")
     ap.add_argument("--json", type=Path, help="write the per-station table here")
     a = ap.parse_args()
-    recording = scan_recording(a.run)
-    log = read_log(a.run / "truth" / "true_poses.jsonl")
-    simulator = recorded_simulator(recording)
-    if simulator is None:
-        raise SystemExit(f"{recording}: not a simulated cell's recording: no truth")
-    cell = sim_cell(simulator)  # for its truth and rig: it renders nothing, so logs nothing
+    recording, log, simulator, cell, offset = simulated_run(a.run)
     truth = cell.surface_distance
-    offset = calibrated_frame_offset(cell.rig_at(calibrated_at_s(a.run)),
-                                     StereoCalibration.read(a.run / "calibration" / "stereo.yaml"))
     T_true_from_cal = np.linalg.inv(offset.T_cal_from_true)
     poses, hand_eye = recorded_poses(recording)
     T_ecs_from_mcs = np.asarray(hand_eye["T_ecs_from_mcs"], float)

@@ -114,3 +114,79 @@ def test_point_uncertainties_with_nan_or_negative_values_are_refused_naming_wher
         check_point_sigma(s, 5, "cloud.ply")
     with pytest.raises(PointUncertaintyError, match="4 uncertainties for 5 points"):
         check_point_sigma(s[:4], 5, "cloud.ply")
+
+
+def box_part(tmp_path, sigma_mm: float | None, bump_mm: float = 0.0, bad: bool = False):
+    """A 200 x 200 x 40 mm box's STL and a scan of its top face (z = 40) as a PLY, with a
+    Gaussian bump of ``bump_mm`` (sigma 6 mm) at its centre, noise 0.02 mm and, unless
+    ``sigma_mm`` is None, an ``uncertainty`` property (with NaN and a negative if ``bad``)."""
+    import open3d as o3d
+    from scancell.analysis.cloud_io import write_ply
+
+    box = o3d.geometry.TriangleMesh.create_box(200.0, 200.0, 40.0)
+    box.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(tmp_path / "box.stl"), box)
+    g = np.arange(5.0, 195.0, 0.5)
+    X, Y = np.meshgrid(g, g)
+    rng = np.random.default_rng(3)
+    z = 40.0 + bump_mm * np.exp(-((X - 100) ** 2 + (Y - 100) ** 2) / 72.0) \
+        + rng.normal(0, 0.02, X.shape)
+    pts = np.stack([X.ravel(), Y.ravel(), z.ravel()], axis=1)
+    fields = None
+    if sigma_mm is not None:
+        s = np.full(len(pts), sigma_mm)
+        if bad:
+            s[[7, 9]] = [np.nan, -0.01]
+        fields = {"uncertainty": s.astype(np.float32)}
+    write_ply(tmp_path / "scan.ply", pts, fields)
+    return tmp_path / "scan.ply", tmp_path / "box.stl"
+
+
+def inspect_cli(tmp_path, measured, nominal, *args):
+    import json
+
+    from scancell.cli import main as cli_main
+
+    out = tmp_path / "out.json"
+    code = cli_main(["inspect", str(measured), "--nominal", str(nominal), "--align",
+                     "asmeasured", "--transform", ",".join(map(str, np.eye(4).ravel())),
+                     "--tolerance", "0.3", "--json", str(out), "--report",
+                     str(tmp_path / "report"), *args])
+    return code, (json.loads(out.read_text()) if out.exists() else None)
+
+
+def test_a_cloud_with_its_uncertainty_is_judged_by_it_through_the_cli(tmp_path, capsys):
+    measured, nominal = box_part(tmp_path, 0.03, bump_mm=0.6)
+    code, body = inspect_cli(tmp_path, measured, nominal)
+    t = body["tolerances"]
+    assert code == 1 and t["verdict"] == "fail" and t["pass"] is False
+    assert body["uncertainty"]["source"] == "points"
+    (d,) = t["overall"]["defects"]
+    assert abs(d["height_mm"] - 0.6) < 0.06 and d["verdict"] == "fail"
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert "Decision rule: ISO 14253-1" in html and "FAIL" in html
+    assert "verdict: FAIL" in capsys.readouterr().out
+
+
+def test_a_cloud_without_uncertainty_is_judged_with_a_stated_default_and_says_so(tmp_path):
+    measured, nominal = box_part(tmp_path, None)
+    code, body = inspect_cli(tmp_path, measured, nominal)
+    assert code == 0 and body["tolerances"]["verdict"] == "pass"
+    u = body["uncertainty"]
+    assert u["source"] == "scatter" and u["median_sigma_mm"] == pytest.approx(0.02, rel=0.25)
+    assert "carries no per-point uncertainty" in u["note"]
+    assert "carries no per-point uncertainty" in (tmp_path / "report" / "report.html").read_text()
+    code, body = inspect_cli(tmp_path, measured, nominal, "--point-sigma", "0.2")
+    assert code == 4 and body["tolerances"]["verdict"] == "not provable"  # U = 0.4 > 0.3
+    assert "no wider than twice" in body["tolerances"]["overall"]["note"]
+    code, body = inspect_cli(tmp_path, measured, nominal, "--point-sigma", "0.2",
+                             "--decision-rule", "simple")
+    assert code == 0 and body["tolerances"]["verdict"] == "pass"
+
+
+def test_nan_or_negative_uncertainties_are_refused_and_nothing_is_written(tmp_path, capsys):
+    measured, nominal = box_part(tmp_path, 0.03, bad=True)
+    code, body = inspect_cli(tmp_path, measured, nominal)
+    assert code == 2 and body is None and not (tmp_path / "report").exists()
+    err = capsys.readouterr().err
+    assert "2 point uncertainties are NaN, infinite or negative (the first at index 7" in err

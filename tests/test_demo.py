@@ -69,6 +69,8 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     assert ins["nominal"].endswith("nominal/car_rear.step") and ins["alignment"] == "bestfit"
     assert abs(ins["deviation_mm"]["mean"]) < 0.1 and ins["points"] == s["points"]
     assert isinstance(ins["pass"], bool) and 0 < ins["nominal_covered_share"] < 1
+    assert ins["decision_rule"] == "iso14253-1" and ins["pass"] == (ins["verdict"] == "pass")
+    assert 0 < ins["U_mm"] < 0.3, ins
     # ... and with the VDI/VDE 2634 acceptance of the scanner (part 2) and the cell (part 3)
     acc = s["acceptance"]
     assert set(acc["part2"]["parameters"]) == {"PF", "PS", "SD", "F"}
@@ -83,7 +85,9 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     # both end in QIF 3.0 documents, valid against the official schemas when the tests have them
     from .test_inspect import qif_check
 
-    qif_check(run / ins["qif"], ["FAIL" if ins["pass"] is False else "PASS"])
+    from scancell.analysis.qif import CHARACTERISTIC_STATUS
+
+    qif_check(run / ins["qif"], [CHARACTERISTIC_STATUS[ins["verdict"]]])
     trace = (run / ins["qif"]).read_text()  # its traceability: job, recording, calibration
     assert f"<ReportNumber>{s['job_id']}</ReportNumber>" in trace
     assert f"{s['job_id']}.mcap" in trace and "hand_eye calibration calibrate_hand_eye-" in trace
