@@ -65,6 +65,43 @@ def check_cluster_geometry(points: dict[str, np.ndarray], what: str) -> tuple[fl
     return float(s[1] / s[0]), spread
 
 
+def whitenings(measured_world: np.ndarray, sigma: TrackerSigma,
+               T_world_from_tracker: np.ndarray | None = None) -> list[np.ndarray]:
+    """Each tracker point's whitening of a world-frame difference (3 x 3, 1/mm): the beam runs
+    from the tracker to the point, its range and angles each with their sigma."""
+    Tt = np.eye(4) if T_world_from_tracker is None else np.asarray(T_world_from_tracker, float)
+    return [sigma.whitening(Tt[:3, :3].T @ (p - Tt[:3, 3])) @ Tt[:3, :3].T
+            for p in np.asarray(measured_world, float)]
+
+
+def cluster_pose_response(cluster_mcs: np.ndarray, measured_world: np.ndarray,
+                          T_world_from_mcs: np.ndarray, sigma: TrackerSigma,
+                          T_world_from_tracker: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """How :func:`fit_cluster_pose`'s answer ``T_world_from_mcs`` moves with its inputs, to
+    first order (Gauss-Newton at the fit): the change ``x = (rotation vector, rad; shift, mm)``,
+    with ``R = exp([ω]) R₀`` and ``t = t₀ + τ``, is ``A δw + B δc`` for changes δw of the
+    measured points (world, n x 3, flattened) and δc of the cluster's centres (mcs, likewise).
+    A Monte Carlo of the pose then draws the estimator the fusion uses at the cost of two
+    matrix products."""
+    c = np.asarray(cluster_mcs, float)
+    R0 = np.asarray(T_world_from_mcs, float)[:3, :3]
+    Ws = whitenings(measured_world, sigma, T_world_from_tracker)
+    n = len(c)
+    J = np.zeros((3 * n, 6))
+    Wblk = np.zeros((3 * n, 3 * n))
+    for i, (ci, W) in enumerate(zip(c, Ws, strict=True)):
+        q = R0 @ ci
+        skew = np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
+        J[3 * i:3 * i + 3] = W @ np.hstack([-skew, np.eye(3)])
+        Wblk[3 * i:3 * i + 3, 3 * i:3 * i + 3] = W
+    solve = np.linalg.solve(J.T @ J, J.T)  # 6 x 3n
+    # the residual W (R c + t − w): ∂/∂w = −W, ∂/∂c = W R₀
+    A = solve @ Wblk
+    B = -solve @ Wblk @ np.kron(np.eye(n), R0)
+    return A, B
+
+
 def fit_cluster_pose(cluster_mcs: dict[str, np.ndarray], measured_world: dict[str, np.ndarray],
                      sigma: TrackerSigma, T_world_from_tracker: np.ndarray | None = None
                      ) -> ClusterPose:
@@ -76,12 +113,7 @@ def fit_cluster_pose(cluster_mcs: dict[str, np.ndarray], measured_world: dict[st
                                                   "cluster pose")
     c = np.array([cluster_mcs[n] for n in names], float)
     w = np.array([measured_world[n] for n in names], float)
-    Tt = np.eye(4) if T_world_from_tracker is None else np.asarray(T_world_from_tracker, float)
-    Ws = []
-    for p in w:  # the beam runs from the tracker to the point
-        p_tracker = Tt[:3, :3].T @ (p - Tt[:3, 3])
-        Wt = sigma.whitening(p_tracker)
-        Ws.append(Wt @ Tt[:3, :3].T)  # whitening of a world-frame difference
+    Ws = whitenings(w, sigma, T_world_from_tracker)
     T0 = kabsch(c, w)
 
     def residuals(x: np.ndarray) -> np.ndarray:

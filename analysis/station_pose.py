@@ -14,14 +14,20 @@ Units mm; ``world`` is the tracker's frame after the nests' re-location.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 from scancell.analysis.handeye import kabsch
-from scancell.analysis.smr_cluster import ClusterGeometryError, fit_cluster_pose
+from scancell.analysis.smr_cluster import (
+    ClusterGeometryError,
+    cluster_pose_response,
+    fit_cluster_pose,
+)
 from scancell.analysis.tracker_network import TrackerSigma
 from scancell.model.ecs import DegenerateGeometry, ecs_for_frame
 from scancell.protocols.plan import DEFAULT_J6_ANGLES_DEG, ECS_METHODS
+from scipy.spatial.transform import Rotation
 
 
 class StationPoseError(ValueError):
@@ -71,6 +77,34 @@ class StationPose:
                                     dict(zip(self.names, p, strict=True)), TrackerSigma(),
                                     self.T_world_from_tracker).T_world_from_mcs
         return kabsch(c, p)
+
+    @cached_property
+    def _weighted_fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The weighted cluster fit and how it moves with its inputs (A, B:
+        :func:`scancell.analysis.smr_cluster.cluster_pose_response`)."""
+        T = self.T_world_from_mcs(weighted=True)
+        A, B = cluster_pose_response(self.cluster_mcs, self.points_mm, T, TrackerSigma(),
+                                     self.T_world_from_tracker)
+        return T, A, B
+
+    def drawn_T_world_from_mcs(self, points_mm: np.ndarray, T_ecs_from_mcs: np.ndarray,
+                               cluster_mcs: np.ndarray | None = None) -> np.ndarray:
+        """The pose the fusion's estimator gives for drawn points, hand-eye and cluster: the
+        J6 frame as it is; the cluster's weighted fit to first order about its answer (a
+        Monte Carlo's draws move it by micrometres, where the first order is exact to far
+        below them)."""
+        if self.method == "j6":
+            return self.T_world_from_mcs(points_mm, T_ecs_from_mcs)
+        T0, A, B = self._weighted_fit
+        c = self.cluster_mcs if cluster_mcs is None else cluster_mcs
+        moved = np.linalg.inv(T_ecs_from_mcs) @ self.T_ecs_from_mcs
+        c = c @ moved[:3, :3].T + moved[:3, 3]
+        x = A @ (np.asarray(points_mm, float) - self.points_mm).ravel() \
+            + B @ (c - self.cluster_mcs).ravel()
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3]
+        T[:3, 3] = T0[:3, 3] + x[3:]
+        return T
 
 
 def cluster_draws(draws: list[dict[str, Any]] | None, names: tuple[str, ...]

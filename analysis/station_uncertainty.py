@@ -167,8 +167,8 @@ def _draw_move(sources: set[str], rng: np.random.Generator, pose: StationPose,
     cluster = pose.cluster_mcs
     if "cluster_calibration" in sources and cluster is not None:
         cluster = cluster + _cluster_error(rng, pose)
-    T = pose.T_world_from_mcs(p, T_em2, cluster)
-    T0 = pose.T_world_from_mcs()
+    T = pose.drawn_T_world_from_mcs(p, T_em2, cluster)
+    T0 = pose.drawn_T_world_from_mcs(pose.points_mm, T_em)
     if scale == 1.0 and np.array_equal(T, T0):  # nothing drawn moves it: exactly no move
         M, t = np.eye(3), np.zeros(3)
     else:
@@ -286,7 +286,7 @@ def sampled(pose: StationPose, cloud: np.ndarray, point_noise_mm: np.ndarray | f
     with np.errstate(divide="ignore", invalid="ignore"):
         along_normal = np.abs(np.einsum("ij,ij->i", c, n_mcs) / c[:, 2])
     n = np.nan_to_num(noise[::step]) * np.nan_to_num(along_normal, nan=1.0, posinf=1.0)
-    T0 = pose.T_world_from_mcs()
+    T0 = pose.drawn_T_world_from_mcs(pose.points_mm, pose.T_ecs_from_mcs)
     return c, n, n_mcs @ T0[:3, :3].T, c @ T0[:3, :3].T + T0[:3, 3], step
 
 
