@@ -19,7 +19,9 @@ from scancell.analysis.cloud_io import CloudFileError, read_ply
 from scancell.analysis.free_space import DepthView, FreeSpace
 from scancell.analysis.json_file import read_json
 from scancell.analysis.model_file import ModelFile
+from scancell.analysis.station_pose import StationPose
 from scancell.analysis.station_store import move_points
+from scancell.analysis.station_uncertainty import StatedSources, pose_sigma, station_sigmas
 from scancell.analysis.voxel_tiles import VoxelTiles
 
 #: station points the viewpoint lookup keeps (FusedCloud.viewpoint_of)
@@ -39,6 +41,10 @@ class Station:
     ecs_noise_mm: float | None = None
     #: per-point 1-sigma noise (mm, analysis.uncertainty), None if the cloud has none
     uncertainty: np.ndarray | None = None
+    #: what the pose was built from and its sources' stated sigmas (a recording's stations):
+    #: each point then carries its pose's share, as in the fuse worker
+    pose: StationPose | None = None
+    stated: StatedSources | None = None
     _world: tuple[bytes, np.ndarray] | None = field(default=None, init=False, repr=False,
                                                     compare=False)
 
@@ -169,13 +175,20 @@ def fuse(stations: list[Station], T_ecs_from_mcs: np.ndarray, voxel_mm: float = 
     sigma = None
     if voxel_mm > 0:
         free = FreeSpace()
+        added: dict[str, tuple[np.ndarray | None, np.ndarray | None]] = {}
         for st in stations:
-            free.add(DepthView.of(st.name, st.points_mcs, st.T_world_from_ecs @ T_ecs_from_mcs,
-                                  per_unc[st.name] if per_unc else 0.0, 0.0))
+            T = st.T_world_from_ecs @ T_ecs_from_mcs
+            unc = per_unc[st.name] if per_unc else None
+            sigmas = None
+            if st.pose is not None and st.stated is not None and unc is not None and len(unc):
+                sigmas = station_sigmas(st.name, st.pose, st.points_mcs, unc, st.stated, T)[1]
+            added[st.name] = sigmas if sigmas is not None else (unc, None)
+            free.add(DepthView.of(st.name, st.points_mcs, T, 0.0 if unc is None else unc,
+                                  pose_sigma(sigmas)))
         with tempfile.TemporaryDirectory(prefix="scancell-fuse-") as tmp:
             tiles = VoxelTiles(tmp, voxel_mm)
             for name, pts in world.items():
-                tiles.add(pts, per_unc[name] if per_unc else None)
+                tiles.add(pts, *added[name])
             kept = list(free.keep(tiles.means()))
             pts = np.concatenate([p for p, _ in kept]) if kept else np.zeros((0, 3))
             sig = np.concatenate([s for _, s in kept]) if kept else np.zeros(0)

@@ -314,6 +314,29 @@ def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
                               PoseCovariance.of_moves(moves, X0.mean(axis=0)))
 
 
+def station_sigmas(name: str, pose: StationPose, cloud_mcs: np.ndarray,
+                   depth_sigma_mm: np.ndarray | None, stated: StatedSources,
+                   T_world_from_mcs: np.ndarray
+                   ) -> tuple[StationUncertainty, tuple[np.ndarray, np.ndarray] | None]:
+    """A station's Monte Carlo (seeded by its name: the live fusion and a recording's give the
+    same) and, where its points carry their depth noise, each point's noise and pose share
+    along its normal (:func:`point_sigmas`)."""
+    import zlib
+
+    u = station_uncertainty(pose, cloud_mcs, 0.0 if depth_sigma_mm is None else depth_sigma_mm,
+                            stated, seed=zlib.crc32(name.encode()))
+    sigmas = (None if depth_sigma_mm is None
+              else point_sigmas(u, cloud_mcs, T_world_from_mcs, depth_sigma_mm))
+    return u, sigmas
+
+
+def pose_sigma(sigmas: tuple[np.ndarray, np.ndarray] | None) -> float:
+    """A station's pose 1-sigma along the normal, the RMS over its points (mm; 0 unknown)."""
+    if sigmas is None or not len(sigmas[1]):
+        return 0.0
+    return float(np.sqrt(np.mean(np.square(sigmas[1], dtype=np.float64))))
+
+
 def scanner_fixed_overlap(clouds_world: dict[str, np.ndarray],
                           T_world_from_ecs: dict[str, np.ndarray], T_ecs_from_mcs: np.ndarray,
                           pairs: list[tuple[str, str]], stated: StatedSources,

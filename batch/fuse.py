@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scancell.analysis.free_space import DepthView, FreeSpace
 from scancell.analysis.fusion import FusedCloud
 from scancell.analysis.grid_kernels import CellGrid
 from scancell.analysis.metrics import (
@@ -47,7 +48,9 @@ from scancell.analysis.metrics import (
     pairs_with_earlier,
 )
 from scancell.analysis.model_file import ModelFile
+from scancell.analysis.station_pose import station_pose
 from scancell.analysis.station_store import StationStore, StoredStation, WorldFromMcs, move_points
+from scancell.analysis.station_uncertainty import StatedSources, pose_sigma, station_sigmas
 from scancell.analysis.voxel_tiles import VoxelTiles, tile_means
 from scancell.workers.fuse import OVERLAP_EVERY, even_sample
 from scancell.workers.recorded_stations import RecordedStation, recorded_poses, station_cloud
@@ -78,6 +81,7 @@ class StationDone:
     sample: np.ndarray  # an even sample of its world points (float64, mm)
     sample_sigma: np.ndarray | None  # their 1-sigma (mm)
     count: int
+    view: DepthView | None = None  # its depth view, for the model's free-space check
 
 
 def _stores(spool: Path) -> tuple[StationStore, WorldFromMcs]:
@@ -91,10 +95,20 @@ def tiles_folder(spool: Path, index: int) -> Path:
 
 def station_task(recording: str, station: RecordedStation, index: int,
                  T_world_from_mcs: np.ndarray, radius_mm: float, spool: str,
-                 voxel_mm: float) -> StationDone:
-    """On a worker: station ``station`` (number ``index`` in the job) into the spool."""
+                 voxel_mm: float, hand_eye: dict[str, Any] | None = None) -> StationDone:
+    """On a worker: station ``station`` (number ``index`` in the job) into the spool; with
+    the ``hand_eye`` in force its points carry their pose's share, as live."""
     root = Path(spool)
     pts, unc = station_cloud(recording, station)
+    sigmas = None
+    e = station.record or {}
+    if hand_eye is not None and unc is not None and len(pts) and (
+            e.get("sigma_mm") is not None or e.get("smr_sigma_mm") is not None):
+        sigmas = station_sigmas(station.name, station_pose(e, hand_eye), pts, unc,
+                                StatedSources.from_json(e.get("uncertainty_sources"), hand_eye),
+                                T_world_from_mcs)[1]
+    view = DepthView.of(station.name, pts, T_world_from_mcs, 0.0 if unc is None else unc,
+                        pose_sigma(sigmas))
     mcs, world_store = _stores(root)
     stored = mcs.put(station.name, pts, None, unc, index=index)
     world = move_points(pts, T_world_from_mcs)
@@ -108,12 +122,12 @@ def station_task(recording: str, station: RecordedStation, index: int,
     final = tiles_folder(root, index)
     partial = final.with_name(final.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
-    VoxelTiles(partial, voxel_mm).add(world, unc)
+    VoxelTiles(partial, voxel_mm).add(world, *(sigmas if sigmas is not None else (unc, None)))
     shutil.rmtree(final, ignore_errors=True)
     partial.rename(final)
     ref = StationRef(station.name, stored, np.asarray(T_world_from_mcs, float), cells)
     return StationDone(ref, even_sample(world), None if unc is None else even_sample(unc),
-                       len(world))
+                       len(world), view)
 
 
 def overlap_task(spool: str, done: StationRef, earlier: list[StationRef], radius_mm: float
@@ -181,7 +195,7 @@ def fuse_recording(client: Any, recording: str | Path, spool: str | Path, voxel_
     radius = RADIUS_FACTOR * spacing
     del first
     done = _results(client, {client.submit(station_task, rec, st, i, T[st.name], radius,
-                                           str(root), voxel_mm, pure=False): st.name
+                                           str(root), voxel_mm, hand_eye, pure=False): st.name
                              for i, st in enumerate(poses)}, "station", tick)
     ordered = [done[st.name] for st in poses]
     refs = [d.ref for d in ordered]
@@ -195,9 +209,13 @@ def fuse_recording(client: Any, recording: str | Path, spool: str | Path, voxel_
         pairs += got
         values.merge(v)
     weighted = all(d.sample_sigma is not None for d in ordered)
+    free = FreeSpace()
+    for d in ordered:
+        if d.view is not None:
+            free.add(d.view)
     model = ModelFile.write(root / "model.bin",
-                            ((p, s if weighted else None) for p, s in
-                             tile_means([tiles_folder(root, i) for i in range(len(ordered))])))
+                            ((p, s if weighted else None) for p, s in free.keep(
+                                tile_means([tiles_folder(root, i) for i in range(len(ordered))]))))
     names = [r.name for r in refs]
     fused = FusedCloud(None, {d.ref.name: d.sample for d in ordered},
                        sum(d.count for d in ordered), None,

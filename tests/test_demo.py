@@ -83,9 +83,9 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     for part in acc.values():
         assert (run / part["report"]).exists(), part["report"]
     # both end in QIF 3.0 documents, valid against the official schemas when the tests have them
-    from .test_inspect import qif_check
-
     from scancell.analysis.qif import CHARACTERISTIC_STATUS
+
+    from .test_inspect import qif_check
 
     qif_check(run / ins["qif"], [CHARACTERISTIC_STATUS[ins["verdict"]]])
     trace = (run / ins["qif"]).read_text()  # its traceability: job, recording, calibration

@@ -71,7 +71,7 @@ def test_points_another_station_saw_through_are_left_out_and_the_surface_kept():
     assert out[truth].mean() > 0.95, "B saw through A's strip"
     assert not out[~truth].any(), "no point on the surface is left out"
     assert fs.to_json()["by_station"] == {"B": int(out.sum())}
-    kept = list(fs.keep([(X, sigma)]))[0][0]
+    kept, _ = next(iter(fs.keep([(X, sigma)])))
     assert len(kept) == len(X) - out.sum()
 
 
@@ -80,7 +80,7 @@ def test_a_depth_edge_whose_near_pixels_were_dropped_contradicts_nothing():
     # its cells there hold only the low floor, 12 mm behind the step's edge
     A = camera_looking(np.array([0.0, 0, 6]), np.array([-300.0, 0, 600]))
     B = camera_looking(np.array([0.0, 0, 0]), np.array([250.0, 0, 600]))
-    pa, sa = scan(A, step_surface)
+    pa, _ = scan(A, step_surface)
     pb, sb = scan(B, step_surface, seed=1)
     wb = world(pb, B)
     near_edge = np.abs(wb[:, 0]) < 2.0
@@ -103,7 +103,7 @@ def test_points_hidden_from_a_station_are_not_judged_by_it():
 
 def test_the_threshold_is_six_combined_sigmas():
     B = camera_looking(np.array([-100.0, 0, 0]), np.array([-100.0, 0, 650]))
-    pb, sb = scan(B, step_surface, noise=0.0)
+    pb, _ = scan(B, step_surface, noise=0.0)
     fs = FreeSpace()
     fs.add(DepthView.of("B", pb, B, 0.05, 0.0))
     above = np.array([[-100.0, 0.0, 0.29], [-100.0, 0.0, 0.32]])  # 6 x hypot(0.05, 0.01) = 0.306

@@ -35,7 +35,6 @@ import shutil
 import tempfile
 import threading
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,8 +55,9 @@ from scancell.analysis.station_uncertainty import (
     budget_by_source,
     coverage,
     point_sigmas,
+    pose_sigma,
     scanner_fixed_overlap,
-    station_uncertainty,
+    station_sigmas,
 )
 from scancell.analysis.voxel_tiles import VoxelTiles
 from scancell.bus.protocol import BusLike
@@ -438,14 +438,11 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
         stated_sigma = ecs.get("sigma_mm") is not None or ecs.get("smr_sigma_mm") is not None
         if stated_sigma and len(cloud):
             noise = ecs_noise_effect(pose, cloud)
-            su = station_uncertainty(
-                pose, cloud, 0.0 if unc is None else unc,
-                StatedSources.from_json(ecs.get("uncertainty_sources"), he),
-                seed=zlib.crc32(station.encode()))
+            su, sigmas = station_sigmas(
+                station, pose, cloud, unc,
+                StatedSources.from_json(ecs.get("uncertainty_sources"), he), T_world_from_mcs)
             with self._lock:
                 job.station_uncertainty[station] = su
-            if unc is not None:
-                sigmas = point_sigmas(su, cloud, T_world_from_mcs, unc)
         self._view(job, station, cloud, T_world_from_mcs, unc, sigmas)
         world = move_points(cloud, T_world_from_mcs)
         del cloud
@@ -505,9 +502,8 @@ class FuseWorker(ThreadedWorker[tuple[str, str]]):
               unc: np.ndarray | None, sigmas: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The station's depth view (analysis/free_space.py), with its points' depth noise
         and its pose's 1-sigma (the RMS of its points')."""
-        pose = float(np.sqrt(np.mean(np.square(sigmas[1], dtype=np.float64)))) \
-            if sigmas is not None and len(sigmas[1]) else 0.0
-        view = DepthView.of(name, cloud, T_world_from_mcs, 0.0 if unc is None else unc, pose)
+        view = DepthView.of(name, cloud, T_world_from_mcs, 0.0 if unc is None else unc,
+                            pose_sigma(sigmas))
         with self._lock:
             job.free_space.add(view)
 

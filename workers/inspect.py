@@ -45,7 +45,7 @@ class InspectSettings:
     display_points: int = 300_000
 
 
-class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
+class InspectWorker(ThreadedWorker[tuple[str, tuple[np.ndarray, np.ndarray] | None, str | None]]):
     thread_name = "inspect-worker"
     join_timeout_s = 300.0
 
@@ -54,7 +54,7 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         self.settings = settings
         self.reports: list[dict[str, Any]] = []
         self._nominals: dict[str, Any] = {}
-        self._parts = ModelParts()
+        self._parts, self._sigmas = ModelParts(), ModelParts()
         self._lock = threading.Lock()
 
     def on_start(self) -> None:
@@ -69,16 +69,17 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
         try:
             pts, fields = fg.cloud_arrays(sample.decode(), ["uncertainty"])
             sigma = fields.get("uncertainty")
-            rows = np.empty((len(pts), 4), np.float32)  # x, y, z and the 1-sigma (NaN: none)
-            rows[:, :3] = pts
-            rows[:, 3] = np.nan if sigma is None else sigma
-            with self._lock:
-                model = self._parts.add(meta, rows)
+            sigma = (np.full((len(pts), 1), np.nan, np.float32) if sigma is None
+                     else sigma.astype(np.float32, copy=False).reshape(-1, 1))
+            with self._lock:  # the points and their 1-sigma (NaN: none), each whole once in
+                model = self._parts.add(meta, pts.astype(np.float32, copy=False))
+                sigmas = self._sigmas.add(meta, sigma)
         except (EncodingError, ModelPartsError) as exc:
             log.warning("%s: %s", sample.key, exc)
             return
-        if model is not None:
-            self.submit((str(meta.get("job_id", "?")), model, meta.get("nominal")))
+        if model is not None and sigmas is not None:
+            self.submit((str(meta.get("job_id", "?")), (model, sigmas.ravel()),
+                         meta.get("nominal")))
 
     def _nominal(self, path: str, measured: np.ndarray | None = None):
         """The nominal at ``path`` (loaded once); the first cloud checks its size before the
@@ -90,15 +91,14 @@ class InspectWorker(ThreadedWorker[tuple[str, np.ndarray | None, str | None]]):
                                                 measured)
         return self._nominals[path]
 
-    def handle(self, item: tuple[str, np.ndarray | None, str | None]) -> None:
+    def handle(self, item: tuple[str, tuple[np.ndarray, np.ndarray] | None, str | None]) -> None:
         from scancell.analysis.nominal import NominalError
 
         job_id, model, nominal = item
         if model is not None:
-            sigma = None if np.isnan(model[:, 3]).all() else model[:, 3].copy()
-            points = np.ascontiguousarray(model[:, :3])
+            points, sigma = model
             del model, item
-            self.inspect(job_id, points, nominal, sigma)
+            self.inspect(job_id, points, nominal, None if np.isnan(sigma).all() else sigma)
             return
         try:
             self._nominal(nominal or "")

@@ -12,7 +12,12 @@ from typing import Any
 
 import numpy as np
 from scancell.analysis.fusion import FusionError, Station
-from scancell.analysis.station_pose import StationPoseError, station_T_world_from_ecs
+from scancell.analysis.station_pose import (
+    StationPoseError,
+    station_pose,
+    station_T_world_from_ecs,
+)
+from scancell.analysis.station_uncertainty import StatedSources
 from scancell.protocols import foxglove_schemas as fg
 from scancell.recorder.reading import samples
 from scancell.workers.model_parts import ModelParts, ModelPartsError
@@ -29,6 +34,8 @@ class RecordedStation:
     #: the channel of its cloud (``.../scan/<station>/cloud``)
     cloud_topic: str
     T_world_from_ecs: np.ndarray
+    #: its ``scan/<station>/ecs`` record
+    record: dict[str, Any] | None = None
 
 
 def recorded_poses(path: str | Path) -> tuple[list[RecordedStation], dict[str, Any]]:
@@ -54,7 +61,7 @@ def recorded_poses(path: str | Path) -> tuple[list[RecordedStation], dict[str, A
             T = station_T_world_from_ecs(e, hand_eye)
         except StationPoseError as exc:
             raise FusionError(f"{path}: {exc}") from None
-        stations.append(RecordedStation(e["station"], scan_id, topic, T))
+        stations.append(RecordedStation(e["station"], scan_id, topic, T, e))
     return stations, hand_eye
 
 
@@ -91,8 +98,13 @@ def recorded_stations(path: str | Path) -> tuple[list[Station], np.ndarray, dict
         if st.scan_id not in clouds:
             raise _no_cloud(path, st)
         pts, unc = clouds.pop(st.scan_id)
+        e = st.record or {}
+        stated = e.get("sigma_mm") is not None or e.get("smr_sigma_mm") is not None
         stations.append(Station(st.name, pts.astype(float), st.T_world_from_ecs,
-                                uncertainty=None if unc is None else unc.astype(float)))
+                                uncertainty=None if unc is None else unc.astype(float),
+                                pose=station_pose(e, hand_eye) if stated else None,
+                                stated=(StatedSources.from_json(e.get("uncertainty_sources"),
+                                                                hand_eye) if stated else None)))
     return stations, np.asarray(hand_eye["T_ecs_from_mcs"], float), hand_eye
 
 
