@@ -373,13 +373,18 @@ def test_worker_settings_from_the_cell_config(tmp_path):
                                        "faces = ['plate']\n")
     (tmp_path / "cell.toml").write_text(
         "[cell]\nname='x'\n[inspection]\nnominal='part.step'\nalign='asmeasured'\n"
-        "tolerances='tol.toml'\n"
+        "tolerances='tol.toml'\ndecision_rule='simple'\npoint_sigma_mm=0.02\n"
         "T_world_from_part=[[1,0,0,3300],[0,1,0,0],[0,0,1,-100],[0,0,0,1]]\n")
     args = argparse.Namespace(config=str(tmp_path / "cell.toml"), nominal=None, unit=None,
                               align=None, transform=None, tolerance=None, tolerances=None,
-                              out=None)
+                              out=None, decision_rule=None, point_sigma=None)
     s = inspect_settings(args)
     assert s.nominal == str(tmp_path / "part.step") and s.inspection.align == "asmeasured"
+    assert s.inspection.decision_rule == "simple" and s.inspection.default_sigma_mm == 0.02
+    args.decision_rule, args.point_sigma = "iso14253-1", 0.05  # the command line over the cell
+    over = inspect_settings(args).inspection
+    assert (over.decision_rule, over.default_sigma_mm) == ("iso14253-1", 0.05)
+    args.decision_rule = args.point_sigma = None
     assert np.allclose(s.inspection.transform[:3, 3], [-3300, 0, 100])
     assert s.inspection.tolerance.overall.upper_mm == 0.4
     assert s.inspection.tolerance.regions[0].faces == ["plate"]
