@@ -234,42 +234,52 @@ class PoseCovariance:
 NORMAL_POINTS = 100_000
 
 
-def sample_normals(cloud: np.ndarray, sample: int) -> tuple[np.ndarray, int]:
+#: a cloud's normal sample: its step, the sampled points (MCS, mm, float64) and their unit
+#: normals (None: fewer than 3 points)
+DenseNormals = tuple[int, np.ndarray, np.ndarray | None]
+
+
+def dense_normals(cloud: np.ndarray) -> DenseNormals:
+    """Every ``step``-th point of ``cloud`` (MCS, mm), :data:`NORMAL_POINTS` of them, and the
+    normal of each: the least-squares plane of its neighbours within 6 x their spacing (the
+    metric tool's construction). Its sign is arbitrary."""
+    step = max(1, len(cloud) // NORMAL_POINTS)
+    dense = np.asarray(cloud[::step], float)
+    return step, dense, (normals(dense, 6.0 * mean_spacing(dense)) if len(dense) >= 3 else None)
+
+
+def sample_normals(cloud: np.ndarray, sample: int, dense: DenseNormals | None = None
+                   ) -> tuple[np.ndarray, int]:
     """Unit normals (MCS) of every ``step``-th point of ``cloud`` (MCS, mm) and the ``step``
-    (about ``len(cloud) / sample``): each the least-squares plane of its neighbours within 6 x
-    the spacing of a :data:`NORMAL_POINTS` subsample (the metric tool's construction), which
-    the sample is part of. Its sign is arbitrary."""
-    dense_step = max(1, len(cloud) // NORMAL_POINTS)
+    (about ``len(cloud) / sample``), taken from :func:`dense_normals` (given, or fitted)."""
+    dense_step, _, n = dense or dense_normals(cloud)
     step = dense_step * max(1, len(cloud) // max(1, sample) // dense_step)
-    dense = cloud[::dense_step]
-    if len(dense) < 3:
+    if n is None:
         return np.tile([0.0, 0.0, 1.0], (len(cloud[::step]), 1)), step
-    n = normals(dense, 6.0 * mean_spacing(dense))
     return n[:: step // dense_step], step
 
 
-def every_point_normals(cloud: np.ndarray) -> np.ndarray:
+def every_point_normals(cloud: np.ndarray, dense: DenseNormals | None = None) -> np.ndarray:
     """A unit normal (MCS, either sign) for every point of ``cloud`` (MCS, mm): that of
-    the nearest point of the :data:`NORMAL_POINTS` subsample :func:`sample_normals` fits (a
-    full-size station's 3.5 M neighbourhoods would take most of a fuse worker's time)."""
+    the nearest point of :func:`dense_normals` (given, or fitted; a full-size station's 3.5 M
+    neighbourhoods would take most of a fuse worker's time)."""
     from scipy.spatial import cKDTree
 
-    dense_step = max(1, len(cloud) // NORMAL_POINTS)
-    dense = np.asarray(cloud[::dense_step], float)
-    if len(dense) < 3:
+    _, points, n = dense or dense_normals(cloud)
+    if n is None:
         return np.tile([0.0, 0.0, -1.0], (len(cloud), 1))
-    n = normals(dense, 6.0 * mean_spacing(dense))
-    _, nearest = cKDTree(dense).query(np.asarray(cloud, np.float32), workers=-1)
+    _, nearest = cKDTree(points).query(np.asarray(cloud, np.float32), workers=-1)
     return n[nearest]
 
 
 def point_sigmas(u: StationUncertainty, cloud_mcs: np.ndarray, T_world_from_mcs: np.ndarray,
-                 depth_sigma_mm: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+                 depth_sigma_mm: np.ndarray | float, dense: DenseNormals | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Every point's 1-sigma along its surface normal (mm, float32 each): its own noise (the
     depth noise carried onto the normal, scaled by the noise model's stated accuracy) and its
     station pose's share (:class:`PoseCovariance`, every other source). Independent: the total
     is their root sum of squares."""
-    n_mcs = every_point_normals(cloud_mcs)
+    n_mcs = every_point_normals(cloud_mcs, dense)
     noise = (np.broadcast_to(np.asarray(depth_sigma_mm, float), (len(cloud_mcs),))
              * along_normal(cloud_mcs, n_mcs)
              * np.sqrt(1.0 + u.stated.scanner_noise_rel ** 2)).astype(np.float32)
@@ -281,11 +291,12 @@ def point_sigmas(u: StationUncertainty, cloud_mcs: np.ndarray, T_world_from_mcs:
 
 
 def sampled(pose: StationPose, cloud: np.ndarray, point_noise_mm: np.ndarray | float,
-            sample: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+            sample: int, dense: DenseNormals | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """What :func:`_draw` works on: the sampled points (MCS), their depth noise carried onto
     the normal, their normals and positions in world, and the sampling step."""
     noise = np.broadcast_to(np.asarray(point_noise_mm, float), (len(cloud),))
-    n_mcs, step = sample_normals(cloud, sample)
+    n_mcs, step = sample_normals(cloud, sample, dense)
     c = cloud[::step]
     with np.errstate(divide="ignore", invalid="ignore"):
         along_normal = np.abs(np.einsum("ij,ij->i", c, n_mcs) / c[:, 2])
@@ -296,13 +307,14 @@ def sampled(pose: StationPose, cloud: np.ndarray, point_noise_mm: np.ndarray | f
 
 def station_uncertainty(pose: StationPose, cloud_mcs: np.ndarray,
                         point_noise_mm: np.ndarray | float, stated: StatedSources,
-                        trials: int = 200, sample: int = 2000, seed: int = 0
-                        ) -> StationUncertainty:
+                        trials: int = 200, sample: int = 2000, seed: int = 0,
+                        dense: DenseNormals | None = None) -> StationUncertainty:
     """Monte Carlo of one station: its pose's tracker points (world, mm) with their 1-sigma,
     the hand-eye and cluster calibrations, the station's cloud (MCS, mm) and its per-point
-    depth noise (mm, along the left camera's optical axis)."""
+    depth noise (mm, along the left camera's optical axis). ``dense``: the cloud's
+    :func:`dense_normals`, if already fitted."""
     cloud = np.asarray(cloud_mcs, float)
-    c, n, normal, X0, _ = sampled(pose, cloud, point_noise_mm, sample)
+    c, n, normal, X0, _ = sampled(pose, cloud, point_noise_mm, sample, dense)
     args = (pose, c, n, normal, stated, X0)
     share = {}
     for k, src in enumerate(SCOPES):
@@ -327,10 +339,11 @@ def station_sigmas(name: str, pose: StationPose, cloud_mcs: np.ndarray,
     along its normal (:func:`point_sigmas`)."""
     import zlib
 
+    dense = dense_normals(cloud_mcs)  # fitted once for both
     u = station_uncertainty(pose, cloud_mcs, 0.0 if depth_sigma_mm is None else depth_sigma_mm,
-                            stated, seed=zlib.crc32(name.encode()))
+                            stated, seed=zlib.crc32(name.encode()), dense=dense)
     sigmas = (None if depth_sigma_mm is None
-              else point_sigmas(u, cloud_mcs, T_world_from_mcs, depth_sigma_mm))
+              else point_sigmas(u, cloud_mcs, T_world_from_mcs, depth_sigma_mm, dense))
     return u, sigmas
 
 
