@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scancell.model.transforms import rotation_angle_deg
+from scipy.spatial.transform import Rotation
 
 
 class HandEyeError(ValueError):
@@ -60,13 +61,21 @@ class HandEyeResult:
     translation_sigma_mm: float
     leave_one_out_mm: dict[str, float] = field(default_factory=dict)
     used: list[str] = field(default_factory=list)
+    #: 6 x 6 covariance of the calibration's error as a move in MCS, ``T_true = T · δ`` with
+    #: δ = (rotation vector, rad; translation, mm): its rotation and translation are strongly
+    #: correlated (the fit pivots about the balls' centroid, not about MCS's origin), which the
+    #: two sigmas above cannot say
+    covariance_mcs: np.ndarray | None = None
 
     def to_json(self) -> dict:
-        return {"T_ecs_from_mcs": self.T_ecs_from_mcs.tolist(), "rms_mm": self.rms_mm,
-                "residuals_mm": self.residuals_mm, "excluded": self.excluded,
-                "rotation_sigma_arcsec": self.rotation_sigma_arcsec,
-                "translation_sigma_mm": self.translation_sigma_mm,
-                "leave_one_out_mm": self.leave_one_out_mm, "used": self.used}
+        out = {"T_ecs_from_mcs": self.T_ecs_from_mcs.tolist(), "rms_mm": self.rms_mm,
+               "residuals_mm": self.residuals_mm, "excluded": self.excluded,
+               "rotation_sigma_arcsec": self.rotation_sigma_arcsec,
+               "translation_sigma_mm": self.translation_sigma_mm,
+               "leave_one_out_mm": self.leave_one_out_mm, "used": self.used}
+        if self.covariance_mcs is not None:
+            out["covariance_mcs"] = self.covariance_mcs.tolist()
+        return out
 
     def table(self) -> str:
         lines = [f"hand-eye T_ecs_from_mcs from {len(self.used)} pairs "
@@ -159,15 +168,19 @@ def solve_hand_eye(pairs: Sequence[Pair], robust: bool = True, threshold_mm: flo
     dof = max(3 * len(use) - 6, 1)
     sigma = np.sqrt(float(np.sum(res**2)) / dof) / np.sqrt(2.0)
     rng = np.random.default_rng(seed)
-    angles, shifts = [], []
+    angles, shifts, moves = [], [], []
     for _ in range(mc_samples):
         Tk = kabsch(mcs[use] + rng.normal(0, sigma, (len(use), 3)),
                     ecs[use] + rng.normal(0, sigma, (len(use), 3)))
         angles.append(rotation_angle_arcsec(Tk[:3, :3] @ T[:3, :3].T))
         shifts.append(Tk[:3, 3] - T[:3, 3])
+        delta = np.linalg.solve(T, Tk)
+        moves.append(np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(),
+                                     delta[:3, 3]]))
     rot_sigma = float(np.sqrt(np.mean(np.square(angles)))) if angles else 0.0
     trans_sigma = float(np.sqrt(np.mean(np.sum(np.square(shifts), axis=1)))) if shifts else 0.0
+    covariance = (np.asarray(moves).T @ np.asarray(moves)) / len(moves) if moves else None
     return HandEyeResult(
         T, rms, {pairs[i].id: float(r) for i, r in zip(use, res, strict=True)}, excluded,
         rot_sigma, trans_sigma, {pairs[i].id: v for i, v in loo_errs.items()},
-        [pairs[i].id for i in use])
+        [pairs[i].id for i in use], covariance)

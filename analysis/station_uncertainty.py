@@ -19,7 +19,8 @@ tracker_systematic  job      half the tracker's stated per-shot sigma, common to
 refraction          job      range scale from the weather's uncertainty (or 10 ppm unknown)
 tracker_location    job      the nests' location of the tracker (fit RMS, or drift allowed)
 settling            station  the arm's residual motion between P1 and the scan
-hand_eye            scanner  the calibration's rotation and translation sigma
+hand_eye            scanner  the calibration's covariance as a move in MCS (its rotation and
+                             translation correlated), or its two sigmas if not stated
 cluster_calibration scanner  the cluster SMRs' calibrated centres: one of the calibration's
                              joint draws (its SMRs move together: a common error of the ECS,
                              the fit of a tipped pose), plus independently what of each SMR's
@@ -46,6 +47,8 @@ import numpy as np
 from scancell.analysis.metrics import mean_spacing, normals
 from scancell.analysis.station_pose import StationPose
 from scancell.analysis.uncertainty import along_normal
+from scancell.model.transforms import make_T
+from scipy.spatial.transform import Rotation
 
 ARCSEC = np.pi / 180 / 3600
 
@@ -69,6 +72,10 @@ class StatedSources:
     scanner_scale_ppm: float = 0.0
     hand_eye_translation_mm: float = 0.0
     hand_eye_rotation_arcsec: float = 0.0
+    #: the hand-eye's 6 x 6 covariance as a move in MCS (rotation vector rad, translation mm;
+    #: ``HandEyeResult.covariance_mcs``); None: a calibration from before it was stated, drawn
+    #: from the two sigmas as if independent (which overstates its effect at the points)
+    hand_eye_covariance: tuple[tuple[float, ...], ...] | None = None
     #: relative 1-sigma of the scanner's noise model itself (0.15: it predicts 15 % too much or
     #: too little noise), one factor per draw common to the station's points
     scanner_noise_rel: float = 0.0
@@ -85,6 +92,9 @@ class StatedSources:
                    scanner_scale_ppm=float(d.get("scanner_scale_ppm", 0.0)),
                    hand_eye_translation_mm=float(hand_eye.get("translation_sigma_mm") or 0.0),
                    hand_eye_rotation_arcsec=float(hand_eye.get("rotation_sigma_arcsec") or 0.0),
+                   hand_eye_covariance=(None if hand_eye.get("covariance_mcs") is None else
+                                        tuple(tuple(map(float, r))
+                                              for r in hand_eye["covariance_mcs"])),
                    scanner_noise_rel=float(d.get("scanner_noise_rel", 0.0)),
                    tracker_origin_mm=tuple(d.get("tracker_origin_mm", (0.0, 0.0, 0.0))))
 
@@ -127,7 +137,11 @@ def _scanner_error(source: str, rng: np.random.Generator, T_em: np.ndarray, s: S
     """One draw of a ``scanner`` source: the hand-eye it gives and the scanner's scale."""
     T_em2 = T_em.copy()
     scale = 1.0
-    if source == "hand_eye":
+    if source == "hand_eye" and s.hand_eye_covariance is not None:
+        d = rng.multivariate_normal(np.zeros(6), np.asarray(s.hand_eye_covariance),
+                                    method="eigh")
+        T_em2 = T_em @ make_T(Rotation.from_rotvec(d[:3]).as_matrix(), d[3:])
+    elif source == "hand_eye":
         T_em2[:3, :3] = _rot(rng, s.hand_eye_rotation_arcsec * ARCSEC / np.sqrt(3)) @ T_em[:3, :3]
         T_em2[:3, 3] = T_em[:3, 3] + rng.normal(0.0, s.hand_eye_translation_mm / np.sqrt(3), 3)
     elif source == "scanner_scale":

@@ -45,6 +45,39 @@ def test_noisy_pairs_error_within_the_reported_uncertainty():
 
 
 @pytest.mark.unit
+def test_the_stated_covariance_predicts_the_spread_at_the_balls_and_beyond_them():
+    """Over many calibrations with fresh noise, the error a point in MCS gets (ECS, mm) has the
+    spread the covariance states: small at the balls' centroid, where the fit pivots, and
+    growing away from it; the two sigmas drawn as if independent overstate it at the balls."""
+    from scancell.analysis.station_uncertainty import StatedSources, _scanner_error
+
+    spots = np.array([[0.0, 0.0, 625.0], [0.0, 0.0, 0.0], [300.0, 0.0, 900.0]])
+    true = spots @ TRUE_T[:3, :3].T + TRUE_T[:3, 3]
+    errs = []
+    for seed in range(300):
+        T = solve_hand_eye(pairs(noise=0.01, seed=seed + 10), mc_samples=0).T_ecs_from_mcs
+        errs.append(spots @ T[:3, :3].T + T[:3, 3] - true)
+    truth = np.sqrt(np.mean(np.sum(np.square(errs), axis=2), axis=0))
+    r = solve_hand_eye(pairs(noise=0.01, seed=3))
+    assert r.covariance_mcs.shape == (6, 6)
+    for stated, lo, hi in ((StatedSources.from_json({}, r.to_json()), 0.75, 1.33),
+                           (StatedSources(hand_eye_rotation_arcsec=r.rotation_sigma_arcsec,
+                                          hand_eye_translation_mm=r.translation_sigma_mm),
+                            None, None)):
+        rng = np.random.default_rng(0)
+        drawn = []
+        for _ in range(2000):
+            T = _scanner_error("hand_eye", rng, r.T_ecs_from_mcs, stated)[0]
+            drawn.append((spots @ T[:3, :3].T + T[:3, 3]) - (spots @ r.T_ecs_from_mcs[:3, :3].T
+                                                             + r.T_ecs_from_mcs[:3, 3]))
+        predicted = np.sqrt(np.mean(np.sum(np.square(drawn), axis=2), axis=0))
+        if lo is not None:
+            assert np.all((predicted / truth > lo) & (predicted / truth < hi)), (predicted, truth)
+        else:
+            assert predicted[0] / truth[0] > 2.0  # independent draws: the overstatement
+
+
+@pytest.mark.unit
 def test_planted_outliers_are_excluded_with_their_reason():
     p = pairs()
     p[4] = Pair("b4", p[4].ecs + np.array([0, 2.0, 0]), p[4].mcs)  # a typo in the table
