@@ -138,6 +138,9 @@ ACCEPTANCE_KEYS: dict[str, KeySpec] = {
                          {"sphere": 10, "ballbar": 7, "plane": 6}),
     "mpe_mm": KeySpec("table {PF, PS, SD, F}", "the maximum permissible errors of Part 2",
                       None, "mm"),
+    "mpe_camera_width_px": KeySpec("integer", "the camera width (px) Part 2's MPEs are specified "
+                                   "at; a scanner run coarser (binning) scales them by "
+                                   "specified / actual width; absent: used as given", None, "px"),
     "ballbar3_length_mm": KeySpec("number", "Part 3: the long ball bar's calibrated length",
                                   None, "mm"),
     "ballbar3_sphere_diameter_mm": KeySpec("number", "Part 3: its spheres' diameter", None, "mm"),
@@ -392,6 +395,11 @@ def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
         if not (isinstance(pos, list) and len(pos) == 6 and any(pos[3:])):
             raise err("[acceptance] part3_positions_world", "each must be x, y, z (mm) and a "
                                                             "direction dx, dy, dz")
+    width = t.get("mpe_camera_width_px")
+    if width is not None and not (isinstance(width, int) and not isinstance(width, bool)
+                                  and width > 0):
+        raise err("[acceptance] mpe_camera_width_px", f"must be a positive whole number of "
+                                                      f"pixels, got {width!r}")
     for table, known in (("positions", {"sphere", "ballbar", "plane"}),
                          ("mpe_mm", {"PF", "PS", "SD", "F"}), ("mpe3_mm", {"SD"})):
         sub = t.get(table, {})

@@ -23,7 +23,9 @@ Our reading of the guideline (2012 editions), with where it is uncertain:
   fused through the laser tracker: the error of the whole chain.
 - Part 3's figure is reported as ``SD3``.
 - Each parameter's figure is the largest |value| over its positions, compared with the MPE
-  from the cell config.
+  from the cell config, for the camera resolution it was specified at; a scanner run at a
+  coarser one (binning, the quick demo's quarter size) has its Part 2 MPEs scaled by the
+  pixel's footprint (:func:`mpe_for_resolution`).
 """
 
 from __future__ import annotations
@@ -243,6 +245,30 @@ def flatness(points: np.ndarray, approx_centre: np.ndarray | None = None,
             "rms_mm": float(np.sqrt(np.mean(res**2)))}
 
 
+def mpe_for_resolution(mpe_mm: dict[str, float], specified_width_px: int | None,
+                       width_px: int | None) -> tuple[dict[str, float], dict[str, Any] | None]:
+    """Part 2's MPEs (mm) for a scanner whose cameras deliver ``width_px`` across, when they
+    were specified at ``specified_width_px``; the derivation beside them (None: not scaled).
+
+    A fringe scanner resolves a fixed fraction of a pixel: its phase matching finds the
+    disparity to σ_d pixels and its calibration the corners to a fraction of a pixel. Its
+    depth error σ_z = z² σ_d / (b f) (stand-off z, base b, focal length f in pixels) and every
+    length it reconstructs scale with the pixel's footprint z / f, and f in pixels is
+    proportional to the image width for one sensor and lens (binned, or rendered at a lower
+    resolution). So MPE = MPE_specified × specified_width / width. The factor is never below 1:
+    a finer camera than the specification's promises nothing the specification does not."""
+    if not specified_width_px or not width_px:
+        return dict(mpe_mm), None
+    factor = max(1.0, float(specified_width_px) / float(width_px))
+    if factor == 1.0:
+        return dict(mpe_mm), None
+    return ({k: round(v * factor, 4) for k, v in mpe_mm.items()},
+            {"specified_width_px": int(specified_width_px), "width_px": int(width_px),
+             "factor": round(factor, 4), "specified_mm": dict(mpe_mm),
+             "formula": "MPE x specified width / width: the pixel's footprint at the "
+                        "stand-off (sigma_z = z^2 sigma_d / (b f), f in pixels)"})
+
+
 @dataclass
 class AcceptanceResult:
     """Per parameter: each position's value and the figure (largest |value|) against its MPE."""
@@ -250,6 +276,8 @@ class AcceptanceResult:
     values: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     mpe: dict[str, float] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
+    #: how Part 2's MPEs were derived from the specified ones (:func:`mpe_for_resolution`)
+    mpe_basis: dict[str, Any] | None = None
 
     def add(self, parameter: str, value: float, **info: Any) -> None:
         self.values.setdefault(parameter, []).append({"value_mm": float(value), **info})
@@ -269,7 +297,8 @@ class AcceptanceResult:
                       "pass": None if mpe is None else bool(fig <= mpe), "values": v}
         verdicts = [x["pass"] for x in out.values() if x["pass"] is not None]
         return {"parameters": out, "errors": self.errors,
-                "pass": (all(verdicts) and not self.errors) if verdicts else None}
+                "pass": (all(verdicts) and not self.errors) if verdicts else None,
+                **({"mpe_basis": self.mpe_basis} if self.mpe_basis else {})}
 
 
 def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray],
@@ -283,7 +312,7 @@ def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray],
     mpe = dict((part2 or samples or [{}])[0].get("mpe_mm", {}))
     if part3 and "SD" in part3[0].get("mpe_mm", {}):
         mpe["SD3"] = part3[0]["mpe_mm"]["SD"]
-    result = AcceptanceResult(mpe=mpe)
+    result = AcceptanceResult(mpe=mpe, mpe_basis=(part2 or [{}])[0].get("mpe_basis"))
     for s in part3:
         p, art = s["placement"], s["artefact"]
         scans = [st["scan_id"] for st in s["stations"]]

@@ -536,6 +536,8 @@ def run_acceptance(client: CellClient, quick: bool, prefix: str = "   ") -> dict
     """Part 2 then Part 3 on the cell (Part 3 measures while the worker evaluates Part 2); the
     acceptance worker's figures for summary.json. ``prefix`` starts its lines (it may run
     beside other stages)."""
+    from scancell.workers.acceptance import mpe_basis_text
+
     reports: list[tuple[float, dict]] = []  # (when it came, the report)
     client.bus.subscribe(client.bus.keys.acceptance_report,
                          lambda s: reports.append((time.monotonic(), s.decode())))
@@ -560,11 +562,13 @@ def run_acceptance(client: CellClient, quick: bool, prefix: str = "   ") -> dict
                               "seconds": round(came - t0, 1),
                               "report": f"{job}/acceptance.html",
                               "qif": f"{job}/acceptance.qif"
-                              if (r.get("files") or {}).get("qif") else None}
+                              if (r.get("files") or {}).get("qif") else None,
+                              **({"mpe_basis": r["mpe_basis"]} if r.get("mpe_basis") else {})}
         print(f"{prefix}part {part}: " + ", ".join(
             f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']})" for p, v in figures.items())
             + f": {'PASS' if r['pass'] else 'FAIL'} ({out[f'part{part}']['seconds']:.0f} s "
-              f"from its start to its report)")
+              f"from its start to its report)"
+            + (f"; {mpe_basis_text(r['mpe_basis'])}" if r.get("mpe_basis") else ""))
     return out
 
 
@@ -828,6 +832,10 @@ def table(s: dict[str, Any]) -> str:
             rows.append((f"VDI/VDE 2634-{part[-1]} {' / '.join(figs)} (mm)",
                          " / ".join(f"{v['figure_mm']:.3f}" for v in figs.values()),
                          "PASS" if acc["pass"] else "FAIL"))
+            rows.append(("  MPE (mm)" + (f", the specified x {acc['mpe_basis']['factor']:g} "
+                                         f"for {acc['mpe_basis']['width_px']} px cameras"
+                                         if acc.get("mpe_basis") else ""),
+                         " / ".join(f(v["mpe_mm"], "g") for v in figs.values()), "-"))
     pr = s.get("projector_response") or {}
     if pr:
         rows.append(("projector gamma: calibrated / simulated", f"{pr['gamma']:.3f} / "

@@ -74,6 +74,17 @@ def test_parameters_from_synthetic_artefacts():
 
 
 @pytest.mark.unit
+def test_mpes_scale_with_the_pixels_footprint_never_below_the_specification():
+    spec = {"PF": 0.2, "PS": 0.05, "SD": 0.1, "F": 0.2}
+    quarter, basis = v.mpe_for_resolution(spec, 2448, 612)
+    assert quarter == {"PF": 0.8, "PS": 0.2, "SD": 0.4, "F": 0.8}
+    assert basis["factor"] == 4.0 and basis["specified_mm"] == spec
+    assert v.mpe_for_resolution(spec, 2448, 2448) == (spec, None)
+    assert v.mpe_for_resolution(spec, 2448, 4896) == (spec, None)  # finer: as specified
+    assert v.mpe_for_resolution(spec, None, 612) == (spec, None)  # not stated: as given
+
+
+@pytest.mark.unit
 def test_positions_fill_the_volume_and_artefacts_fit():
     spheres = v.sphere_positions(VOLUME, 10)
     bars = v.ballbar_positions(VOLUME, 7)
@@ -241,8 +252,11 @@ def test_acceptance_job_on_the_simulated_cell_and_from_its_recording(make_daemon
     # at 1/4 camera resolution (0.5 mm pixels): the sizes stay within a few hundredths
     assert abs(p["PS"]["figure_mm"]) < 0.1 and abs(p["SD"]["figure_mm"]) < 0.15, p
     assert 0 < p["PF"]["figure_mm"] < 0.5 and 0 < p["F"]["figure_mm"] < 0.5, p
+    # the MPEs of the scanner as it ran: specified at 2448 px, the cameras delivered 612
+    assert report["mpe_basis"]["width_px"] == 612 and report["mpe_basis"]["factor"] == 4.0
+    assert p["PF"]["mpe_mm"] == pytest.approx(0.8) and p["SD"]["mpe_mm"] == pytest.approx(0.4)
     html = (tmp_path / "acc" / final["job_id"] / "acceptance.html").read_text()
-    assert "sphere-spacing error" in html
+    assert "sphere-spacing error" in html and "the pixel&#x27;s footprint" in html
     # the recording alone gives the same figures
     mcap = next((tmp_path / "rec").glob("acceptance-*.mcap"))
     out = subprocess.run([sys.executable, "-m", "scancell", "acceptance", str(mcap), "--json",

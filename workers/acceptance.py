@@ -191,8 +191,16 @@ def summary_line(body: dict[str, Any]) -> str:
     parts = [f"{p} {v['figure_mm']:.4f} mm" + (f" (MPE {v['mpe_mm']})" if v.get("mpe_mm") else "")
              for p, v in body["parameters"].items()]
     verdict = {True: "PASS", False: "FAIL", None: "no MPE"}[body.get("pass")]
-    return f"{', '.join(parts)}: {verdict}" + (f"; {len(body['errors'])} scans not evaluated"
-                                                if body.get("errors") else "")
+    basis = body.get("mpe_basis")
+    return (f"{', '.join(parts)}: {verdict}"
+            + (f"; {len(body['errors'])} scans not evaluated" if body.get("errors") else "")
+            + (f" ({mpe_basis_text(basis)})" if basis else ""))
+
+
+def mpe_basis_text(basis: dict[str, Any]) -> str:
+    """One sentence: how the Part 2 MPEs were derived for the scanner as it ran."""
+    return (f"MPEs for {basis['width_px']} px cameras: the specified ones (at "
+            f"{basis['specified_width_px']} px) x {basis['factor']:g}, the pixel's footprint")
 
 
 def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
@@ -226,7 +234,11 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
         f"<p>Measuring volume {vol.get('size_mm')} mm at {vol.get('centre_mm')} mm in the "
         "scanner frame. Each figure is the largest |value| over its positions (mm); see "
         "docs/how-to/acceptance.md for our reading of the guideline.</p>"
-        "<table><tr><th>parameter</th><th></th><th>figure (mm)</th><th>MPE (mm)</th><th></th>"
+        + (f"<p>{html.escape(mpe_basis_text(body['mpe_basis']))}: a fringe scanner resolves a "
+           "fixed fraction of a pixel, so its depth error z² σ_d / (b f) and the lengths it "
+           "measures scale with the pixel's footprint at the stand-off.</p>"
+           if body.get("mpe_basis") else "")
+        + "<table><tr><th>parameter</th><th></th><th>figure (mm)</th><th>MPE (mm)</th><th></th>"
         f"<th>positions</th><th>values (mm)</th></tr>{''.join(rows)}</table>"
         + (f"<h2>Not evaluated</h2><ul>{errors}</ul>" if errors else "") + "</body></html>")
     return files

@@ -105,10 +105,13 @@ async def acceptance(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                     "cameras": [c.name for c in devs.cameras],
                     "exposures_us": req.get("exposures_us")},
                     hold_locks=False, job_id=ctx.job_id, job_kind=ctx.kind, setup=setup)
+                mpe, basis = vdi2634.mpe_for_resolution(
+                    table.get("mpe_mm", {}), table.get("mpe_camera_width_px"),
+                    (reply.get("image_size_px") or [None])[0])
                 ctx.bus.publish_json(ctx.bus.keys.acceptance_sample, {
                     "job_id": ctx.job_id, "scan_id": reply["scan_id"], "placement": p.to_json(),
-                    "artefact": artefacts[p.kind], "volume": volume,
-                    "mpe_mm": table.get("mpe_mm", {}), "total": len(todo)},
+                    "artefact": artefacts[p.kind], "volume": volume, "mpe_mm": mpe,
+                    **({"mpe_basis": basis} if basis else {}), "total": len(todo)},
                     "scancell.AcceptanceSample")
                 scans.append(reply["scan_id"])
         finally:

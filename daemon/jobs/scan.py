@@ -91,6 +91,7 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
                   "job_kind": job_kind, "steps": spec["steps"], "periods": spec["periods"],
                   "precompensated": "precompensation" in spec}
     acquired: list[tuple[float | None, int, int]] = []  # (exposure, first shown_ns, patterns)
+    size_px: list[int] | None = None
     t_acq = 0.0
     async with contextlib.AsyncExitStack() as stack:
         if hold_locks:
@@ -116,6 +117,8 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
                 publish_exposure(cams, acq, e, {**frame_meta, "exposure_index": i,
                                                 "exposures": len(plan)})
                 acquired.append((e, acq.shown_ns[0], len(acq.shown_ns)))
+                first = acq.frames[cams[0].name][0].image
+                size_px = [int(first.shape[1]), int(first.shape[0])]
                 del acq  # its frames are out: not held through the next exposure
         except CouplingError as exc:
             raise CommandError("device_fault", f"scan {scan_id}: {exc}") from None
@@ -127,7 +130,8 @@ async def scan(supervisors: dict[str, DeviceSupervisor], request: dict[str, Any]
     return {"scan_id": scan_id, "station": station, "patterns": n, "cameras": cam_names,
             "exposures_us": [e for e, _, _ in acquired if e is not None] or None,
             "precompensated": "precompensation" in spec,
-            "acquisition_s": round(t_acq, 3), "stamp_ns": acquired[0][1]}
+            "acquisition_s": round(t_acq, 3), "stamp_ns": acquired[0][1],
+            "image_size_px": size_px}
 
 
 def publish_exposure(cams: list[Camera], acq: AcquiredSequence, exposure_us: float | None,
