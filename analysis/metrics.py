@@ -94,6 +94,26 @@ class NormalsOnDemand:
         return self.values[idx]
 
 
+def local_plane_distance(points: np.ndarray, reference: np.ndarray, reach_mm: float,
+                         min_points: int = 6, k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's distance (mm) to the least-squares plane of the reference's points within
+    ``reach_mm`` of it (its ``k`` nearest at most), as CloudCompare's cloud-to-cloud distance
+    with a local plane model does: a sparse reference (stripe edges, a scan line's points) is
+    a surface there, not a set of points to be near. Points with fewer than ``min_points``
+    reference points in reach are unsupported: distance NaN, and False in the second array."""
+    d, idx = cKDTree(reference).query(points, k=k, distance_upper_bound=reach_mm, workers=2)
+    near = np.isfinite(d)
+    supported = near.sum(axis=1) >= min_points
+    out = np.full(len(points), np.nan)
+    w = near[supported][..., None]
+    nb = reference[np.where(near[supported], idx[supported], 0)]
+    centre = (nb * w).sum(axis=1) / w.sum(axis=1)
+    x = (nb - centre[:, None]) * w
+    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", x, x))[1][:, :, 0]
+    out[supported] = np.abs(np.einsum("ni,ni->n", points[supported] - centre, normal))
+    return out, supported
+
+
 def nearest_within(grid: CellGrid, query: np.ndarray, radius: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """For every query point the nearest grid point within ``radius``: (distance, index into the

@@ -352,3 +352,18 @@ def test_rows_read_chunk_by_chunk_are_those_of_the_whole_array(tmp_path):
     (tmp_path / "cut.npy").write_bytes(data[:-120])
     with pytest.raises(ValueError, match=r"cut\.npy: ends within rows 960"):
         read_rows(tmp_path / "cut.npy", np.array([1, 990]), chunk=64)
+
+
+@pytest.mark.unit
+def test_local_plane_distance_sees_a_sparse_reference_as_its_surface():
+    """Stripe edges 2 mm apart on a plane z = 0: a point 0.3 mm above the plane between two
+    stripes is 0.3 mm from the surface (1 mm from the nearest edge point); a point with no
+    reference within reach is unsupported."""
+    from scancell.analysis.metrics import local_plane_distance
+
+    xs, ys = np.meshgrid(np.arange(0.0, 20.0, 2.0), np.arange(0.0, 20.0, 0.2))
+    ref = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    pts = np.array([[9.0, 10.0, 0.3], [9.0, 10.0, -1.5], [60.0, 0.0, 0.0]])
+    dist, supported = local_plane_distance(pts, ref, reach_mm=3.0)
+    assert supported.tolist() == [True, True, False]
+    assert dist[:2] == pytest.approx([0.3, 1.5], abs=1e-9) and np.isnan(dist[2])

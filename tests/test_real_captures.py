@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from scancell.analysis.board_check import check_board
 from scancell.analysis.cloud_io import read_ply
+from scancell.analysis.metrics import local_plane_distance
 from scancell.analysis.pattern_decode import decode_view
 from scancell.analysis.pattern_files import find_frames, read_frames
 from scancell.analysis.projector_rig import read_rig
@@ -73,5 +74,11 @@ def test_skull_through_the_documented_command(tmp_path):
     ref = ref[np.isfinite(ref).all(1)]
     dist, _ = cKDTree(ref).query(points, workers=2)
     assert np.median(dist) <= 0.30
+    # against the Gray-code surface (a local plane through its stripe edges within 3 mm):
+    # unsupported <= 3 % (the figure); beyond 1 mm of it 1.0 % today (0.5 % asked: not
+    # met, benchmarks/RESULTS.md), held from growing
+    plane, supported = local_plane_distance(points.astype(float), ref, reach_mm=3.0)
+    assert 1 - supported.mean() <= 0.03
+    assert np.median(plane[supported]) <= 0.15 and np.mean(plane[supported] > 1.0) <= 0.012
     header = out.read_bytes()[:800].decode("ascii", "replace")
     assert "comment frame: camera" in header and "slstudio-2x3" in header
