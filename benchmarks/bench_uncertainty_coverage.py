@@ -13,6 +13,12 @@ and on which side, the true error, and the hand-eye against the truth in the cal
 beside its stated 1-sigma and against the true left camera. Pooled: every station of every
 seed. The time column's ratio is to the first seed, measured in the same run.
 
+And the issue on trustworthy results' figures (item 2), per seed and pooled:
+- per point: the median of |true error| / stated σ over the fused model (0.55–0.85; a normal
+  error gives 0.674) and the share beyond 2 σ (0.02–0.08; 0.046);
+- per station: the stated σ of its mean error, its interval's width / 3.92, against the RMS of
+  the true errors' distance from the interval's centre (their ratio 0.8–1.25).
+
 Run: .venv/bin/python benchmarks/bench_uncertainty_coverage.py [--seeds 5] [--quick]
 """
 
@@ -55,7 +61,16 @@ def run_seed(seed: int, folder: Path, quick: bool, keep: Path | None = None) -> 
     below = sorted(n for n, v in stations.items() if v["true_error_mm"] < v["interval95_mm"][0])
     above = sorted(n for n, v in stations.items() if v["true_error_mm"] > v["interval95_mm"][1])
     he = s["hand_eye"]
+    lo_hi = np.array([stations[n]["interval95_mm"] for n in sorted(stations)]).reshape(-1, 2)
+    true = np.array([stations[n]["true_error_mm"] for n in sorted(stations)])
+    per_point = s["true_error_mm"].get("per_point") or {}
     return {"coverage": s.get("uncertainty_coverage"), "stations": len(stations),
+            "point_median": per_point.get("median_ratio"),
+            "point_beyond_2": per_point.get("beyond_2_sigma_share"),
+            "station_dev": (true - lo_hi.mean(axis=1)).tolist(),
+            "station_sigma": ((lo_hi[:, 1] - lo_hi[:, 0]) / 3.92).tolist(),
+            "beyond_0_5": s["true_error_mm"].get("beyond_0_5mm_share"),
+            "verdict": (s.get("inspection") or {}).get("verdict"),
             "below": below, "above": above, "true_mm": s["true_error_mm"]["mean"],
             "overlap_mm": s["translation_mm"]["mean"],
             "he_rot": he["rotation_error_arcsec"], "he_sigma": he.get("rotation_sigma_arcsec"),
@@ -78,7 +93,9 @@ def main() -> int:
             r = run_seed(seed, Path(tmp) / f"seed{seed}", args.quick,
                          Path(args.keep) if args.keep else None)
             results.append((seed, r))
-            print(f"seed {seed}: {r}", flush=True)
+            print(f"seed {seed}: " + str({k: v for k, v in r.items()
+                                          if k not in ("station_dev", "station_sigma")}),
+                  flush=True)
     ok = [r for _, r in results if "error" not in r]
     ref = results[0][1]["seconds"]
     print("\n| seed | coverage | stations | outside (below / above) | true error (mm) | overlap "
@@ -103,6 +120,23 @@ def main() -> int:
               f"{(n - outside) / n:.3f} ({n - outside} of {n} stations; "
               f"{sum(len(r['below']) for r in ok)} below their interval, "
               f"{sum(len(r['above']) for r in ok)} above)")
+    if ok:
+        def ratio(rows: list[dict]) -> float:
+            dev = np.concatenate([r["station_dev"] for r in rows])
+            sig = np.concatenate([r["station_sigma"] for r in rows])
+            return float(np.sqrt(np.mean(dev**2)) / np.sqrt(np.mean(sig**2)))
+
+        print("\n| seed | per point: median \\|e\\|/σ (0.55–0.85) | beyond 2 σ (0.02–0.08) | "
+              "stations: RMS true deviation / stated σ (0.8–1.25) | beyond 0.5 mm | verdict |")
+        print("|---|---|---|---|---|---|")
+        for seed, r in results:
+            if "error" not in r:
+                print(f"| {seed} | {r['point_median']:.3f} | {r['point_beyond_2']:.3f} | "
+                      f"{ratio([r]):.2f} | {r['beyond_0_5']:.1e} | {r['verdict']} |")
+        print(f"| pooled | {np.median([r['point_median'] for r in ok]):.3f} (median of seeds) | "
+              f"{np.mean([r['point_beyond_2'] for r in ok]):.3f} (mean) | {ratio(ok):.2f} | "
+              f"{np.mean([r['beyond_0_5'] for r in ok]):.1e} | "
+              f"{sum(r['verdict'] == 'pass' for r in ok)} of {len(ok)} pass |")
     return 0 if len(ok) == len(results) else 1
 
 
