@@ -115,6 +115,8 @@ SCANNER_KEYS: dict[str, KeySpec] = {
                                     "acceptance and scan jobs warn when they start before it; "
                                     "absent: not known, no warning", None, "min"),
 }
+#: the decision rules a verdict can follow (scancell.analysis.decision.RULES)
+DECISION_RULES = ("iso14253-1", "simple")
 #: ``[acceptance]``: the VDI/VDE 2634 test's measuring volume (MCS), the artefacts' calibrated
 #: sizes (their certificates) and the MPEs, all mm
 ACCEPTANCE_NUMBERS = {"sphere_diameter_mm", "ballbar_length_mm", "ballbar_sphere_diameter_mm"}
@@ -138,6 +140,11 @@ ACCEPTANCE_KEYS: dict[str, KeySpec] = {
                          {"sphere": 10, "ballbar": 7, "plane": 6}),
     "mpe_mm": KeySpec("table {PF, PS, SD, F}", "the maximum permissible errors of Part 2",
                       None, "mm"),
+    "test_u_mm": KeySpec("table {PF, PS, SD, F, SD3}", "the test's expanded uncertainty (k = 2) "
+                         "per parameter: the artefacts' calibration certificates (sphere form "
+                         "and diameter, bar lengths, plane form); absent: 0", None, "mm"),
+    "decision_rule": KeySpec('"iso14253-1" | "simple"', "how each figure is judged against its "
+                             "MPE with the test's U", "iso14253-1"),
     "mpe_camera_width_px": KeySpec("integer", "the camera width (px) Part 2's MPEs are specified "
                                    "at; a scanner run coarser (binning) scales them by "
                                    "specified / actual width; absent: used as given", None, "px"),
@@ -395,13 +402,17 @@ def _acceptance(t: dict[str, Any], err) -> dict[str, Any]:
         if not (isinstance(pos, list) and len(pos) == 6 and any(pos[3:])):
             raise err("[acceptance] part3_positions_world", "each must be x, y, z (mm) and a "
                                                             "direction dx, dy, dz")
+    if "decision_rule" in t and t["decision_rule"] not in DECISION_RULES:
+        raise err("[acceptance] decision_rule", f"must be iso14253-1 or simple, got "
+                                                f"{t['decision_rule']!r}")
     width = t.get("mpe_camera_width_px")
     if width is not None and not (isinstance(width, int) and not isinstance(width, bool)
                                   and width > 0):
         raise err("[acceptance] mpe_camera_width_px", f"must be a positive whole number of "
                                                       f"pixels, got {width!r}")
     for table, known in (("positions", {"sphere", "ballbar", "plane"}),
-                         ("mpe_mm", {"PF", "PS", "SD", "F"}), ("mpe3_mm", {"SD"})):
+                         ("mpe_mm", {"PF", "PS", "SD", "F"}), ("mpe3_mm", {"SD"}),
+                         ("test_u_mm", {"PF", "PS", "SD", "F", "SD3"})):
         sub = t.get(table, {})
         if not isinstance(sub, dict) or set(sub) - known or not all(map(positive, sub.values())):
             raise err(f"[acceptance] {table}", f"must map {', '.join(sorted(known))} to "
@@ -423,7 +434,7 @@ def _inspection(t: dict[str, Any], path: Path | None, err) -> dict[str, Any]:
                 out[key] = str(path.parent / out[key])
     if "align" in out and out["align"] not in ("asmeasured", "bestfit"):
         raise err("[inspection] align", f"must be asmeasured or bestfit, got {out['align']!r}")
-    if "decision_rule" in out and out["decision_rule"] not in ("iso14253-1", "simple"):
+    if "decision_rule" in out and out["decision_rule"] not in DECISION_RULES:
         raise err("[inspection] decision_rule",
                   f"must be iso14253-1 or simple, got {out['decision_rule']!r}")
     sigma = out.get("point_sigma_mm")

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from lxml import etree
+from scancell.analysis.decision import Zone, decide
 
 NS = "http://qifstandards.org/xsd/qif3"
 QIF_VERSION = "3.0.0"
@@ -449,11 +450,15 @@ VDI_PARAMETERS = {
 def acceptance_document(parameters: dict[str, dict[str, Any]], *, job_id: str | None = None,
                         overall_pass: bool | None = None,
                         traceability: Traceability | None = None,
-                        device: str = "scancell fringe scanner") -> etree._ElementTree:
+                        device: str = "scancell fringe scanner",
+                        overall_verdict: str | None = None,
+                        decision_rule: str = "iso14253-1") -> etree._ElementTree:
     """A VDI/VDE 2634 acceptance test as a QIF results document: each parameter (``PF``,
     ``PS``, ``SD``, ``F``, and variants such as ``SD3``) a user-defined linear characteristic
     whose tolerance is its MPE (0..MPE for a range, -MPE..+MPE for a signed error), with one
-    measurement per position: its value and PASS/FAIL against the MPE.
+    measurement per position: its value with the test's uncertainty (``U_mm`` / 2 as
+    ``combinedUncertainty``) and its status against the MPE by ``decision_rule`` (PASS, FAIL,
+    INDETERMINATE where neither is proven).
 
     ``parameters`` as :meth:`scancell.analysis.vdi2634.AcceptanceResult.to_json` gives them:
     ``{name: {"mpe_mm", "pass", "values": [{"value_mm", "position", ...}]}}``."""
@@ -502,24 +507,31 @@ def acceptance_document(parameters: dict[str, dict[str, Any]], *, job_id: str | 
         _el(ci, "Name", name)
         _ids_list(ci, "MeasurementDeviceIds", [dev_id])
         _el(ci, "CharacteristicNominalId", cnom)
-        items.append((citem, signed, mpe, values))
+        items.append((citem, signed, mpe, values, float(parameters[name].get("U_mm") or 0.0)))
     results = _el(_el(root, "Results"), "MeasurementResultsSet", n=1)
     mr = _el(results, "MeasurementResults", id=ids())
     _traceability(mr, "InspectionTraceability", t, None, ids)
-    total = sum(len(v) for *_, v in items)
+    total = sum(len(item[3]) for item in items)
     cm = _el(_el(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=total)
     verdicts = []
-    for citem, signed, mpe, values in items:
+    for citem, signed, mpe, values, U in items:
         for v in values:
             value = float(v["value_mm"])
-            ok = abs(value) <= mpe if signed else 0.0 <= value <= mpe
-            verdicts.append(ok)
+            judged = decide(abs(value) if signed else value, U, Zone(-math.inf, mpe),
+                            decision_rule)
+            verdicts.append(judged)
             m = _el(cm, "UserDefinedLinearCharacteristicMeasurement", id=ids())
-            _el(_el(m, "Status"), "CharacteristicStatusEnum", "PASS" if ok else "FAIL")
+            _el(_el(m, "Status"), "CharacteristicStatusEnum", CHARACTERISTIC_STATUS[judged])
             _el(m, "CharacteristicItemId", citem)
-            _el(m, "Value", value)
-    verdict = all(verdicts) if overall_pass is None else overall_pass
-    _el(_el(mr, "InspectionStatus"), "InspectionStatusEnum", "PASS" if verdict else "FAIL")
+            if U > 0:
+                _el(m, "Value", value, combinedUncertainty=_text(U / 2), meanError=_text(0.0))
+            else:
+                _el(m, "Value", value)
+    if overall_verdict is None:
+        overall_verdict = ("pass" if overall_pass else "fail") if overall_pass is not None else (
+            "fail" if "fail" in verdicts else "not provable" if "not provable" in verdicts
+            else "pass")
+    _el(_el(mr, "InspectionStatus"), "InspectionStatusEnum", INSPECTION_STATUS[overall_verdict])
     return _finish(root, ids)
 
 
@@ -565,7 +577,8 @@ def acceptance_from_json(body: dict[str, Any]) -> etree._ElementTree:
     """:func:`acceptance_document` of an acceptance test's JSON (``scancell acceptance
     --json``, the acceptance worker's ``acceptance/report``)."""
     return acceptance_document(body.get("parameters") or {}, job_id=body.get("job_id"),
-                               overall_pass=body.get("pass"))
+                               overall_pass=body.get("pass"), overall_verdict=body.get("verdict"),
+                               decision_rule=body.get("decision_rule") or "iso14253-1")
 
 
 #: where the QIF 3.0 schemas are, when no folder is given

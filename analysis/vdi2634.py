@@ -22,7 +22,12 @@ Our reading of the guideline (2012 editions), with where it is uncertain:
 - **Part 3** repeats SD with the ball bar's two spheres seen from different robot stations,
   fused through the laser tracker: the error of the whole chain.
 - Part 3's figure is reported as ``SD3``.
-- Each parameter's figure is the largest |value| over its positions, compared with the MPE
+- Each parameter's figure is the largest |value| over its positions, judged against the MPE
+  with the test's expanded uncertainty U (k = 2) by a decision rule (ISO 14253-1: conformance
+  proven at figure <= MPE - U, non-conformance at figure > MPE + U, not provable between).
+  The test's U is what the test itself adds: the artefacts' calibration certificates (the
+  sphere's form and diameter, the bars' lengths, the plane's form), from the cell config; the
+  scanner's own errors are what the test measures, not an uncertainty of it. The MPE comes
   from the cell config, for the camera resolution it was specified at; a scanner run at a
   coarser one (binning, the quick demo's quarter size) has its Part 2 MPEs scaled by the
   pixel's footprint (:func:`mpe_for_resolution`).
@@ -34,6 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scancell.analysis.decision import DEFAULT_RULE, FAIL, NOT_PROVABLE, PASS, Zone, decide
 from scancell.analysis.fit import FitError, detect_sphere, fit_plane, fit_sphere
 from scancell.analysis.uncertainty import along_normal
 
@@ -278,6 +284,10 @@ class AcceptanceResult:
     errors: list[str] = field(default_factory=list)
     #: how Part 2's MPEs were derived from the specified ones (:func:`mpe_for_resolution`)
     mpe_basis: dict[str, Any] | None = None
+    #: the test's expanded uncertainty (k = 2, mm) per parameter: the artefacts' certificates
+    test_u: dict[str, float] = field(default_factory=dict)
+    #: the decision rule (:mod:`scancell.analysis.decision`)
+    rule: str = DEFAULT_RULE
 
     def add(self, parameter: str, value: float, **info: Any) -> None:
         self.values.setdefault(parameter, []).append({"value_mm": float(value), **info})
@@ -293,11 +303,19 @@ class AcceptanceResult:
                            if kv[0] in order else len(order)):
             fig = self.figure(p)
             mpe = self.mpe.get(p)
-            out[p] = {"figure_mm": fig, "mpe_mm": mpe, "positions": len(v),
-                      "pass": None if mpe is None else bool(fig <= mpe), "values": v}
-        verdicts = [x["pass"] for x in out.values() if x["pass"] is not None]
-        return {"parameters": out, "errors": self.errors,
-                "pass": (all(verdicts) and not self.errors) if verdicts else None,
+            U = float(self.test_u.get(p, 0.0))
+            verdict = None if mpe is None else decide(fig, U, Zone(-np.inf, mpe), self.rule)
+            out[p] = {"figure_mm": fig, "mpe_mm": mpe, "U_mm": U, "positions": len(v),
+                      "verdict": verdict, "pass": None if mpe is None else verdict == PASS,
+                      "values": v}
+        verdicts = [x["verdict"] for x in out.values() if x["verdict"] is not None]
+        verdict = (None if not verdicts else FAIL if self.errors or FAIL in verdicts
+                   else NOT_PROVABLE if NOT_PROVABLE in verdicts else PASS)
+        return {"parameters": out, "errors": self.errors, "verdict": verdict,
+                "pass": None if verdict is None else verdict == PASS,
+                "decision_rule": self.rule,
+                "test_uncertainty": ("the artefacts' certificates, from the cell config"
+                                     if self.test_u else "not stated: U = 0"),
                 **({"mpe_basis": self.mpe_basis} if self.mpe_basis else {})}
 
 
@@ -309,10 +327,15 @@ def evaluate(samples: list[dict[str, Any]], clouds: dict[str, np.ndarray],
     A scan that cannot be evaluated is named in ``errors`` and fails the test."""
     part2 = [s for s in samples if s.get("part", 2) != 3]
     part3 = [s for s in samples if s.get("part", 2) == 3]
-    mpe = dict((part2 or samples or [{}])[0].get("mpe_mm", {}))
+    first = (part2 or samples or [{}])[0]
+    mpe = dict(first.get("mpe_mm", {}))
+    test_u = {k: v for k, v in (first.get("test_u_mm") or {}).items() if k != "SD3"}
     if part3 and "SD" in part3[0].get("mpe_mm", {}):
         mpe["SD3"] = part3[0]["mpe_mm"]["SD"]
-    result = AcceptanceResult(mpe=mpe, mpe_basis=(part2 or [{}])[0].get("mpe_basis"))
+    if part3 and "SD3" in (part3[0].get("test_u_mm") or {}):
+        test_u["SD3"] = part3[0]["test_u_mm"]["SD3"]
+    result = AcceptanceResult(mpe=mpe, mpe_basis=(part2 or [{}])[0].get("mpe_basis"),
+                              test_u=test_u, rule=first.get("decision_rule") or DEFAULT_RULE)
     for s in part3:
         p, art = s["placement"], s["artefact"]
         scans = [st["scan_id"] for st in s["stations"]]

@@ -557,16 +557,20 @@ def run_acceptance(client: CellClient, quick: bool, prefix: str = "   ") -> dict
         if r.get("error"):
             raise RuntimeError(f"acceptance part {part}: {r['error']}")
         figures = {p: {"figure_mm": v["figure_mm"], "mpe_mm": v["mpe_mm"], "pass": v["pass"],
+                       "U_mm": v.get("U_mm"), "verdict": v.get("verdict"),
                        "positions": v["positions"]} for p, v in r["parameters"].items()}
-        out[f"part{part}"] = {"parameters": figures, "pass": r["pass"], "errors": r["errors"],
+        verdict = r.get("verdict") or ("pass" if r["pass"] else "fail")
+        out[f"part{part}"] = {"parameters": figures, "pass": r["pass"], "verdict": verdict,
+                              "decision_rule": r.get("decision_rule"), "errors": r["errors"],
                               "seconds": round(came - t0, 1),
                               "report": f"{job}/acceptance.html",
                               "qif": f"{job}/acceptance.qif"
                               if (r.get("files") or {}).get("qif") else None,
                               **({"mpe_basis": r["mpe_basis"]} if r.get("mpe_basis") else {})}
         print(f"{prefix}part {part}: " + ", ".join(
-            f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']})" for p, v in figures.items())
-            + f": {'PASS' if r['pass'] else 'FAIL'} ({out[f'part{part}']['seconds']:.0f} s "
+            f"{p} {v['figure_mm']:.4f} mm (MPE {v['mpe_mm']}, U {v['U_mm'] or 0:g})"
+            for p, v in figures.items())
+            + f": {verdict.upper()} ({out[f'part{part}']['seconds']:.0f} s "
               f"from its start to its report)"
             + (f"; {mpe_basis_text(r['mpe_basis'])}" if r.get("mpe_basis") else ""))
     return out
@@ -831,7 +835,7 @@ def table(s: dict[str, Any]) -> str:
             figs = acc["parameters"]
             rows.append((f"VDI/VDE 2634-{part[-1]} {' / '.join(figs)} (mm)",
                          " / ".join(f"{v['figure_mm']:.3f}" for v in figs.values()),
-                         "PASS" if acc["pass"] else "FAIL"))
+                         (acc.get("verdict") or ("pass" if acc["pass"] else "fail")).upper()))
             rows.append(("  MPE (mm)" + (f", the specified x {acc['mpe_basis']['factor']:g} "
                                          f"for {acc['mpe_basis']['width_px']} px cameras"
                                          if acc.get("mpe_basis") else ""),

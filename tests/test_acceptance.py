@@ -120,6 +120,39 @@ def test_evaluate_names_what_it_could_not_evaluate():
 
 
 @pytest.mark.unit
+@pytest.mark.parametrize("U, rule, verdict", [
+    (0.0, "iso14253-1", "pass"),               # no test uncertainty stated: the MPE decides
+    (0.001, "iso14253-1", "pass"),             # proven inside MPE - U
+    (0.2, "iso14253-1", "not provable"),       # the figure within U of the MPE
+    (0.2, "simple", "pass")])                  # shared risk: the MPE alone decides
+def test_each_figure_is_judged_with_the_tests_uncertainty(U, rule, verdict):
+    c = np.array([0.0, 0.0, 620.0])
+    sample = {"job_id": "j", "scan_id": "j-sphere00", "artefact": {"diameter_mm": 50.0},
+              "placement": {"kind": "sphere", "index": 0, "centre_mcs": c.tolist(),
+                            "direction_mcs": [0, 0, -1]}, "mpe_mm": {"PF": 0.2, "PS": 0.05},
+              "test_u_mm": {"PF": U, "PS": 0.0}, "decision_rule": rule}
+    out = v.evaluate([sample], {"j-sphere00": sphere_cloud(c, 25.0, noise=0.01)})
+    pf = out["parameters"]["PF"]
+    assert 0.02 < pf["figure_mm"] < 0.2 - 0.001 and pf["U_mm"] == U
+    assert pf["verdict"] == verdict and pf["pass"] is (verdict == "pass")
+    assert out["verdict"] == verdict and out["pass"] is (verdict == "pass")
+    assert out["decision_rule"] == rule
+    assert out["test_uncertainty"].startswith("the artefacts'")
+
+
+@pytest.mark.unit
+def test_a_figure_beyond_its_mpe_plus_u_fails():
+    c = np.array([0.0, 0.0, 620.0])
+    sample = {"job_id": "j", "scan_id": "j-sphere00", "artefact": {"diameter_mm": 50.0},
+              "placement": {"kind": "sphere", "index": 0, "centre_mcs": c.tolist(),
+                            "direction_mcs": [0, 0, -1]}, "mpe_mm": {"PF": 0.05, "PS": 0.05},
+              "test_u_mm": {"PF": 0.002}}
+    out = v.evaluate([sample], {"j-sphere00": sphere_cloud(c, 25.0, noise=0.02)})
+    assert out["parameters"]["PF"]["verdict"] == "fail" and out["verdict"] == "fail"
+    assert out["pass"] is False
+
+
+@pytest.mark.unit
 def test_worker_waits_for_a_sample_later_than_the_job_end_and_reports_once():
     """The job's end event says how many samples it sent; one that lags behind it is still
     evaluated, and the end event seen twice gives one report (CI: Part 3 reported "no acceptance

@@ -67,6 +67,18 @@ def _write(tmp_path: Path, text: str) -> Path:
      "plane_size_mm=[200,50]\nmpe_mm={PX=1}\n", "[acceptance] mpe_mm: must map F, PF, PS, SD"),
     ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
      "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\ntest_u_mm={PF=-1}\n",
+     "[acceptance] test_u_mm: must map F, PF, PS, SD, SD3 to positive numbers"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\ndecision_rule='lenient'\n",
+     "[acceptance] decision_rule: must be iso14253-1 or simple, got 'lenient'"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
+     "plane_size_mm=[200,50]\nmpe_camera_width_px=0\n",
+     "[acceptance] mpe_camera_width_px: must be a positive whole number of pixels, got 0"),
+    ("[cell]\nname='x'\n[acceptance]\nvolume_size_mm=[1,2,3]\nvolume_centre_mm=[0,0,600]\n"
+     "sphere_diameter_mm=50\nballbar_length_mm=200\nballbar_sphere_diameter_mm=30\n"
      "plane_size_mm=[200,50]\nballbar3_length_mm=800\n", "a Part 3 test needs all of"),
     ("[cell]\nname='x'\n[scanner]\ndecode_limits={bend_px=1}\n",
      "[scanner] decode_limits: decode_limits: unknown limit(s) ['bend_px']"),

@@ -96,6 +96,21 @@ def test_an_acceptance_test_is_valid_qif_with_each_value_against_its_mpe(tmp_pat
 
 
 @needs_schemas
+def test_an_acceptance_test_with_its_uncertainty_is_valid_qif_and_says_what_is_not_provable(
+        tmp_path):
+    with_u = {k: {**v, "U_mm": 0.03} for k, v in ACCEPTANCE.items()}
+    doc = qif.acceptance_document(with_u, job_id="acceptance-3", overall_verdict="not provable")
+    qif.write_checked(doc, tmp_path / "a.qif", QIF_SCHEMAS)
+    back = etree.parse(str(tmp_path / "a.qif"))
+    # F 0.128, PF 0.084 / 0.076 inside 0.2 - 0.03; PS 0.061 within 0.05 + 0.03; SD3 0.019
+    # against 0.2: proven; SD 0.0077 against 0.1: proven
+    assert statuses(back) == ["PASS", "PASS", "PASS", "PASS", "INDETERMINATE", "PASS", "PASS"]
+    text = (tmp_path / "a.qif").read_text()
+    assert 'combinedUncertainty="0.015" meanError="0.0"' in text
+    assert "<InspectionStatusEnum>UNKNOWN</InspectionStatusEnum>" in text
+
+
+@needs_schemas
 def test_values_near_zero_or_huge_are_written_as_decimals_without_an_exponent(tmp_path):
     # a live acceptance job measured PS = -6.68e-05 mm, which repr writes with an exponent
     # that xs:decimal refuses

@@ -188,9 +188,11 @@ def world_clouds(ecs: dict[str, dict[str, Any]], clouds: dict[str, np.ndarray],
 def summary_line(body: dict[str, Any]) -> str:
     if body.get("error"):
         return body["error"]
-    parts = [f"{p} {v['figure_mm']:.4f} mm" + (f" (MPE {v['mpe_mm']})" if v.get("mpe_mm") else "")
+    parts = [f"{p} {v['figure_mm']:.4f} mm" + (f" (MPE {v['mpe_mm']}" + (
+        f", U {v['U_mm']:g})" if v.get("U_mm") else ")") if v.get("mpe_mm") else "")
              for p, v in body["parameters"].items()]
-    verdict = {True: "PASS", False: "FAIL", None: "no MPE"}[body.get("pass")]
+    verdict = (body.get("verdict") or {True: "pass", False: "fail", None: "no MPE"}[
+        body.get("pass")]).upper()
     basis = body.get("mpe_basis")
     return (f"{', '.join(parts)}: {verdict}"
             + (f"; {len(body['errors'])} scans not evaluated" if body.get("errors") else "")
@@ -218,10 +220,11 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
                     "(Part 3)"}
     rows = []
     for p, v in body["parameters"].items():
-        verdict = {True: "PASS", False: "FAIL", None: "–"}[v["pass"]]
+        verdict = (v.get("verdict") or "–").upper()
         values = ", ".join(f"{x['value_mm']:+.4f}" for x in v["values"])
         rows.append(f"<tr><td>{p}</td><td>{names.get(p, p)}</td><td>{v['figure_mm']:.4f}</td>"
                     f"<td>{v['mpe_mm'] if v['mpe_mm'] is not None else '–'}</td>"
+                    f"<td>{v.get('U_mm', 0.0):g}</td>"
                     f"<td>{verdict}</td><td>{v['positions']}</td><td>{values}</td></tr>")
     errors = "".join(f"<li>{html.escape(e)}</li>" for e in body.get("errors", []))
     vol = body.get("volume") or {}
@@ -230,7 +233,11 @@ def write_acceptance(folder: Path, body: dict[str, Any]) -> dict[str, str]:
         f"{html.escape(body['job_id'])}</title><style>body{{font-family:sans-serif;margin:2em}}"
         "td,th{border:1px solid #bbb;padding:.3em .6em}table{border-collapse:collapse}</style>"
         f"</head><body><h1>VDI/VDE 2634 Part 2 acceptance: job {html.escape(body['job_id'])}"
-        f"</h1><h2>{ {True: 'PASS', False: 'FAIL', None: 'no MPE given'}[body.get('pass')] }</h2>"
+        f"</h1><h2>{html.escape((body.get('verdict') or 'no MPE given').upper())}</h2>"
+        f"<p>Decision rule {html.escape(str(body.get('decision_rule', 'iso14253-1')))}: "
+        "conformance is proven where the figure is at most MPE − U, non-conformance where it "
+        "exceeds MPE + U; between, it is not provable. U (k = 2) is the test's own uncertainty: "
+        f"{html.escape(str(body.get('test_uncertainty', 'not stated: U = 0')))}.</p>"
         f"<p>Measuring volume {vol.get('size_mm')} mm at {vol.get('centre_mm')} mm in the "
         "scanner frame. Each figure is the largest |value| over its positions (mm); see "
         "docs/how-to/acceptance.md for our reading of the guideline.</p>"

@@ -59,6 +59,13 @@ class OperatorArtefactPlacer:
         return None
 
 
+def judged_by(table: dict[str, Any]) -> dict[str, Any]:
+    """What a sample carries for its verdict besides the MPEs: the test's expanded uncertainty
+    per parameter (the artefacts' certificates) and the decision rule."""
+    return {"test_u_mm": dict(table.get("test_u_mm", {})),
+            "decision_rule": table.get("decision_rule", "iso14253-1")}
+
+
 def placements(table: dict[str, Any], counts: dict[str, int]) -> list[vdi2634.Placement]:
     volume = vdi2634.MeasuringVolume(tuple(table["volume_size_mm"]),
                                      tuple(table["volume_centre_mm"]))
@@ -111,7 +118,8 @@ async def acceptance(ctx: JobContext, supervisors: dict[str, DeviceSupervisor],
                 ctx.bus.publish_json(ctx.bus.keys.acceptance_sample, {
                     "job_id": ctx.job_id, "scan_id": reply["scan_id"], "placement": p.to_json(),
                     "artefact": artefacts[p.kind], "volume": volume, "mpe_mm": mpe,
-                    **({"mpe_basis": basis} if basis else {}), "total": len(todo)},
+                    **({"mpe_basis": basis} if basis else {}), **judged_by(table),
+                    "total": len(todo)},
                     "scancell.AcceptanceSample")
                 scans.append(reply["scan_id"])
         finally:
@@ -190,7 +198,8 @@ async def multiple_views(ctx: JobContext, supervisors: dict[str, DeviceSuperviso
                                   "direction_world": d.round(6).tolist()},
                     "artefact": {"length_mm": length,
                                  "sphere_diameter_mm": table["ballbar3_sphere_diameter_mm"]},
-                    "mpe_mm": table.get("mpe3_mm", {})}, "scancell.AcceptanceSample")
+                    "mpe_mm": table.get("mpe3_mm", {}), **judged_by(table)},
+                    "scancell.AcceptanceSample")
         except BaseException:
             await stop_motion([devs.robot.device, axis])
             raise
