@@ -80,6 +80,12 @@ def test_quick_demo_runs_the_whole_path_and_writes_the_summary(tmp_path):
     # scan job's moves) and the quick hand-eye
     sd3 = acc["part3"]["parameters"]["SD3"]
     assert sd3["positions"] == 1 and sd3["mpe_mm"] == 0.2 and sd3["figure_mm"] < 0.3, sd3
+    # Part 2's MPEs are the quarter-size scanner's (x 4, the pixel's footprint), each figure
+    # judged with the artefacts' certificate U: the perfect scanner passes, proven
+    part2 = acc["part2"]
+    assert part2["mpe_basis"]["factor"] == 4.0 and part2["parameters"]["PF"]["mpe_mm"] == 0.8
+    assert part2["parameters"]["PF"]["U_mm"] == 0.002 and part2["decision_rule"] == "iso14253-1"
+    assert part2["verdict"] == "pass" and part2["pass"] is True, part2
     for part in acc.values():
         assert (run / part["report"]).exists(), part["report"]
     # both end in QIF 3.0 documents, valid against the official schemas when the tests have them
