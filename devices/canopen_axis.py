@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import queue
 import socket
 import threading
 import time
@@ -31,8 +32,12 @@ from scancell.protocols.commands import CommandError
 # BaseNode402 logs a warning on every statusword access when the drive maps no PDOs; an
 # SDO-only drive is valid CiA 402, so only its errors are worth the daemon log.
 logging.getLogger("canopen.profiles.p402").setLevel(logging.ERROR)
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+#: python-canopen's messages for a reply that is not the answer to the request just sent
+STALE_REPLY = ("Unexpected response", "Node returned a value for")
 POLL_S = 0.02
 
 
@@ -134,10 +139,18 @@ class CanopenAxis(Axis):
                 await asyncio.to_thread(net.disconnect)
 
     def _call(self, fn: Callable[[], T]) -> T:
-        """Run one canopen call, turning its exceptions into typed device errors."""
+        """Run one canopen call, turning its exceptions into typed device errors. A reply
+        that belongs to an earlier exchange (an answer that came after its request had timed
+        out, taken by the next request) is drained and the call made once more."""
         try:
             with self._io_thread:
-                return fn()
+                try:
+                    return fn()
+                except canopen.SdoCommunicationError as exc:
+                    if not str(exc).startswith(STALE_REPLY):
+                        raise
+                    self._drain_late_replies(exc)
+                    return fn()
         except canopen.SdoAbortedError as exc:
             raise DeviceFault(f"{self.name}: drive refused: {exc}") from None
         except canopen.SdoCommunicationError as exc:
@@ -148,6 +161,19 @@ class CanopenAxis(Axis):
             raise Timeout(f"{self.name}: {exc}") from None
         except (ValueError, TypeError) as exc:
             raise BadReply(f"{self.name}: {exc}") from None
+
+    def _drain_late_replies(self, exc: Exception) -> None:
+        """Wait one SDO timeout for replies still on their way, then drop every reply
+        queued: python-canopen clears its queue only before a request, so a reply that comes
+        after a timed-out request's (a slow drive, a loaded host) answers the next request
+        (canopen-python/canopen issue 25)."""
+        node = self._node
+        if node is None:
+            return
+        log.warning("%s: %s from %s: a late reply to an earlier request; drained, retrying once",
+                    self.name, exc, self._where())
+        time.sleep(node.sdo.RESPONSE_TIMEOUT)
+        node.sdo.responses = queue.Queue()
 
     async def _sdo(self, fn: Callable[[], T]) -> T:
         node = self._node

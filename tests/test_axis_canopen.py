@@ -190,6 +190,39 @@ def test_server_killed_gives_connection_lost_and_nothing_listening_fails_fast():
 
 
 @pytest.mark.process
+def test_a_late_reply_to_an_earlier_request_is_drained_not_a_lost_link():
+    """A drive's answer that came after its request timed out sits in the SDO queue when the
+    next request's answer is awaited (a loaded host: 'Unexpected response 0x60' failed a scan
+    job): the driver drains it and asks once more."""
+    async def body():
+        async with drive_and_server() as (cell, _drive, _server, channel):
+            axis = CanopenAxis("axis", {"interface": "virtual", "channel": channel, "node_id": 5,
+                                        "sdo_timeout_s": 0.3})
+            await axis.connect()
+            try:
+                await axis.move_to(25.0, 1.0)
+                sdo = axis._node.sdo
+                send = sdo.send_request
+                stale = [bytes([0x60, 0x40, 0x60, 0, 0, 0, 0, 0])]  # a controlword write's reply
+
+                def send_then_stale(request: bytes) -> None:
+                    send(request)
+                    if stale:
+                        sdo.responses.put(stale.pop())
+
+                sdo.send_request = send_then_stale
+                assert await axis.position() == pytest.approx(25.0, abs=0.001)
+                assert not stale  # it was there, and was drained
+                stale.append(bytes([0x60, 0x40, 0x60, 0, 0, 0, 0, 0]))
+                await axis.move_to(30.0, 1.0)
+                assert cell.rail_mm == pytest.approx(30.0, abs=0.001)
+            finally:
+                await axis.close()
+
+    asyncio.run(body())
+
+
+@pytest.mark.process
 def test_wrong_node_and_not_a_drive():
     async def body():
         async with drive_and_server() as (_cell, _drive, server, _):
