@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from lxml import etree
-from scancell.analysis.decision import Zone, decide
+from scancell.analysis.decision import Zone, combine, decide
 
 NS = "http://qifstandards.org/xsd/qif3"
 QIF_VERSION = "3.0.0"
@@ -528,9 +528,8 @@ def acceptance_document(parameters: dict[str, dict[str, Any]], *, job_id: str | 
             else:
                 _el(m, "Value", value)
     if overall_verdict is None:
-        overall_verdict = ("pass" if overall_pass else "fail") if overall_pass is not None else (
-            "fail" if "fail" in verdicts else "not provable" if "not provable" in verdicts
-            else "pass")
+        overall_verdict = (combine(verdicts) if overall_pass is None
+                           else "pass" if overall_pass else "fail")
     _el(_el(mr, "InspectionStatus"), "InspectionStatusEnum", INSPECTION_STATUS[overall_verdict])
     return _finish(root, ids)
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scancell.analysis.decision import DEFAULT_RULE, FAIL, NOT_PROVABLE, PASS, Zone, decide
+from scancell.analysis.decision import DEFAULT_RULE, FAIL, PASS, Zone, combine, decide
 from scancell.analysis.fit import FitError, detect_sphere, fit_plane, fit_sphere
 from scancell.analysis.uncertainty import along_normal
 
@@ -309,8 +309,8 @@ class AcceptanceResult:
                       "verdict": verdict, "pass": None if mpe is None else verdict == PASS,
                       "values": v}
         verdicts = [x["verdict"] for x in out.values() if x["verdict"] is not None]
-        verdict = (None if not verdicts else FAIL if self.errors or FAIL in verdicts
-                   else NOT_PROVABLE if NOT_PROVABLE in verdicts else PASS)
+        verdict = (None if not verdicts
+                   else FAIL if self.errors else combine(verdicts))
         return {"parameters": out, "errors": self.errors, "verdict": verdict,
                 "pass": None if verdict is None else verdict == PASS,
                 "decision_rule": self.rule,
