@@ -3,6 +3,7 @@ measured now (tracker frame, mm) onto their surveyed coordinates (``world``, mm)
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,3 +56,45 @@ def nest_drift(survey: dict[str, np.ndarray], measured: dict[str, np.ndarray],
                                     - (T_world_from_tracker[:3, :3] @ np.asarray(p, float)
                                        + T_world_from_tracker[:3, 3])))
             for n, p in measured.items() if n in survey}
+
+
+def turned_about_head(T_world_from_tracker: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """A levelled tracker's set-up ``T_world_from_tracker`` (its readings' frame, the head at
+    its origin) turned by ``yaw_deg`` about ``world``'s vertical (z) through the head."""
+    a = np.radians(yaw_deg)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    T = np.asarray(T_world_from_tracker, float).copy()
+    T[:3, :3] = Rz @ T[:3, :3]
+    return T
+
+
+def rough_location(T_guess: np.ndarray, survey: dict[str, np.ndarray],
+                   measured: dict[str, np.ndarray]) -> np.ndarray:
+    """Where a set-up stands from the nests found so far (readings in its frame, mm): their
+    rigid best fit once three not on a line are found; before that ``T_guess`` turned about the
+    head until the found nests' bearings match their survey's (a tracker set up by hand is
+    levelled by its own level, so its unknown is the yaw it was turned to by eye)."""
+    with contextlib.suppress(NestGeometryError):
+        return fit_nests(survey, measured).T_world_from_tracker
+    names = [n for n in measured if n in survey]
+    if not names:
+        return np.asarray(T_guess, float)
+    head = np.asarray(T_guess, float)[:3, 3]
+    turns = []
+    for n in names:
+        seen = T_guess[:3, :3] @ np.asarray(measured[n], float)
+        want = np.asarray(survey[n], float) - head
+        turns.append(np.arctan2(want[1], want[0]) - np.arctan2(seen[1], seen[0]))
+    mean_turn = np.angle(np.mean(np.exp(1j * np.asarray(turns))))
+    return turned_about_head(T_guess, float(np.degrees(mean_turn)))
+
+
+def off_by_more_than_a_turn(T_guess: np.ndarray, reading_mm: np.ndarray,
+                            survey_mm: np.ndarray) -> float:
+    """How far (mm) a reading (the set-up's frame) lies from a surveyed point however the
+    set-up is turned about its head's vertical: the distance of their horizontal ranges and
+    heights from the head, which no turn changes."""
+    head = np.asarray(T_guess, float)[:3, 3]
+    seen = np.asarray(T_guess, float)[:3, :3] @ np.asarray(reading_mm, float)
+    want = np.asarray(survey_mm, float) - head
+    return float(np.hypot(np.hypot(*seen[:2]) - np.hypot(*want[:2]), seen[2] - want[2]))

@@ -12,7 +12,14 @@ import contextlib
 from typing import Any
 
 import numpy as np
-from scancell.analysis.nest_fit import NestGeometryError, fit_nests, nest_drift
+from scancell.analysis.nest_fit import (
+    NestGeometryError,
+    fit_nests,
+    nest_drift,
+    off_by_more_than_a_turn,
+    rough_location,
+    turned_about_head,
+)
 from scancell.analysis.tracker_network import NetworkError, TrackerSigma, solve_network
 from scancell.daemon.jobs.ecs_measure import averaged
 from scancell.daemon.jobs.metrology import MetrologySettings
@@ -26,6 +33,25 @@ KNOCK_FALSE_ALARM = 1e-3
 #: the beam (the transverse sigma dominates the ADM's): P(r > k sigma) = exp(-k^2 / 2), so
 #: k = sqrt(2 ln(1 / p))
 KNOCK_SIGMAS = float(np.sqrt(2.0 * np.log(1.0 / KNOCK_FALSE_ALARM)))
+#: FindReflector locks on a reflector within this angle of the direction it is given
+#: (protocols/TRACKER_PROTOCOL.md)
+FIND_CONE_DEG = 5.0
+#: a set-up turned by eye is searched for its first nest in yaw steps of 2 (FIND_CONE_DEG - 1)
+#: deg: neighbouring searches overlap by 2 deg, a margin for the head standing off the plan's
+#: position (30 mm at 3 m turns a bearing by 0.6 deg)
+YAW_SEARCH_STEP_DEG = 2.0 * (FIND_CONE_DEG - 1.0)
+#: as far as a tripod turned by eye is searched, either way (deg): 3 steps
+YAW_SEARCH_MAX_DEG = 3 * YAW_SEARCH_STEP_DEG
+#: a reflector found by a searching set-up is the nest asked for only if some turn about the
+#: head puts it within this of the nest's survey (mm): a tripod is set up within it of where
+#: the plan (and the operator's prompt) puts its head
+SET_UP_POSITION_TOLERANCE_MM = 200.0
+
+
+def yaw_search_deg() -> list[float]:
+    """The turns tried for a set-up's first nest, nearest first: 0, +8, -8, +16, ... deg."""
+    steps = round(YAW_SEARCH_MAX_DEG / YAW_SEARCH_STEP_DEG)
+    return [0.0] + [s * k * YAW_SEARCH_STEP_DEG for k in range(1, steps + 1) for s in (1, -1)]
 
 
 class NestCheckFailed(CommandError):
@@ -82,34 +108,58 @@ class DriftControl:
         T = self.T_world_from_tracker
         return T[:3, :3] @ np.asarray(point_mm, float) + T[:3, 3]
 
-    async def _measure_nest(self, name: str, label: str) -> tuple[np.ndarray | None, str]:
-        T_inv = np.linalg.inv(self.T_world_from_tracker)
-        approx = T_inv[:3, :3] @ self.survey[name] + T_inv[:3, 3]
+    async def _measure_nest(self, name: str, label: str, T_guess: np.ndarray,
+                            search: bool = False) -> tuple[np.ndarray | None, str]:
+        """Find and measure nest ``name`` where ``T_guess`` (the set-up's location as known)
+        puts it; a beam break is measured again once. ``search``: a set-up none of whose nests
+        is found yet may be turned off the plan, so its yaw is searched (:func:`yaw_search_deg`)
+        and a reflector is taken for the nest only where a turn of the set-up puts the nest."""
+        survey = self.survey[name]
         why = ""
-        for attempt in range(2):  # a beam break is measured again once
-            try:
-                await self.tracker.find_reflector(approx)
-                p, _ = await averaged(self.tracker, self.settings.nest_repeats,
-                                      {**self.meta, "nest": name, "check": label,
-                                       "attempt": attempt})
-                return p, ""
-            except (BeamBroken, DeviceError, CommandError) as exc:
-                why = exc.message if isinstance(exc, CommandError) else str(exc)
+        for turn in yaw_search_deg() if search else [0.0]:
+            T = turned_about_head(T_guess, turn)
+            T_inv = np.linalg.inv(T)
+            approx = T_inv[:3, :3] @ survey + T_inv[:3, 3]
+            for attempt in range(2 if turn == 0.0 else 1):  # a beam break: once more
+                try:
+                    await self.tracker.find_reflector(approx)
+                    p, _ = await averaged(self.tracker, self.settings.nest_repeats,
+                                          {**self.meta, "nest": name, "check": label,
+                                           "attempt": attempt,
+                                           **({"yaw_search_deg": turn} if turn else {})})
+                except (BeamBroken, DeviceError, CommandError) as exc:
+                    why = exc.message if isinstance(exc, CommandError) else str(exc)
+                    continue
+                off = off_by_more_than_a_turn(T, p, survey)
+                if not search or off <= SET_UP_POSITION_TOLERANCE_MM:
+                    return p, ""
+                why = (f"the reflector found {turn:+g} deg off the set-up's bearing is "
+                       f"{off:.0f} mm off the nest however the set-up is turned")
+                break
+        if search:
+            why = f"not found within +-{YAW_SEARCH_MAX_DEG:g} deg of the plan's bearing: {why}"
         return None, why
 
-    async def _measure_all(self, label: str, return_to_mm: np.ndarray | None
+    async def _measure_all(self, label: str, return_to_mm: np.ndarray | None,
+                           set_up: bool = False
                            ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
         """Every nest (one out of sight is tried twice, then left out), then the beam back on
-        ``return_to_mm`` (tracker frame); NestCheckFailed if fewer than ``min_nests``."""
+        ``return_to_mm`` (tracker frame); NestCheckFailed if fewer than ``min_nests``. A new
+        ``set_up`` is known only roughly: its first nest is searched in yaw, and each nest found
+        corrects where the next is looked for (:func:`rough_location`)."""
         measured: dict[str, np.ndarray] = {}
         missing: dict[str, str] = {}
+        T_guess = self.T_world_from_tracker
         try:
             for name in self.survey:
-                p, why = await self._measure_nest(name, label)
+                p, why = await self._measure_nest(name, label, T_guess,
+                                                  search=set_up and not measured)
                 if p is None:
                     missing[name] = why
-                else:
-                    measured[name] = p
+                    continue
+                measured[name] = p
+                if set_up:
+                    T_guess = rough_location(T_guess, self.survey, measured)
         finally:
             if return_to_mm is not None:
                 with contextlib.suppress(Exception):
@@ -192,7 +242,7 @@ class DriftControl:
                                   f"tracker stood first; a move cannot be tied to the cell")
         self.setup = setup
         self.T_world_from_tracker = np.asarray(T_rough, float)
-        measured, missing = await self._measure_all(label, return_to_mm)
+        measured, missing = await self._measure_all(label, return_to_mm, set_up=True)
         order = list(self.setups)
         try:
             net = solve_network(self.setups, TrackerSigma(), order)
