@@ -52,7 +52,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--out", required=True)
     tg = sub.add_parser("targets", help="render chessboard pairs for `scancell calibrate cameras`: "
                                         "DIR/left/NN.png, DIR/right/NN.png, stereo_true.yaml")
-    tg.add_argument("--count", type=int, default=15)
+    tg.add_argument("--count", type=int, default=15, help="views of the board both cameras see")
+    tg.add_argument("--edge-views", type=int, default=6,
+                    help="then this many per camera that only it sees wholly, its corners "
+                         "reaching the image's edges (its lens model's)")
     tg.add_argument("--scale", type=float, default=1.0, help="camera resolution divisor")
     tg.add_argument("--seed", type=int, default=0)
     tg.add_argument("--config", help="the cell config whose simulated scanner takes the views "

@@ -75,18 +75,37 @@ def render_board(cam: PinholeModel, rays: np.ndarray, T_cam_from_target: np.ndar
     return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
 
+def _outline(board: Chessboard) -> np.ndarray:
+    """The board's corners with the white margin the detector needs (target frame, mm)."""
+    obj = board.object_points()
+    margin = 1.7 * board.square_mm
+    return np.array([[-margin, -margin, 0], [obj[:, 0].max() + margin, -margin, 0],
+                     [-margin, obj[:, 1].max() + margin, 0],
+                     [obj[:, 0].max() + margin, obj[:, 1].max() + margin, 0]])
+
+
+def _wholly_in(cam: PinholeModel, T_cam_from_target: np.ndarray, outline: np.ndarray) -> bool:
+    pts = outline @ T_cam_from_target[:3, :3].T + T_cam_from_target[:3, 3]
+    if np.any(pts[:, 2] <= 0):
+        return False
+    uv = cam.project(pts)
+    return not (np.any(uv < 2) or np.any(uv[:, 0] > cam.width - 3)
+                or np.any(uv[:, 1] > cam.height - 3))
+
+
 def target_poses(rig: StereoRig, board: Chessboard, n: int, seed: int = 0,
                  distance_mm: tuple[float, float] = (560.0, 800.0),
-                 max_tilt_deg: float = 35.0) -> list[np.ndarray]:
+                 max_tilt_deg: float = 35.0, only: str | None = None) -> list[np.ndarray]:
     """``n`` board poses in the left camera frame, fully visible in both cameras, spread over
-    the field, the depth range and tilts up to ``max_tilt_deg``."""
-    rng = np.random.default_rng([seed, 7])
-    obj = board.object_points()
-    centre = obj.mean(axis=0)
-    margin = 1.7 * board.square_mm
-    outline = np.array([[-margin, -margin, 0], [obj[:, 0].max() + margin, -margin, 0],
-                        [-margin, obj[:, 1].max() + margin, 0],
-                        [obj[:, 0].max() + margin, obj[:, 1].max() + margin, 0]])
+    the field, the depth range and tilts up to ``max_tilt_deg``.
+
+    ``only="left"`` or ``"right"``: poses wholly in that camera's image and not in the other's,
+    aimed through a pixel drawn uniformly over its image: the views an operator adds so that
+    the corners reach the image's edges, where the lens distortion is largest and the views
+    both cameras see cannot go (a lens model is fitted only where its corners fall)."""
+    rng = np.random.default_rng([seed, 7] if only is None else [seed, 7, only == "left"])
+    centre = board.object_points().mean(axis=0)
+    outline = _outline(board)
     T_right_from_left = np.linalg.inv(rig.T_mcs_from_right)
     mid = rig.T_mcs_from_right[:3, 3] / 2
     bisector = np.array([0.0, 0.0, 1.0]) + rig.T_mcs_from_right[:3, 2]
@@ -95,38 +114,39 @@ def target_poses(rig: StereoRig, board: Chessboard, n: int, seed: int = 0,
     tries = 0
     while len(poses) < n:
         tries += 1
-        if tries > 200 * n:
+        if tries > 500 * n:
             raise RuntimeError(f"could only place {len(poses)} of {n} target poses in view")
         tilt = rng.uniform(-max_tilt_deg, max_tilt_deg, 2)
         Rm = Rotation.from_euler("xyz", [tilt[0], tilt[1], rng.uniform(-20, 20)], degrees=True)
         d = rng.uniform(*distance_mm)
-        # aim at a random point of the common field at depth d
-        aim = mid + bisector * d
-        aim[:2] += rng.uniform(-1, 1, 2) * d * np.array([0.09, 0.08])
+        if only is None:  # aim at a random point of the common field at depth d
+            aim = mid + bisector * d
+            aim[:2] += rng.uniform(-1, 1, 2) * d * np.array([0.09, 0.08])
+        else:  # through a random pixel of that camera, at the depth d along the bisector
+            cam, T_cam = ((rig.left, np.eye(4)) if only == "left"
+                          else (rig.right, rig.T_mcs_from_right))
+            uv = rng.uniform([0.0, 0.0], [cam.width - 1.0, cam.height - 1.0])
+            ray = T_cam[:3, :3] @ cam.pixel_rays(uv[:1], uv[1:]).reshape(3)
+            reach = (mid + bisector * d - T_cam[:3, 3]) @ bisector / (ray @ bisector)
+            aim = T_cam[:3, 3] + ray * reach
         R = Rotation.from_euler("x", 180, degrees=True).as_matrix() @ Rm.as_matrix()
         T = make_T(R, aim - R @ centre)
-        ok = True
-        for cam, T_c in ((rig.left, np.eye(4)), (rig.right, T_right_from_left)):
-            P = (T_c @ T)[:3]
-            pts = outline @ P[:, :3].T + P[:, 3]
-            if np.any(pts[:, 2] <= 0):
-                ok = False
-                break
-            uv = cam.project(pts)
-            if np.any(uv < 2) or np.any(uv[:, 0] > cam.width - 3) or np.any(uv[:, 1] > cam.height - 3):
-                ok = False
-                break
-        if ok:
+        in_left = _wholly_in(rig.left, T, outline)
+        in_right = _wholly_in(rig.right, T_right_from_left @ T, outline)
+        if (in_left and in_right) if only is None else (
+                (in_left and not in_right) if only == "left" else (in_right and not in_left)):
             poses.append(T)
     return poses
 
 
 def render_calibration_set(rig: StereoRig, n: int = 15, seed: int = 0,
                            board: Chessboard | None = None, noise_dn: float = 1.0,
-                           psf_sigma_px: float = 0.6) -> list[TargetView]:
-    """Stereo views of the board at ``n`` poses with the true corners in both images. The
-    images are rendered in two threads (numpy and OpenCV release the GIL), each with its own
-    noise stream, so the set is the same however the threads interleave."""
+                           psf_sigma_px: float = 0.6, edge_views: int = 0) -> list[TargetView]:
+    """Stereo views of the board at ``n`` poses with the true corners in both images, then
+    ``edge_views`` per camera that only it sees wholly (``target_poses(only=...)``; the other
+    image shows part of the board). The images are rendered in two threads (numpy and OpenCV
+    release the GIL), each with its own noise stream, so the set is the same however the
+    threads interleave."""
     from concurrent.futures import ThreadPoolExecutor
 
     board = board or Chessboard()
@@ -134,6 +154,9 @@ def render_calibration_set(rig: StereoRig, n: int = 15, seed: int = 0,
     T_right_from_left = np.linalg.inv(rig.T_mcs_from_right)
     obj = board.object_points()
     poses = target_poses(rig, board, n, seed)
+    if edge_views:
+        poses += [*target_poses(rig, board, edge_views, seed, only="left"),
+                  *target_poses(rig, board, edge_views, seed, only="right")]
 
     def image(job: tuple[int, str]) -> np.ndarray:
         i, side = job

@@ -211,7 +211,8 @@ def targets(args: argparse.Namespace) -> int:
                          "scanner's warm-up it is)")
     out = Path(args.out)
     t0 = time.perf_counter()
-    views = render_calibration_set(rig, n=args.count, seed=args.seed)
+    views = render_calibration_set(rig, n=args.count, seed=args.seed,
+                                   edge_views=args.edge_views)
     for side in ("left", "right"):
         (out / side).mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(2) as pool:  # PNG encoding releases the GIL
@@ -219,7 +220,8 @@ def targets(args: argparse.Namespace) -> int:
                                   cv2.imwrite(str(out / "right" / f"{iv[0]:02d}.png"),
                                               iv[1].right)), enumerate(views)))
     rig.write_opencv_yaml(out / "stereo_true.yaml")
-    print(f"rendered {len(views)} chessboard pairs (9x7 inner corners, 20 mm) of "
+    print(f"rendered {len(views)} chessboard pairs ({args.edge_views} per camera towards "
+          f"its edges; 9x7 inner corners, 20 mm) of "
           f"{rig.left.width} x {rig.left.height} in {time.perf_counter() - t0:.1f} s -> {out}")
     return 0
 

@@ -475,3 +475,27 @@ def test_full_size_boards_found_at_half_size_keep_their_corners_to_a_tenth_of_a_
         c = find_corners(img, board)
         d, _ = cKDTree(np.asarray(true).reshape(-1, 2)).query(c)
         assert np.sqrt(np.mean(d ** 2)) < 0.06 and d.max() < 0.12, d
+
+
+@pytest.mark.unit
+def test_views_of_one_camera_reach_its_edges_and_calibrate_its_lens_where_pairs_cannot():
+    """The quick demo's perfect part failed where the pairs' corners never reached (the left
+    image's outer 60 px): its lens model was extrapolated there (docs/explanation/outliers.md)."""
+    from scancell.analysis.stereo_calibration import ChessboardSpec, calibrate_stereo
+    from scancell.sim.calibration_truth import calibrated_frame_offset
+
+    rig = default_rig().scaled(4)
+    views = render_calibration_set(rig, 12, seed=0, edge_views=6)
+    pairs = [(f"{i:02d}", v.left, v.right) for i, v in enumerate(views)]
+    reach = {}
+    for side, cam in (("left", rig.left), ("right", rig.right)):
+        pts = np.concatenate([getattr(v, f"corners_{side}") for v in views[:12]])
+        reach[side] = pts[:, 0].min(), cam.width - pts[:, 0].max()
+    with_edges = calibrate_stereo(pairs, ChessboardSpec())
+    pairs_only = calibrate_stereo(pairs[:12], ChessboardSpec())
+    assert with_edges.single_camera_views["left"] + with_edges.single_camera_views["right"] >= 3
+    assert "views of the left camera alone" in with_edges.table()
+    assert min(reach["left"]) > 80  # px: the pairs alone leave the left camera's edge bare
+    err_edges = calibrated_frame_offset(rig, with_edges.calibration, grid=25).residual_rms_mm
+    err_pairs = calibrated_frame_offset(rig, pairs_only.calibration, grid=25).residual_rms_mm
+    assert err_edges < 0.8 * err_pairs, (err_edges, err_pairs)
