@@ -62,8 +62,10 @@ def classify(cell: Any, rig: Any, T_left: np.ndarray, X: np.ndarray, edge_mm: fl
     unseen = [o.name for o in cell.scene.objects if not o.visible_to_cameras]
     T_right = T_left @ rig.T_mcs_from_right
     T_proj = T_left @ rig.T_mcs_from_projector
+    X_left = (X - c) @ T_left[:3, :3]
+    uv = rig.left.project(X_left)
     out = {"true_depth_mm": t, "error_along_ray_mm": np.linalg.norm(X - c, axis=1) - t,
-           "depth_spread_mm": spread}
+           "depth_spread_mm": spread, "left_u_px": uv[:, 0], "left_v_px": uv[:, 1]}
     for name, T in (("right", T_right), ("projector", T_proj)):
         v = P - T[:3, 3]
         dist = np.linalg.norm(v, axis=1)
@@ -125,7 +127,10 @@ def main() -> int:
               + f"; error along the ray median {np.median(info['error_along_ray_mm']):+.2f} mm, "
                 f"depth spread median {np.median(info['depth_spread_mm']):.1f} mm, incidence "
                 f"left/right median {np.median(info['left_incidence_deg']):.0f}/"
-                f"{np.median(info['right_incidence_deg']):.0f} deg")
+                f"{np.median(info['right_incidence_deg']):.0f} deg; left image u "
+                f"{np.percentile(info['left_u_px'], 5):.0f}..{np.percentile(info['left_u_px'], 95):.0f}"
+                f", v {np.percentile(info['left_v_px'], 5):.0f}..{np.percentile(info['left_v_px'], 95):.0f}"
+                f" of {rig_now.left.width} x {rig_now.left.height} px")
         for k in range(len(bad)):
             found.append({"station": st.name, "index": int(bad[k]), "distance_mm": float(dist[bad[k]]),
                           "part_mm": part[k].round(3).tolist(),

@@ -592,7 +592,7 @@ def test_calibrate_cli_bad_input(tmp_path):
         cv2.imwrite(str(tmp_path / side / "00.png"), np.zeros((50, 60), np.uint8))
     r = subprocess.run([*run, "--images", str(tmp_path), "--out", str(tmp_path / "s.yaml")],
                        capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "found in only 0" in r.stderr
+    assert r.returncode == 2 and "found in both images of only 0" in r.stderr
     r = subprocess.run([*run, "--images", str(tmp_path), "--target", "9by7",
                         "--out", str(tmp_path / "s.yaml")], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "COLSxROWSxSQUARE_MM" in r.stderr
