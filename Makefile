@@ -33,7 +33,7 @@ lint: $(STAMP)
 test: lint
 	$(PY) -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder --durations=30
 
-# The unit tier alone: in-process tests, no sockets to other processes (about a minute).
+# The unit tier alone: in-process tests, no sockets to other processes (about a minute and a half).
 test-fast: lint
 	$(PY) -m pytest -q -n 2 -m unit
 
