@@ -123,7 +123,7 @@ def test_a_job_on_a_cold_scanner_warns_naming_the_minutes():
 
 def _targets_args(out, **kw) -> argparse.Namespace:
     return argparse.Namespace(**{"count": 2, "scale": 8.0, "seed": 3, "out": str(out),
-                                 "config": None, "powered_min": 0.0, **kw})
+                                 "config": None, "powered_min": 0.0, "edge_views": 0, **kw})
 
 
 def test_calibration_views_of_a_warm_simulated_scanner_see_its_grown_rig(tmp_path):
