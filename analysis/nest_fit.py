@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scancell.analysis.handeye import kabsch
+from scipy.spatial.transform import Rotation
 
 
 class NestGeometryError(ValueError):
@@ -61,11 +62,18 @@ def nest_drift(survey: dict[str, np.ndarray], measured: dict[str, np.ndarray],
 def turned_about_head(T_world_from_tracker: np.ndarray, yaw_deg: float) -> np.ndarray:
     """A levelled tracker's set-up ``T_world_from_tracker`` (its readings' frame, the head at
     its origin) turned by ``yaw_deg`` about ``world``'s vertical (z) through the head."""
-    a = np.radians(yaw_deg)
-    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
     T = np.asarray(T_world_from_tracker, float).copy()
-    T[:3, :3] = Rz @ T[:3, :3]
+    T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ T[:3, :3]
     return T
+
+
+def _from_head(T_guess: np.ndarray, reading_mm: np.ndarray, survey_mm: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """A reading (the set-up's frame) and a surveyed point, both from the head in ``world``'s
+    axes (mm)."""
+    T = np.asarray(T_guess, float)
+    return (T[:3, :3] @ np.asarray(reading_mm, float),
+            np.asarray(survey_mm, float) - T[:3, 3])
 
 
 def rough_location(T_guess: np.ndarray, survey: dict[str, np.ndarray],
@@ -79,11 +87,9 @@ def rough_location(T_guess: np.ndarray, survey: dict[str, np.ndarray],
     names = [n for n in measured if n in survey]
     if not names:
         return np.asarray(T_guess, float)
-    head = np.asarray(T_guess, float)[:3, 3]
     turns = []
     for n in names:
-        seen = T_guess[:3, :3] @ np.asarray(measured[n], float)
-        want = np.asarray(survey[n], float) - head
+        seen, want = _from_head(T_guess, measured[n], survey[n])
         turns.append(np.arctan2(want[1], want[0]) - np.arctan2(seen[1], seen[0]))
     mean_turn = np.angle(np.mean(np.exp(1j * np.asarray(turns))))
     return turned_about_head(T_guess, float(np.degrees(mean_turn)))
@@ -94,7 +100,5 @@ def off_by_more_than_a_turn(T_guess: np.ndarray, reading_mm: np.ndarray,
     """How far (mm) a reading (the set-up's frame) lies from a surveyed point however the
     set-up is turned about its head's vertical: the distance of their horizontal ranges and
     heights from the head, which no turn changes."""
-    head = np.asarray(T_guess, float)[:3, 3]
-    seen = np.asarray(T_guess, float)[:3, :3] @ np.asarray(reading_mm, float)
-    want = np.asarray(survey_mm, float) - head
+    seen, want = _from_head(T_guess, reading_mm, survey_mm)
     return float(np.hypot(np.hypot(*seen[:2]) - np.hypot(*want[:2]), seen[2] - want[2]))
